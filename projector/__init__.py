@@ -1,0 +1,1 @@
+"""Drawing calibration dot patterns on monitors and projectors (moderngl)."""
