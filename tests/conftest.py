@@ -1,0 +1,45 @@
+"""Shared test helpers: run a command line in-process and capture its exit code and output."""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+
+import pytest
+
+
+@dataclass
+class CliResult:
+    code: int
+    out: str
+    err: str
+
+
+def _run(app_module: str, prog: str, capsys, args) -> CliResult:
+    import importlib
+
+    from calibkit.clitools import run_app
+
+    app = importlib.import_module(app_module).app
+    old = sys.argv
+    sys.argv = [prog, *(str(a) for a in args)]
+    code = 0
+    try:
+        run_app(app, prog)
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    finally:
+        sys.argv = old
+    captured = capsys.readouterr()
+    return CliResult(code, captured.out, captured.err)
+
+
+@pytest.fixture
+def calibkit_cli(capsys):
+    """calibkit_cli('rig', 'export', ...) -> CliResult(code, out, err), as from the shell."""
+    return lambda *args: _run("calibkit.cli", "calibkit", capsys, args)
+
+
+@pytest.fixture
+def mocapd_cli(capsys):
+    return lambda *args: _run("daemon.cli", "mocapd", capsys, args)
