@@ -61,7 +61,7 @@ def print_table(rows: list[list], header: list[str], file=None) -> None:
 
     def line(values):
         return "  ".join(v.rjust(w) if num else v.ljust(w)
-                         for v, w, num in zip(values, widths, numeric)).rstrip()
+                         for v, w, num in zip(values, widths, numeric, strict=True)).rstrip()
 
     print(line(header), file=file)
     print("  ".join("-" * w for w in widths), file=file)
