@@ -1,0 +1,686 @@
+"""Marker (blob) detection: bright or coloured spots in an image -> sub-pixel centroids.
+
+Every later stage (calibration, triangulation, tracking) inherits the centroid error, so the
+centroid is the point: it is the intensity-weighted mean position with the local background
+subtracted, taken over a window a little larger than the thresholded region. Weighting only
+the pixels above the threshold would cut off the spot's skirt unevenly whenever the spot is
+not centred on a pixel, and bias the centroid towards the pixel grid ("pixel locking").
+
+Regions are found without labelling the whole image (OpenCV's labeller with statistics costs
+milliseconds per VGA frame): the pixels above the threshold are gathered once, joined into
+horizontal runs, the runs are linked to overlapping runs in the row above (8-connectivity),
+and the run forest is collapsed by pointer jumping. All per-blob sums are `np.bincount`s over
+gathered window pixels, so there is no Python loop per blob. One frame with 40 markers takes
+a fraction of a millisecond (benchmarks/bench_detect.py).
+
+Modes:
+- "threshold": one threshold, fixed or automatic from the background level and noise.
+- "multi": a falling series of thresholds; a region is kept at the lowest level at which it
+  still holds a single intensity maximum and fits the size range, which separates touching
+  or unevenly lit targets that one threshold would merge or lose.
+- HSV ranges (colour images): each range is a filter of its own and `Blobs.label` says which
+  range found the blob, so LEDs of different colours can mean different things.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from calibkit.errors import UserError
+
+HsvRange = tuple[tuple[int, int, int], tuple[int, int, int]]
+
+
+@dataclass(eq=False)
+class Blobs:
+    """Blobs of one image, one row per blob (columnar, like Observations).
+
+    uv: (N, 2) float64 centroids in pixels, pixel centres at integer coordinates.
+    area: pixels above the threshold; peak: brightest pixel value (of the weighting image);
+    bbox: (N, 4) int32 x0, y0, x1, y1 inclusive, of the thresholded region; roundness:
+    minor/major axis ratio from the second moments (1 = round, 0 = a line); label: the index
+    of the HSV range that found the blob (0 for grayscale). `threshold` is the level used.
+    """
+
+    uv: np.ndarray
+    area: np.ndarray
+    peak: np.ndarray
+    bbox: np.ndarray
+    roundness: np.ndarray
+    label: np.ndarray
+    threshold: float = float("nan")
+
+    def __post_init__(self) -> None:
+        n = len(self.uv)
+        self.uv = np.asarray(self.uv, dtype=np.float64).reshape(n, 2)
+        self.area = np.asarray(self.area, dtype=np.float32).reshape(n)
+        self.peak = np.asarray(self.peak, dtype=np.float32).reshape(n)
+        self.bbox = np.asarray(self.bbox, dtype=np.int32).reshape(n, 4)
+        self.roundness = np.asarray(self.roundness, dtype=np.float32).reshape(n)
+        self.label = np.asarray(self.label, dtype=np.int32).reshape(n)
+
+    def __len__(self) -> int:
+        return len(self.uv)
+
+    @classmethod
+    def empty(cls, threshold: float = float("nan")) -> Blobs:
+        z = np.zeros(0)
+        return cls(np.zeros((0, 2)), z, z, np.zeros((0, 4)), z, z, threshold)
+
+    def select(self, mask) -> Blobs:
+        """The blobs where `mask` (bool or index array) holds."""
+        return Blobs(self.uv[mask], self.area[mask], self.peak[mask], self.bbox[mask],
+                     self.roundness[mask], self.label[mask], self.threshold)
+
+    @staticmethod
+    def concatenate(parts: list[Blobs]) -> Blobs:
+        if not parts:
+            return Blobs.empty()
+        cat = np.concatenate
+        return Blobs(cat([p.uv for p in parts]), cat([p.area for p in parts]),
+                     cat([p.peak for p in parts]), cat([p.bbox for p in parts]),
+                     cat([p.roundness for p in parts]), cat([p.label for p in parts]),
+                     parts[0].threshold)
+
+    def to_records(self) -> list[dict]:
+        """One dict per blob, the JSON layout of `calibkit detect --json`."""
+        return [{"u": float(u), "v": float(v), "area": float(a), "peak": float(p),
+                 "roundness": round(float(r), 4), "bbox": [int(b) for b in box],
+                 "label": int(lab)}
+                for (u, v), a, p, r, box, lab in zip(self.uv, self.area, self.peak,
+                                                     self.roundness, self.bbox, self.label,
+                                                     strict=True)]
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    """What counts as a marker.
+
+    threshold: a pixel value (pixels brighter than it are candidates) or "auto": the
+    background level plus max(auto_k * noise sigma, min_contrast), both measured on the
+    image. min_area/max_area: the size range in pixels above the threshold (rejects noise
+    specks and large reflections). min_roundness: minor/major axis ratio (rejects
+    line-shaped glints). mode: "threshold" or "multi" (falling series of `multi_levels`
+    thresholds from the brightest pixel down to the threshold). hsv_ranges: for colour
+    (BGR) images, ((h, s, v) low, (h, s, v) high) ranges in OpenCV's HSV (h 0..179); a low
+    h above the high h wraps around red. mask: bool (h, w), True where pixels are ignored.
+    window_margin_px: how far beyond the thresholded region the centroid window reaches.
+    """
+
+    threshold: float | str = "auto"
+    min_area: float = 2.0
+    max_area: float = 4000.0
+    min_roundness: float = 0.0
+    mode: str = "threshold"
+    hsv_ranges: tuple[HsvRange, ...] = ()
+    mask: np.ndarray | None = field(default=None, compare=False)
+    auto_k: float = 6.0
+    min_contrast: float = 8.0
+    window_margin_px: int = 2
+    multi_levels: int = 12
+
+    def __post_init__(self) -> None:
+        t = self.threshold
+        if isinstance(t, str):
+            if t != "auto":
+                raise UserError(f"threshold must be a number or 'auto', got {t!r}")
+        elif not np.isfinite(t) or t < 0:
+            raise UserError(f"threshold must be a non-negative number or 'auto', got {t}")
+        if self.min_area < 0 or self.max_area < self.min_area:
+            raise UserError(f"area range must satisfy 0 <= min_area <= max_area, got "
+                            f"{self.min_area}..{self.max_area}")
+        if not 0.0 <= self.min_roundness <= 1.0:
+            raise UserError(f"min_roundness must be in 0..1, got {self.min_roundness}")
+        if self.mode not in ("threshold", "multi"):
+            raise UserError(f"mode must be 'threshold' or 'multi', got {self.mode!r}")
+        if self.window_margin_px < 0 or self.multi_levels < 2:
+            raise UserError("window_margin_px must be >= 0 and multi_levels >= 2")
+        ranges = tuple((tuple(int(c) for c in lo), tuple(int(c) for c in hi))
+                       for lo, hi in self.hsv_ranges)
+        for lo, hi in ranges:
+            if len(lo) != 3 or len(hi) != 3:
+                raise UserError(f"an HSV range needs 3 values per end, got {lo}:{hi}")
+            if not (0 <= lo[0] <= 179 and 0 <= hi[0] <= 179) or not all(
+                    0 <= c <= 255 for c in (*lo[1:], *hi[1:])):
+                raise UserError(f"HSV range {lo}:{hi} is outside OpenCV's H 0..179, "
+                                "S and V 0..255")
+            if lo[1] > hi[1] or lo[2] > hi[2]:
+                raise UserError(f"HSV range {lo}:{hi} has a low S or V above the high one")
+        object.__setattr__(self, "hsv_ranges", ranges)
+        if self.mask is not None:
+            object.__setattr__(self, "mask", np.asarray(self.mask, dtype=bool))
+
+    def replace(self, **changes) -> DetectorConfig:
+        from dataclasses import replace
+        return replace(self, **changes)
+
+
+# ---------------------------------------------------------------------------------------------
+# Background level
+
+
+def background_level(image: np.ndarray, mask: np.ndarray | None = None) -> tuple[float, float]:
+    """(level, noise sigma) of the background: the median and the spread of its lower half.
+
+    Markers cover a small part of the image and are bright, so the median is the background
+    and the lower half of the histogram is pure noise. A sparse grid of pixels is enough,
+    and the histogram is interpolated within each integer bin so small noise is measured
+    below one DN.
+    """
+    step = 8 if image.size >= 256 * 256 else 1
+    sample = image[::step, ::step]
+    if mask is not None:
+        sample = sample[~mask[::step, ::step]]
+    sample = sample.ravel()
+    if sample.size == 0:
+        return 0.0, 0.0
+    if sample.dtype == np.uint8:
+        hist = np.bincount(sample, minlength=256).astype(np.float64)
+        cdf = np.cumsum(hist)
+        n = cdf[-1]
+
+        def quantile(q: float) -> float:
+            target = q * n
+            b = int(np.searchsorted(cdf, target, side="left"))
+            below = cdf[b - 1] if b > 0 else 0.0
+            return b - 0.5 + (target - below) / max(hist[b], 1.0)
+
+        med = quantile(0.5)
+        return med, max(med - quantile(0.15866), 0.0)
+    med, low = np.percentile(sample.astype(np.float64), [50.0, 15.866])
+    return float(med), float(med - low)
+
+
+def auto_threshold(image: np.ndarray, config: DetectorConfig = DetectorConfig(),
+                   mask: np.ndarray | None = None) -> float:
+    """The threshold "auto" resolves to for this image."""
+    level, sigma = background_level(image, mask)
+    return level + max(config.auto_k * sigma, config.min_contrast)
+
+
+# ---------------------------------------------------------------------------------------------
+# Connected regions of a sparse set of pixels
+
+
+def label_pixels(pix: np.ndarray, width: int) -> tuple[np.ndarray, int]:
+    """8-connected regions of the pixels with sorted flat indices `pix` -> (label per pixel, n).
+
+    Labels are numbered in raster order of each region's first pixel.
+    """
+    runs = _Runs.find(pix, width)
+    return runs.pixel_labels(), runs.n
+
+
+@dataclass
+class _Runs:
+    """Horizontal runs of bright pixels (sorted flat indices `pix`) and their regions."""
+
+    pix: np.ndarray
+    width: int
+    starts: np.ndarray  # index into pix of each run's first pixel
+    lengths: np.ndarray
+    ry: np.ndarray  # row of each run
+    rx0: np.ndarray  # first and last column of each run
+    rx1: np.ndarray
+    run_label: np.ndarray  # region of each run
+    n: int  # number of regions
+
+    @classmethod
+    def find(cls, pix: np.ndarray, width: int) -> _Runs:
+        """Runs, linked to the touching runs of the row above (8-connectivity)."""
+        n = len(pix)
+        if n == 0:
+            z = np.zeros(0, dtype=np.int64)
+            return cls(pix, width, z, z, z, z, z, z, 0)
+        brk = np.empty(n, dtype=bool)
+        brk[0] = True
+        np.not_equal(pix[1:] - pix[:-1], 1, out=brk[1:])
+        brk[1:] |= pix[1:] % width == 0
+        starts = np.flatnonzero(brk)
+        lengths = np.diff(starts, append=n)
+        first = pix[starts]
+        ry = first // width
+        rx0 = first - ry * width
+        rx1 = rx0 + lengths - 1
+        nruns = len(starts)
+        # Keys put the runs on one line, row after row, with a gap so that neighbouring rows
+        # never touch; the touching runs above form one contiguous range [lo, hi).
+        stride = width + 3
+        above = (ry - 1) * stride
+        lo = np.searchsorted(ry * stride + rx1 + 1, above + rx0, side="left")
+        hi = np.searchsorted(ry * stride + rx0 + 1, above + rx1 + 2, side="right")
+        count = hi - lo
+        parent = np.where(count > 0, lo, np.arange(nruns))
+        # Pointer jumping: each run ends up pointing at the first run of its tree.
+        while True:
+            grand = parent[parent]
+            if (grand == parent).all():
+                break
+            parent = grand
+        multi = np.flatnonzero(count > 1)
+        if len(multi):
+            parent = _merge_trees(parent, lo, count, multi)
+        is_root = parent == np.arange(nruns)
+        blob_of_root = np.cumsum(is_root) - 1
+        return cls(pix, width, starts, lengths, ry, rx0, rx1, blob_of_root[parent],
+                   int(blob_of_root[-1] + 1))
+
+    def pixel_labels(self) -> np.ndarray:
+        return np.repeat(self.run_label, self.lengths)
+
+    def regions(self, image: np.ndarray) -> _Regions:
+        n, lab = self.n, self.run_label
+        area = np.bincount(lab, weights=self.lengths, minlength=n)
+        bbox = np.empty((4, n), dtype=np.int64)
+        bbox[:2] = np.iinfo(np.int64).max
+        bbox[2:] = -1
+        np.minimum.at(bbox[0], lab, self.rx0)
+        np.minimum.at(bbox[1], lab, self.ry)
+        np.maximum.at(bbox[2], lab, self.rx1)
+        np.maximum.at(bbox[3], lab, self.ry)
+        peak = np.zeros(n)
+        if n:
+            run_peak = np.maximum.reduceat(image.reshape(-1)[self.pix], self.starts)
+            np.maximum.at(peak, lab, run_peak.astype(np.float64))
+        return _Regions(area, bbox.T, peak, self.pix, self.pixel_labels)
+
+
+def _merge_trees(root: np.ndarray, lo: np.ndarray, count: np.ndarray,
+                 multi: np.ndarray) -> np.ndarray:
+    """Join trees that a run touching several runs above connects (U and V shapes)."""
+    reps = count[multi] - 1
+    first = np.repeat(lo[multi], reps)
+    other = first + (np.arange(reps.sum()) - np.repeat(np.cumsum(reps) - reps, reps)) + 1
+    a, b = root[first], root[other]
+    differ = a != b
+    if not differ.any():
+        return root
+    # Union-find over the few tree roots involved; a handful per image in practice.
+    boss: dict[int, int] = {}
+
+    def find(i: int) -> int:
+        while boss.get(i, i) != i:
+            i = boss[i]
+        return i
+
+    for i, j in zip(a[differ].tolist(), b[differ].tolist(), strict=True):
+        ri, rj = find(i), find(j)
+        if ri != rj:
+            boss[max(ri, rj)] = min(ri, rj)
+    keys = np.fromiter(boss.keys(), dtype=np.int64)
+    target = np.array([find(int(k)) for k in keys], dtype=np.int64)
+    remap = np.arange(len(root))
+    remap[keys] = target
+    return remap[root]
+
+
+@dataclass
+class _Regions:
+    """Regions to measure: per region area, bbox (x0 y0 x1 y1), peak; and their pixels."""
+
+    area: np.ndarray
+    bbox: np.ndarray
+    peak: np.ndarray
+    pix: np.ndarray  # flat indices of all region pixels
+    labels: Callable[[], np.ndarray]  # region of each of pix, computed when needed
+
+    @classmethod
+    def from_pixels(cls, image: np.ndarray, pix: np.ndarray, labels: np.ndarray,
+                    n: int) -> _Regions:
+        width = image.shape[1]
+        ys = pix // width
+        xs = pix - ys * width
+        area = np.bincount(labels, minlength=n).astype(np.float64)
+        bbox = np.empty((4, n), dtype=np.int64)
+        bbox[:2] = np.iinfo(np.int64).max
+        bbox[2:] = -1
+        np.minimum.at(bbox[0], labels, xs)
+        np.minimum.at(bbox[1], labels, ys)
+        np.maximum.at(bbox[2], labels, xs)
+        np.maximum.at(bbox[3], labels, ys)
+        peak = np.zeros(n)
+        np.maximum.at(peak, labels, image.reshape(-1)[pix].astype(np.float64))
+        return cls(area, bbox.T, peak, pix, lambda: labels)
+
+
+# ---------------------------------------------------------------------------------------------
+# Measuring regions
+
+def _measure(image: np.ndarray, regions: _Regions, config: DetectorConfig, threshold: float,
+             ignore: np.ndarray | None, label_value: int = 0) -> Blobs:
+    """Filter regions by area; centroid and roundness over each region's window.
+
+    A region's window is its bounding box grown by `window_margin_px`. Windows are gathered
+    as fixed-size square blocks (a power of two, one size class for most frames) so that the
+    sums are two small batched matrix products. Pixels of another region or masked pixels
+    get no weight; which windows hold any is decided from bounding boxes and the mask's
+    integral image, so the common case (isolated markers) skips the per-pixel check.
+    """
+    area, bbox = regions.area, regions.bbox
+    keep = np.flatnonzero((area >= config.min_area) & (area <= config.max_area))
+    if len(keep) == 0:
+        return Blobs.empty(threshold)
+    h, w = image.shape
+    m = config.window_margin_px
+    box = bbox[keep]
+    ax0 = np.maximum(box[:, 0] - m, 0)
+    ay0 = np.maximum(box[:, 1] - m, 0)
+    ax1 = np.minimum(box[:, 2] + m, w - 1)
+    ay1 = np.minimum(box[:, 3] + m, h - 1)
+    flagged = _crowded(ax0, ay0, ax1, ay1, keep, bbox)
+    if ignore is not None:
+        flagged |= _masked_in(ignore, ax0, ay0, ax1, ay1)
+    owner = None
+    if flagged.any():
+        owner = _owner_image((h, w))
+        owner[regions.pix] = regions.labels() + 1
+    try:
+        ex, ey = ax1 - ax0 + 1, ay1 - ay0 + 1
+        size = np.maximum(np.maximum(ex, ey), 16)
+        block = 1 << np.ceil(np.log2(size)).astype(np.int64)  # 16, 32, 64, ...
+        classes = np.unique(block)
+        flat = image.reshape(-1)
+        if len(classes) == 1:
+            out = _window_moments(flat, owner, ignore, (h, w), keep + 1, ax0, ay0, ex, ey,
+                                  int(classes[0]), threshold, regions.peak[keep], flagged)
+        else:
+            out = np.empty((len(keep), 4))
+            for k in classes:
+                sel = np.flatnonzero(block == k)
+                out[sel] = _window_moments(flat, owner, ignore, (h, w), keep[sel] + 1, ax0[sel],
+                                           ay0[sel], ex[sel], ey[sel], int(k), threshold,
+                                           regions.peak[keep[sel]], flagged[sel])
+    finally:
+        if owner is not None:
+            owner[regions.pix] = 0
+    ok = (out[:, 2] > 0) & (out[:, 3] >= config.min_roundness)
+    sel = keep[ok]
+    return Blobs(out[ok, :2], area[sel], regions.peak[sel], bbox[sel], out[ok, 3],
+                 np.full(len(sel), label_value), threshold)
+
+
+def _crowded(ax0, ay0, ax1, ay1, keep, bbox) -> np.ndarray:
+    """Which windows overlap the bounding box of another region (any region, kept or not)."""
+    if len(keep) * len(bbox) > 1 << 16:
+        return np.ones(len(keep), dtype=bool)
+    hit = ((bbox[None, :, 0] <= ax1[:, None]) & (bbox[None, :, 2] >= ax0[:, None])
+           & (bbox[None, :, 1] <= ay1[:, None]) & (bbox[None, :, 3] >= ay0[:, None]))
+    hit[np.arange(len(keep)), keep] = False
+    return hit.any(axis=1)
+
+
+_scratch = threading.local()  # per-thread caches: cameras detect in their own threads
+
+
+def _owner_image(shape: tuple[int, int]) -> np.ndarray:
+    """A flat int32 scratch image (zero between calls) for "which region owns this pixel"."""
+    img = getattr(_scratch, "owner", None)
+    if img is None or img.size != shape[0] * shape[1]:
+        img = np.zeros(shape[0] * shape[1], dtype=np.int32)
+        _scratch.owner = img
+    return img
+
+
+def _masked_in(ignore: np.ndarray, ax0, ay0, ax1, ay1) -> np.ndarray:
+    """Which windows hold a masked pixel, from the mask's integral image (cached per mask)."""
+    cached = getattr(_scratch, "mask", None)
+    if cached is None or cached[0] is not ignore:
+        integral = cv2.integral(ignore.view(np.uint8))  # (h+1, w+1)
+        cached = (ignore, integral)
+        _scratch.mask = cached
+    s = cached[1]
+    total = s[ay1 + 1, ax1 + 1] - s[ay0, ax1 + 1] - s[ay1 + 1, ax0] + s[ay0, ax0]
+    return total > 0
+
+
+_tables: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _window_table(k: int, lo: np.ndarray, length: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For windows [lo, lo + length) in a block of k: (b, 4, k) rows indicator, indicator * c,
+    indicator * c^2 and the indicator of the window shrunk by one (c: block coordinate about
+    the block centre), and their (b, 4) sums. Tabulated for small blocks."""
+    got = _tables.get(k)
+    if got is None:
+        c = np.arange(k)
+        los = np.arange(k)[:, None, None]
+        lens = np.arange(k + 1)[None, :, None]
+        ind = (c >= los) & (c < los + lens)
+        inner = (c > los) & (c < los + lens - 1)
+        cc = c - (k - 1) * 0.5
+        rows = np.stack([ind * 1.0, ind * cc, ind * cc * cc, inner * 1.0], axis=2)
+        got = (rows, rows.sum(axis=3))
+        if k <= 32:
+            _tables[k] = got
+    return got[0][lo, length], got[1][lo, length]
+
+
+def _window_moments(flat_img, owner, ignore, shape, own_label, ax0, ay0, ex, ey, k, threshold,
+                    peak, flagged) -> np.ndarray:
+    """Columns u, v, weight sum, roundness for blobs whose windows fit a k x k block.
+
+    All sums come from S = My V Mx^T, where V is the block of pixel values and the rows of
+    Mx (My) are the window's indicator times 1, x, x^2 (y, y^2), and the indicator of the
+    window shrunk by one pixel: S[i, j] is then the sum over the window of V y^i x^j, and
+    the ring (window minus its shrunk interior) gives the local background.
+    """
+    h, w = shape
+    kx, ky = min(k, w), min(k, h)
+    # Block origins, shifted inwards at the image edges (the window stays inside the block).
+    ox = np.minimum(ax0, w - kx)
+    oy = np.minimum(ay0, h - ky)
+    idx = (oy * w + ox)[:, None, None] + _block_offsets(ky, kx, w)
+    vals = flat_img.take(idx).astype(np.float64)
+    mx, nx = _window_table(kx, ax0 - ox, ex)  # (b, 4, kx), (b, 4)
+    my, ny = _window_table(ky, ay0 - oy, ey)
+    mxt = mx.transpose(0, 2, 1)
+    n = ny[:, :, None] * nx[:, None, :]  # pixel counts and coordinate sums of the window
+    crowded = np.flatnonzero(flagged)
+    if len(crowded):  # another region or masked pixels inside these windows: no weight there
+        own = owner.take(idx[crowded])
+        mine = own_label[crowded, None, None]
+        keep_px = (own == mine) | (own == 0)
+        if ignore is not None:
+            keep_px &= ~ignore.reshape(-1).take(idx[crowded])
+        vals[crowded] *= keep_px
+        n[crowded] = my[crowded] @ (keep_px @ mxt[crowded])
+    s = my @ (vals @ mxt)  # (b, 4, 4)
+    ring_n = n[:, 0, 0] - n[:, 3, 3]
+    fallback = np.minimum(threshold, peak) if np.isfinite(threshold) else peak
+    bg = np.where(ring_n > 0, (s[:, 0, 0] - s[:, 3, 3]) / np.maximum(ring_n, 1.0), fallback)
+    t = (s[:, :3, :3] - bg[:, None, None] * n[:, :3, :3]).reshape(-1, 9)  # minus background
+    s0 = t[:, 0]
+    good = s0 > 0
+    t /= np.where(good, s0, 1.0)[:, None]
+    mean_x, mean_y = t[:, 1], t[:, 3]  # about the block centre
+    # Roundness: the axis ratio of the second moments; a pixel's own extent (1/12) keeps
+    # one-pixel spots round rather than degenerate.
+    cxx = np.maximum(t[:, 2] - mean_x * mean_x, 0.0) + 1.0 / 12.0
+    cyy = np.maximum(t[:, 6] - mean_y * mean_y, 0.0) + 1.0 / 12.0
+    cxy = t[:, 4] - mean_x * mean_y
+    half_tr = 0.5 * (cxx + cyy)
+    disc = np.sqrt(0.25 * (cxx - cyy) ** 2 + cxy * cxy)
+    out = np.empty((len(ox), 4))
+    out[:, 0] = ox + (kx - 1) * 0.5 + mean_x
+    out[:, 1] = oy + (ky - 1) * 0.5 + mean_y
+    out[:, 2] = np.where(good, s0, 0.0)
+    out[:, 3] = np.sqrt(np.maximum(half_tr - disc, 0.0) / (half_tr + disc))
+    return out
+
+
+_offsets_cache: dict[tuple[int, int, int], np.ndarray] = {}
+
+
+def _block_offsets(ky: int, kx: int, width: int) -> np.ndarray:
+    key = (ky, kx, width)
+    offs = _offsets_cache.get(key)
+    if offs is None:
+        offs = (np.arange(ky)[:, None] * width + np.arange(kx)[None, :]).astype(np.intp)
+        if len(_offsets_cache) > 64:
+            _offsets_cache.clear()
+        _offsets_cache[key] = offs
+    return offs
+
+
+# ---------------------------------------------------------------------------------------------
+# Detection
+
+
+def detect(image: np.ndarray, config: DetectorConfig = DetectorConfig()) -> Blobs:
+    """Find the markers in one image: grayscale (h, w) or BGR colour (h, w, 3)."""
+    image = np.asarray(image)
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] not in (3, 4)):
+        raise UserError(f"expected a grayscale or BGR image, got an array of shape "
+                        f"{image.shape}")
+    mask = config.mask
+    if mask is not None and mask.shape != image.shape[:2]:
+        raise UserError(f"the mask is {mask.shape[1]}x{mask.shape[0]} but the image is "
+                        f"{image.shape[1]}x{image.shape[0]}; build the mask from this camera")
+    if config.hsv_ranges:
+        if image.ndim != 3:
+            raise UserError("HSV ranges need a colour image; this one is grayscale")
+        return _detect_hsv(image[:, :, :3], config, mask)
+    if image.ndim == 3:
+        code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        image = cv2.cvtColor(image, code)
+    if config.threshold == "auto":
+        threshold = auto_threshold(image, config, mask)
+    else:
+        threshold = float(config.threshold)
+    pix = _bright_pixels(image, threshold, mask)
+    if config.mode == "multi":
+        return _detect_multi(image, pix, threshold, config, mask)
+    regions = _Runs.find(pix, image.shape[1]).regions(image)
+    return _measure(image, regions, config, threshold, mask)
+
+
+def _bright_pixels(image: np.ndarray, threshold: float, mask: np.ndarray | None) -> np.ndarray:
+    """Sorted flat indices of the pixels brighter than `threshold` and not masked."""
+    if image.dtype == np.uint8:
+        if threshold >= 255:
+            return np.zeros(0, dtype=np.int64)
+        above = image > np.uint8(max(int(np.floor(threshold)), 0))
+        if above.size % 8 == 0 and above.flags.c_contiguous:
+            # Scan 8 pixels at a time: markers are sparse, so only a few words hold any.
+            words = above.reshape(-1).view(np.uint64)
+            hit = np.flatnonzero(words != 0)
+            bits = np.flatnonzero(words[hit].view(np.bool_))
+            pix = hit[bits >> 3] * 8 + (bits & 7)
+        else:
+            pix = np.flatnonzero(above)
+    else:
+        pix = np.flatnonzero(image > threshold)
+    if mask is not None:
+        pix = pix[~mask.reshape(-1)[pix]]
+    return pix
+
+
+def _detect_hsv(bgr: np.ndarray, config: DetectorConfig, mask: np.ndarray | None) -> Blobs:
+    """One pass per HSV range over the same image; brightness (V) weights the centroid."""
+    if bgr.dtype != np.uint8:
+        raise UserError(f"HSV detection needs an 8-bit colour image, got {bgr.dtype}")
+    hsv = cv2.cvtColor(np.ascontiguousarray(bgr), cv2.COLOR_BGR2HSV)
+    value = np.ascontiguousarray(hsv[:, :, 2])
+    level, _ = background_level(value, mask)
+    parts = []
+    for index, (lo, hi) in enumerate(config.hsv_ranges):
+        if lo[0] <= hi[0]:
+            inside = cv2.inRange(hsv, np.array(lo), np.array(hi))
+        else:  # the hue range wraps around red: lo..179 or 0..hi
+            inside = cv2.inRange(hsv, np.array(lo), np.array((179, *hi[1:])))
+            inside |= cv2.inRange(hsv, np.array((0, *lo[1:])), np.array(hi))
+        above = inside > 0
+        if mask is not None:
+            above &= ~mask
+        pix = np.flatnonzero(above)
+        regions = _Runs.find(pix, bgr.shape[1]).regions(value)
+        parts.append(_measure(value, regions, config, level, mask, index))
+    out = Blobs.concatenate(parts)
+    out.threshold = float("nan")
+    return out
+
+
+def _detect_multi(image: np.ndarray, base_pix: np.ndarray, threshold: float,
+                  config: DetectorConfig, mask: np.ndarray | None) -> Blobs:
+    """Falling thresholds; keep each maximum's largest region that is alone and in range.
+
+    From the brightest level down, a region with no region of the level above inside it is
+    a new maximum; a region holding two or more significant regions of the level above
+    holds several maxima and is not a target. Each maximum keeps the region of the lowest
+    level at which it was still alone and inside the size range, so touching spots are
+    separated just above their saddle and isolated spots are measured at the base level.
+    Regions smaller than the significance area (specks of noise on a spot's top) do not
+    count as maxima of their own.
+    """
+    w = image.shape[1]
+    if len(base_pix) == 0:
+        return Blobs.empty(threshold)
+    vals = image.reshape(-1)[base_pix].astype(np.float64)
+    top = float(vals.max())
+    levels = np.linspace(top, threshold, config.multi_levels + 1)[1:]
+    levels = np.unique(np.floor(levels))[::-1]  # integer levels, falling, distinct
+    significant_area = max(config.min_area, 3.0)
+    prev_pix = prev_lab = prev_nmax = prev_id = prev_area = None
+    next_id = 0
+    best_level = {}  # maximum id -> (level index, region label)
+    frozen: set[int] = set()
+    per_level = []
+    for li, t in enumerate(levels):
+        sel = vals > t
+        pix = base_pix[sel]
+        lab, nreg = label_pixels(pix, w)
+        per_level.append((pix, lab))
+        area = np.bincount(lab, minlength=nreg)
+        if prev_pix is None or len(prev_pix) == 0:
+            nmax = np.ones(nreg, dtype=np.int64)
+            ids = np.arange(next_id, next_id + nreg)
+            next_id += nreg
+        else:
+            # Each region of the level above lies inside exactly one region of this level.
+            first = np.zeros(len(prev_area), dtype=np.int64)
+            first[prev_lab] = np.arange(len(prev_lab))
+            parent = lab[np.searchsorted(pix, prev_pix[first])]
+            signif = (prev_nmax > 1) | (prev_area >= significant_area)
+            nmax = np.bincount(parent, weights=np.where(signif, prev_nmax, 0),
+                               minlength=nreg).astype(np.int64)
+            children = np.bincount(parent, minlength=nreg)
+            ids = np.full(nreg, -1, dtype=np.int64)
+            # A region whose only maximum comes from one child (or whose children are all
+            # insignificant) inherits that child's id: the significant one, else the largest.
+            order = np.lexsort((prev_area, signif, parent))
+            last = np.flatnonzero(np.diff(parent[order], append=nreg) != 0)
+            ids[parent[order[last]]] = prev_id[order[last]]
+            newborn = children == 0
+            ids[newborn] = np.arange(next_id, next_id + newborn.sum())
+            next_id += int(newborn.sum())
+            nmax = np.where(nmax == 0, 1, nmax)
+            ids[nmax != 1] = -1
+        for r in np.flatnonzero(nmax == 1):
+            mid = int(ids[r])
+            if mid in frozen:
+                continue
+            if area[r] > config.max_area:
+                frozen.add(mid)
+            elif area[r] >= config.min_area:
+                best_level[mid] = (li, int(r))
+        prev_pix, prev_lab, prev_nmax, prev_id, prev_area = pix, lab, nmax, ids, area
+    if not best_level:
+        return Blobs.empty(threshold)
+    # Gather the chosen regions (disjoint by construction) into one labelled pixel set.
+    chosen = sorted(best_level.values())
+    pix_parts, lab_parts = [], []
+    for new_label, (li, r) in enumerate(chosen):
+        pix, lab = per_level[li]
+        pix_parts.append(pix[lab == r])
+        lab_parts.append(np.full(int((lab == r).sum()), new_label))
+    pix = np.concatenate(pix_parts)
+    labels = np.concatenate(lab_parts)
+    regions = _Regions.from_pixels(image, pix, labels, len(chosen))
+    return _measure(image, regions, config, threshold, mask)
