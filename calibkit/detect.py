@@ -352,7 +352,8 @@ class _Regions:
 # Measuring regions
 
 def _measure(image: np.ndarray, regions: _Regions, config: DetectorConfig, threshold: float,
-             ignore: np.ndarray | None, label_value: int = 0) -> Blobs:
+             ignore: np.ndarray | None, background: Callable[[], float],
+             label_value: int = 0) -> Blobs:
     """Filter regions by area; centroid and roundness over each region's window.
 
     A region's window is its bounding box grown by `window_margin_px`. Windows are gathered
@@ -387,14 +388,14 @@ def _measure(image: np.ndarray, regions: _Regions, config: DetectorConfig, thres
         flat = image.reshape(-1)
         if len(classes) == 1:
             out = _window_moments(flat, owner, ignore, (h, w), keep + 1, ax0, ay0, ex, ey,
-                                  int(classes[0]), threshold, regions.peak[keep], flagged)
+                                  int(classes[0]), background, flagged)
         else:
             out = np.empty((len(keep), 4))
             for k in classes:
                 sel = np.flatnonzero(block == k)
                 out[sel] = _window_moments(flat, owner, ignore, (h, w), keep[sel] + 1, ax0[sel],
-                                           ay0[sel], ex[sel], ey[sel], int(k), threshold,
-                                           regions.peak[keep[sel]], flagged[sel])
+                                           ay0[sel], ex[sel], ey[sel], int(k), background,
+                                           flagged[sel])
     finally:
         if owner is not None:
             owner[regions.pix] = 0
@@ -441,27 +442,34 @@ def _masked_in(ignore: np.ndarray, ax0, ay0, ax1, ay1) -> np.ndarray:
 _tables: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
 
-def _window_table(k: int, lo: np.ndarray, length: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _window_table(k: int, lo: np.ndarray, length: np.ndarray, open_lo: np.ndarray,
+                  open_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For windows [lo, lo + length) in a block of k: (b, 4, k) rows indicator, indicator * c,
-    indicator * c^2 and the indicator of the window shrunk by one (c: block coordinate about
-    the block centre), and their (b, 4) sums. Tabulated for small blocks."""
+    indicator * c^2 and the indicator of the window's interior (c: block coordinate about
+    the block centre), and their (b, 4) sums. The interior is the window shrunk by one pixel
+    except on sides cut by the image edge (open_lo, open_hi), so the ring around it never
+    lies on a spot the edge cuts through. Tabulated for small blocks."""
     got = _tables.get(k)
     if got is None:
         c = np.arange(k)
-        los = np.arange(k)[:, None, None]
-        lens = np.arange(k + 1)[None, :, None]
+        los = np.arange(k)[:, None, None, None, None]
+        lens = np.arange(k + 1)[None, :, None, None, None]
+        cut_lo = np.arange(2)[None, None, :, None, None]
+        cut_hi = np.arange(2)[None, None, None, :, None]
         ind = (c >= los) & (c < los + lens)
-        inner = (c > los) & (c < los + lens - 1)
+        inner = (c > los - cut_lo) & (c < los + lens - 1 + cut_hi)
         cc = c - (k - 1) * 0.5
-        rows = np.stack([ind * 1.0, ind * cc, ind * cc * cc, inner * 1.0], axis=2)
-        got = (rows, rows.sum(axis=3))
+        ind, inner = np.broadcast_arrays(ind, inner)
+        rows = np.stack([ind * 1.0, ind * cc, ind * cc * cc, inner * 1.0], axis=4)
+        got = (rows, rows.sum(axis=5))
         if k <= 32:
             _tables[k] = got
-    return got[0][lo, length], got[1][lo, length]
+    cut_lo, cut_hi = open_lo.astype(np.intp), open_hi.astype(np.intp)
+    return got[0][lo, length, cut_lo, cut_hi], got[1][lo, length, cut_lo, cut_hi]
 
 
-def _window_moments(flat_img, owner, ignore, shape, own_label, ax0, ay0, ex, ey, k, threshold,
-                    peak, flagged) -> np.ndarray:
+def _window_moments(flat_img, owner, ignore, shape, own_label, ax0, ay0, ex, ey, k,
+                    background, flagged) -> np.ndarray:
     """Columns u, v, weight sum, roundness for blobs whose windows fit a k x k block.
 
     All sums come from S = My V Mx^T, where V is the block of pixel values and the rows of
@@ -476,8 +484,8 @@ def _window_moments(flat_img, owner, ignore, shape, own_label, ax0, ay0, ex, ey,
     oy = np.minimum(ay0, h - ky)
     idx = (oy * w + ox)[:, None, None] + _block_offsets(ky, kx, w)
     vals = flat_img.take(idx).astype(np.float64)
-    mx, nx = _window_table(kx, ax0 - ox, ex)  # (b, 4, kx), (b, 4)
-    my, ny = _window_table(ky, ay0 - oy, ey)
+    mx, nx = _window_table(kx, ax0 - ox, ex, ax0 == 0, ax0 + ex == w)  # (b, 4, kx), (b, 4)
+    my, ny = _window_table(ky, ay0 - oy, ey, ay0 == 0, ay0 + ey == h)
     mxt = mx.transpose(0, 2, 1)
     n = ny[:, :, None] * nx[:, None, :]  # pixel counts and coordinate sums of the window
     crowded = np.flatnonzero(flagged)
@@ -491,8 +499,9 @@ def _window_moments(flat_img, owner, ignore, shape, own_label, ax0, ay0, ex, ey,
         n[crowded] = my[crowded] @ (keep_px @ mxt[crowded])
     s = my @ (vals @ mxt)  # (b, 4, 4)
     ring_n = n[:, 0, 0] - n[:, 3, 3]
-    fallback = np.minimum(threshold, peak) if np.isfinite(threshold) else peak
-    bg = np.where(ring_n > 0, (s[:, 0, 0] - s[:, 3, 3]) / np.maximum(ring_n, 1.0), fallback)
+    bg = (s[:, 0, 0] - s[:, 3, 3]) / np.maximum(ring_n, 1.0)
+    if not np.all(ring_n > 0):  # windows that fill the image: the image's background level
+        bg[ring_n <= 0] = background()
     t = (s[:, :3, :3] - bg[:, None, None] * n[:, :3, :3]).reshape(-1, 9)  # minus background
     s0 = t[:, 0]
     good = s0 > 0
@@ -551,14 +560,21 @@ def detect(image: np.ndarray, config: DetectorConfig = DetectorConfig()) -> Blob
         code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
         image = cv2.cvtColor(image, code)
     if config.threshold == "auto":
-        threshold = auto_threshold(image, config, mask)
+        level, sigma = background_level(image, mask)
+        threshold = level + max(config.auto_k * sigma, config.min_contrast)
+
+        def background() -> float:
+            return level
     else:
         threshold = float(config.threshold)
+
+        def background() -> float:
+            return background_level(image, mask)[0]
     pix = _bright_pixels(image, threshold, mask)
     if config.mode == "multi":
-        return _detect_multi(image, pix, threshold, config, mask)
+        return _detect_multi(image, pix, threshold, config, mask, background)
     regions = _Runs.find(pix, image.shape[1]).regions(image)
-    return _measure(image, regions, config, threshold, mask)
+    return _measure(image, regions, config, threshold, mask, background)
 
 
 def _bright_pixels(image: np.ndarray, threshold: float, mask: np.ndarray | None) -> np.ndarray:
@@ -601,14 +617,15 @@ def _detect_hsv(bgr: np.ndarray, config: DetectorConfig, mask: np.ndarray | None
             above &= ~mask
         pix = np.flatnonzero(above)
         regions = _Runs.find(pix, bgr.shape[1]).regions(value)
-        parts.append(_measure(value, regions, config, level, mask, index))
+        parts.append(_measure(value, regions, config, level, mask, lambda: level, index))
     out = Blobs.concatenate(parts)
     out.threshold = float("nan")
     return out
 
 
 def _detect_multi(image: np.ndarray, base_pix: np.ndarray, threshold: float,
-                  config: DetectorConfig, mask: np.ndarray | None) -> Blobs:
+                  config: DetectorConfig, mask: np.ndarray | None,
+                  background: Callable[[], float]) -> Blobs:
     """Falling thresholds; keep each maximum's largest region that is alone and in range.
 
     From the brightest level down, a region with no region of the level above inside it is
@@ -683,7 +700,7 @@ def _detect_multi(image: np.ndarray, base_pix: np.ndarray, threshold: float,
     pix = np.concatenate(pix_parts)
     labels = np.concatenate(lab_parts)
     regions = _Regions.from_pixels(image, pix, labels, len(chosen))
-    return _measure(image, regions, config, threshold, mask)
+    return _measure(image, regions, config, threshold, mask, background)
 
 
 def match_to_truth(uv: np.ndarray, truth_uv: np.ndarray,
