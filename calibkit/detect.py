@@ -165,35 +165,47 @@ class DetectorConfig:
 
 
 def background_level(image: np.ndarray, mask: np.ndarray | None = None) -> tuple[float, float]:
-    """(level, noise sigma) of the background: the median and the spread of its lower half.
+    """(level, noise sigma) of the background: the median, and the spread of the differences
+    between horizontally adjacent pixels.
 
-    Markers cover a small part of the image and are bright, so the median is the background
-    and the lower half of the histogram is pure noise. A sparse grid of pixels is enough,
-    and the histogram is interpolated within each integer bin so small noise is measured
-    below one DN.
+    Markers cover a small part of the image, so the median is the background level. The
+    noise comes from pixel-to-pixel differences (divided by sqrt 2), whose interquartile range
+    ignores the few spots and, unlike the spread of the values, any smooth gradient of the
+    lighting. A sparse grid of pixels is enough (the estimates agree with the full image's
+    to a few per cent); histograms are interpolated within each integer bin so that noise
+    below one DN is still measured.
     """
-    step = 8 if image.size >= 256 * 256 else 1
-    sample = image[::step, ::step]
+    if image.shape[1] < 2:
+        return float(np.median(image)), 0.0
+    sy = 12 if image.shape[0] >= 240 else 1
+    sx = 8 if image.shape[1] >= 240 else 2
+    a = image[::sy, 0:-1:sx]
+    b = image[::sy, 1::sx][:, :a.shape[1]]
     if mask is not None:
-        sample = sample[~mask[::step, ::step]]
-    sample = sample.ravel()
-    if sample.size == 0:
+        keep = ~(mask[::sy, 0:-1:sx] | mask[::sy, 1::sx][:, :a.shape[1]])
+        a, b = a[keep], b[keep]
+    if a.size == 0:
         return 0.0, 0.0
-    if sample.dtype == np.uint8:
-        hist = np.bincount(sample, minlength=256).astype(np.float64)
+    if image.dtype == np.uint8:
+        m = a.size
+        both = np.empty(2 * m, dtype=np.intp)  # values 0..255, then differences 256..766
+        both[:m] = a.ravel()
+        np.subtract(both[:m], b.ravel(), out=both[m:])
+        both[m:] += 511
+        hist = np.bincount(both, minlength=767)
+        # One cumulative histogram for both: the differences' quantiles sit above all values.
         cdf = np.cumsum(hist)
-        n = cdf[-1]
-
-        def quantile(q: float) -> float:
-            target = q * n
-            b = int(np.searchsorted(cdf, target, side="left"))
-            below = cdf[b - 1] if b > 0 else 0.0
-            return b - 0.5 + (target - below) / max(hist[b], 1.0)
-
-        med = quantile(0.5)
-        return med, max(med - quantile(0.15866), 0.0)
-    med, low = np.percentile(sample.astype(np.float64), [50.0, 15.866])
-    return float(med), float(med - low)
+        n_val = float(cdf[255])
+        targets = np.array([0.5 * n_val, n_val + 0.25 * m, n_val + 0.75 * m])
+        k = np.searchsorted(cdf, targets, side="left")
+        below = np.where(k > 0, cdf[k - 1], 0)
+        q = k - 0.5 + (targets - below) / np.maximum(hist[k], 1)
+        level, q25, q75 = q[0], q[1] - 256, q[2] - 256
+    else:
+        a = a.ravel().astype(np.float64)
+        level = float(np.median(a))
+        q25, q75 = np.percentile(a - b.ravel(), [25.0, 75.0])
+    return float(level), float((q75 - q25) / (1.349 * np.sqrt(2.0)))
 
 
 def auto_threshold(image: np.ndarray, config: DetectorConfig = DetectorConfig(),
@@ -240,13 +252,22 @@ class _Runs:
         brk = np.empty(n, dtype=bool)
         brk[0] = True
         np.not_equal(pix[1:] - pix[:-1], 1, out=brk[1:])
-        brk[1:] |= pix[1:] % width == 0
         starts = np.flatnonzero(brk)
-        lengths = np.diff(starts, append=n)
         first = pix[starts]
         ry = first // width
         rx0 = first - ry * width
+        lengths = np.empty_like(starts)
+        lengths[:-1] = starts[1:] - starts[:-1]
+        lengths[-1] = n - starts[-1]
         rx1 = rx0 + lengths - 1
+        if rx1.max() >= width:  # a run that wraps from one row's end to the next row
+            brk[1:] |= pix[1:] % width == 0
+            starts = np.flatnonzero(brk)
+            first = pix[starts]
+            ry = first // width
+            rx0 = first - ry * width
+            lengths = np.diff(starts, append=n)
+            rx1 = rx0 + lengths - 1
         nruns = len(starts)
         # Keys put the runs on one line, row after row, with a gap so that neighbouring rows
         # never touch; the touching runs above form one contiguous range [lo, hi).
@@ -352,7 +373,7 @@ class _Regions:
 # Measuring regions
 
 def _measure(image: np.ndarray, regions: _Regions, config: DetectorConfig, threshold: float,
-             ignore: np.ndarray | None, background: Callable[[], float],
+             ignore: np.ndarray | None, background: Callable[[], tuple[float, float]],
              label_value: int = 0) -> Blobs:
     """Filter regions by area; centroid and roundness over each region's window.
 
@@ -444,9 +465,9 @@ _tables: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
 def _window_table(k: int, lo: np.ndarray, length: np.ndarray, open_lo: np.ndarray,
                   open_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For windows [lo, lo + length) in a block of k: (b, 4, k) rows indicator, indicator * c,
-    indicator * c^2 and the indicator of the window's interior (c: block coordinate about
-    the block centre), and their (b, 4) sums. The interior is the window shrunk by one pixel
+    """For windows [lo, lo + length) in a block of k: (b, 6, k) rows: the window's indicator
+    times 1, c, c^2, then its interior's indicator times 1, c, c^2 (c: block coordinate about
+    the block centre); and their (b, 6) sums. The interior is the window shrunk by one pixel
     except on sides cut by the image edge (open_lo, open_hi), so the ring around it never
     lies on a spot the edge cuts through. Tabulated for small blocks."""
     got = _tables.get(k)
@@ -460,12 +481,18 @@ def _window_table(k: int, lo: np.ndarray, length: np.ndarray, open_lo: np.ndarra
         inner = (c > los - cut_lo) & (c < los + lens - 1 + cut_hi)
         cc = c - (k - 1) * 0.5
         ind, inner = np.broadcast_arrays(ind, inner)
-        rows = np.stack([ind * 1.0, ind * cc, ind * cc * cc, inner * 1.0], axis=4)
+        rows = np.stack([ind * 1.0, ind * cc, ind * cc * cc,
+                         inner * 1.0, inner * cc, inner * cc * cc], axis=4)
         got = (rows, rows.sum(axis=5))
         if k <= 32:
             _tables[k] = got
     cut_lo, cut_hi = open_lo.astype(np.intp), open_hi.astype(np.intp)
     return got[0][lo, length, cut_lo, cut_hi], got[1][lo, length, cut_lo, cut_hi]
+
+
+# A background slope is used only when it stands out of the noise this clearly (chi-square,
+# 2 degrees of freedom, p = 0.001): fitting a plane to a flat ring would only add noise.
+_SLOPE_CHI2 = 13.8
 
 
 def _window_moments(flat_img, owner, ignore, shape, own_label, ax0, ay0, ex, ey, k,
@@ -484,7 +511,7 @@ def _window_moments(flat_img, owner, ignore, shape, own_label, ax0, ay0, ex, ey,
     oy = np.minimum(ay0, h - ky)
     idx = (oy * w + ox)[:, None, None] + _block_offsets(ky, kx, w)
     vals = flat_img.take(idx).astype(np.float64)
-    mx, nx = _window_table(kx, ax0 - ox, ex, ax0 == 0, ax0 + ex == w)  # (b, 4, kx), (b, 4)
+    mx, nx = _window_table(kx, ax0 - ox, ex, ax0 == 0, ax0 + ex == w)  # (b, 6, kx), (b, 6)
     my, ny = _window_table(ky, ay0 - oy, ey, ay0 == 0, ay0 + ey == h)
     mxt = mx.transpose(0, 2, 1)
     n = ny[:, :, None] * nx[:, None, :]  # pixel counts and coordinate sums of the window
@@ -497,12 +524,42 @@ def _window_moments(flat_img, owner, ignore, shape, own_label, ax0, ay0, ex, ey,
             keep_px &= ~ignore.reshape(-1).take(idx[crowded])
         vals[crowded] *= keep_px
         n[crowded] = my[crowded] @ (keep_px @ mxt[crowded])
-    s = my @ (vals @ mxt)  # (b, 4, 4)
-    ring_n = n[:, 0, 0] - n[:, 3, 3]
-    bg = (s[:, 0, 0] - s[:, 3, 3]) / np.maximum(ring_n, 1.0)
+    s = my @ (vals @ mxt)  # (b, 6, 6)
+    # The ring (window minus interior): fit the background as a constant, or as a plane
+    # where it slopes significantly (a lamp's skirt, vignetting, a neighbour's halo).
+    # Ring sums of v, v x, v y, and of 1, x, y, x^2, y^2, x y (its pixel coordinates).
+    ring = s[:, :3, :3] - s[:, 3:, 3:]
+    ringn = n[:, :3, :3] - n[:, 3:, 3:]
+    r0, rx, ry = ring[:, 0, 0], ring[:, 0, 1], ring[:, 1, 0]
+    ring_n = ringn[:, 0, 0]
+    inv_n = 1.0 / np.maximum(ring_n, 1.0)
+    b0 = r0 * inv_n
+    # Plane v = b0 + bx x + by y by least squares, written with the ring's centred moments
+    # (2 x 2 in the slopes); the slopes' chi-square against the noise is slope' C slope.
+    mx_r, my_r = ringn[:, 0, 1] * inv_n, ringn[:, 1, 0] * inv_n
+    cxx_r = ringn[:, 0, 2] - ringn[:, 0, 1] * mx_r
+    cyy_r = ringn[:, 2, 0] - ringn[:, 1, 0] * my_r
+    cxy_r = ringn[:, 1, 1] - ringn[:, 0, 1] * my_r
+    gx, gy = rx - r0 * mx_r, ry - r0 * my_r
+    det = cxx_r * cyy_r - cxy_r * cxy_r
+    ok_det = det > 1e-6 * np.maximum(cxx_r * cyy_r, 1e-12)
+    det = np.where(ok_det, det, 1.0)
+    bx = (cyy_r * gx - cxy_r * gy) / det
+    by = (cxx_r * gy - cxy_r * gx) / det
+    chi2 = bx * gx + by * gy  # = slope' C slope
+    sigma = max(background()[1], 0.5) if len(ox) else 1.0
+    strong = ok_det & (ring_n >= 8) & (chi2 > _SLOPE_CHI2 * sigma * sigma)
+    bx = np.where(strong, bx, 0.0)
+    by = np.where(strong, by, 0.0)
+    b0 = np.where(strong, b0 - bx * mx_r - by * my_r, b0)
     if not np.all(ring_n > 0):  # windows that fill the image: the image's background level
-        bg[ring_n <= 0] = background()
-    t = (s[:, :3, :3] - bg[:, None, None] * n[:, :3, :3]).reshape(-1, 9)  # minus background
+        b0[ring_n <= 0] = background()[0]
+    t = (s[:, :3, :3] - b0[:, None, None] * n[:, :3, :3]).reshape(-1, 9)  # minus background
+    # The plane's slope terms for the zeroth and first moments (second moments keep the
+    # constant part only: their slope terms are odd and nearly cancel over the window).
+    t[:, 0] -= bx * n[:, 0, 1] + by * n[:, 1, 0]
+    t[:, 1] -= bx * n[:, 0, 2] + by * n[:, 1, 1]
+    t[:, 3] -= bx * n[:, 1, 1] + by * n[:, 2, 0]
     s0 = t[:, 0]
     good = s0 > 0
     t /= np.where(good, s0, 1.0)[:, None]
@@ -563,13 +620,13 @@ def detect(image: np.ndarray, config: DetectorConfig = DetectorConfig()) -> Blob
         level, sigma = background_level(image, mask)
         threshold = level + max(config.auto_k * sigma, config.min_contrast)
 
-        def background() -> float:
-            return level
+        def background() -> tuple[float, float]:
+            return level, sigma
     else:
         threshold = float(config.threshold)
 
-        def background() -> float:
-            return background_level(image, mask)[0]
+        def background() -> tuple[float, float]:
+            return background_level(image, mask)
     pix = _bright_pixels(image, threshold, mask)
     if config.mode == "multi":
         return _detect_multi(image, pix, threshold, config, mask, background)
@@ -604,7 +661,7 @@ def _detect_hsv(bgr: np.ndarray, config: DetectorConfig, mask: np.ndarray | None
         raise UserError(f"HSV detection needs an 8-bit colour image, got {bgr.dtype}")
     hsv = cv2.cvtColor(np.ascontiguousarray(bgr), cv2.COLOR_BGR2HSV)
     value = np.ascontiguousarray(hsv[:, :, 2])
-    level, _ = background_level(value, mask)
+    level, sigma = background_level(value, mask)
     parts = []
     for index, (lo, hi) in enumerate(config.hsv_ranges):
         if lo[0] <= hi[0]:
@@ -617,7 +674,8 @@ def _detect_hsv(bgr: np.ndarray, config: DetectorConfig, mask: np.ndarray | None
             above &= ~mask
         pix = np.flatnonzero(above)
         regions = _Runs.find(pix, bgr.shape[1]).regions(value)
-        parts.append(_measure(value, regions, config, level, mask, lambda: level, index))
+        parts.append(_measure(value, regions, config, level, mask, lambda: (level, sigma),
+                              index))
     out = Blobs.concatenate(parts)
     out.threshold = float("nan")
     return out
@@ -625,7 +683,7 @@ def _detect_hsv(bgr: np.ndarray, config: DetectorConfig, mask: np.ndarray | None
 
 def _detect_multi(image: np.ndarray, base_pix: np.ndarray, threshold: float,
                   config: DetectorConfig, mask: np.ndarray | None,
-                  background: Callable[[], float]) -> Blobs:
+                  background: Callable[[], tuple[float, float]]) -> Blobs:
     """Falling thresholds; keep each maximum's largest region that is alone and in range.
 
     From the brightest level down, a region with no region of the level above inside it is
