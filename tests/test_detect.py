@@ -286,7 +286,7 @@ def test_sloping_background_is_fitted_as_a_plane():
     rng = np.random.default_rng(11)
     yy, xx = np.mgrid[0:100, 0:100]
     errors = []
-    for i in range(30):
+    for _ in range(30):
         c = rng.uniform(40, 60, size=2)
         sig = render_spots_float((100, 100), c[None], 3.0, peak=200)
         img = np.clip(np.rint(sig + 8 + 0.5 * xx + 0.2 * yy + rng.normal(0, 2, sig.shape)),
