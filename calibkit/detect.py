@@ -704,8 +704,10 @@ def _detect_multi(image: np.ndarray, base_pix: np.ndarray, threshold: float,
     significant_area = max(config.min_area, 3.0)
     prev_pix = prev_lab = prev_nmax = prev_id = prev_area = None
     next_id = 0
-    best_level = {}  # maximum id -> (level index, region label)
-    frozen: set[int] = set()
+    # Per maximum id (at most one birth per pixel): the level and region it keeps so far.
+    best_li = np.full(len(base_pix), -1, dtype=np.int64)
+    best_r = np.full(len(base_pix), -1, dtype=np.int64)
+    frozen = np.zeros(len(base_pix), dtype=bool)  # grew beyond max_area: stop updating
     per_level = []
     for li, t in enumerate(levels):
         sel = vals > t
@@ -737,27 +739,33 @@ def _detect_multi(image: np.ndarray, base_pix: np.ndarray, threshold: float,
             next_id += int(newborn.sum())
             nmax = np.where(nmax == 0, 1, nmax)
             ids[nmax != 1] = -1
-        for r in np.flatnonzero(nmax == 1):
-            mid = int(ids[r])
-            if mid in frozen:
-                continue
-            if area[r] > config.max_area:
-                frozen.add(mid)
-            elif area[r] >= config.min_area:
-                best_level[mid] = (li, int(r))
+        alone = np.flatnonzero(nmax == 1)
+        mids = ids[alone]
+        live = ~frozen[mids]
+        big = area[alone] > config.max_area
+        frozen[mids[live & big]] = True
+        grow = live & ~big & (area[alone] >= config.min_area)
+        best_li[mids[grow]] = li
+        best_r[mids[grow]] = alone[grow]
         prev_pix, prev_lab, prev_nmax, prev_id, prev_area = pix, lab, nmax, ids, area
-    if not best_level:
+    found = np.flatnonzero(best_li >= 0)
+    if len(found) == 0:
         return Blobs.empty(threshold)
-    # Gather the chosen regions (disjoint by construction) into one labelled pixel set.
-    chosen = sorted(best_level.values())
+    # Gather the chosen regions (disjoint by construction) into one labelled pixel set,
+    # one pass per level.
     pix_parts, lab_parts = [], []
-    for new_label, (li, r) in enumerate(chosen):
-        pix, lab = per_level[li]
-        pix_parts.append(pix[lab == r])
-        lab_parts.append(np.full(int((lab == r).sum()), new_label))
+    for li, (pix, lab) in enumerate(per_level):
+        here = found[best_li[found] == li]
+        if len(here) == 0:
+            continue
+        new_label = np.full(lab.max() + 1 if len(lab) else 0, -1, dtype=np.int64)
+        new_label[best_r[here]] = np.searchsorted(found, here)
+        got = new_label[lab]
+        pix_parts.append(pix[got >= 0])
+        lab_parts.append(got[got >= 0])
     pix = np.concatenate(pix_parts)
     labels = np.concatenate(lab_parts)
-    regions = _Regions.from_pixels(image, pix, labels, len(chosen))
+    regions = _Regions.from_pixels(image, pix, labels, len(found))
     return _measure(image, regions, config, threshold, mask, background)
 
 
