@@ -403,8 +403,13 @@ def _measure(image: np.ndarray, regions: _Regions, config: DetectorConfig, thres
         owner[regions.pix] = regions.labels() + 1
     try:
         ex, ey = ax1 - ax0 + 1, ay1 - ay0 + 1
-        size = np.maximum(np.maximum(ex, ey), 16)
-        block = 1 << np.ceil(np.log2(size)).astype(np.int64)  # 16, 32, 64, ...
+        # Block sizes: every window up to 24 px shares one block as large as the largest of
+        # them (most frames: one class); bigger ones go by powers of two.
+        size = np.maximum(ex, ey)
+        small = size <= 24
+        block = 1 << np.ceil(np.log2(np.maximum(size, 2))).astype(np.int64)
+        if small.any():
+            block[small] = max(int(size[small].max()), 3)
         classes = np.unique(block)
         flat = image.reshape(-1)
         if len(classes) == 1:
@@ -483,11 +488,13 @@ def _window_table(k: int, lo: np.ndarray, length: np.ndarray, open_lo: np.ndarra
         ind, inner = np.broadcast_arrays(ind, inner)
         rows = np.stack([ind * 1.0, ind * cc, ind * cc * cc,
                          inner * 1.0, inner * cc, inner * cc * cc], axis=4)
-        got = (rows, rows.sum(axis=5))
+        got = (rows.reshape(-1, 6, k), rows.sum(axis=5).reshape(-1, 6))
         if k <= 32:
+            if len(_tables) >= 8:
+                _tables.clear()
             _tables[k] = got
-    cut_lo, cut_hi = open_lo.astype(np.intp), open_hi.astype(np.intp)
-    return got[0][lo, length, cut_lo, cut_hi], got[1][lo, length, cut_lo, cut_hi]
+    at = ((lo * (k + 1) + length) * 2 + open_lo) * 2 + open_hi
+    return got[0].take(at, axis=0), got[1].take(at, axis=0)
 
 
 # A background slope is used only when it stands out of the noise this clearly (chi-square,
