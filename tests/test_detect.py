@@ -194,9 +194,11 @@ def test_multi_threshold_separates_touching_spots():
         assert len(multi) == len(det) == 2
         errors.append(multi.uv[det] - truth[tru])
     err = np.concatenate(errors)
-    # Each spot is measured with its neighbour's skirt in the window: a bias of a few
-    # tenths of a pixel towards it, versus ~3 px for the merged blob.
-    assert np.abs(err).max() < 0.5
+    # The light of the overlapping skirts is shared out by symmetric templates; without
+    # that each centroid is pulled ~0.3 px towards its neighbour (and ~3 px for the merged
+    # blob of one threshold).
+    assert np.sqrt((err**2).sum(axis=1).mean()) < 0.08
+    assert np.abs(err).max() < 0.25
 
 
 def test_multi_threshold_keeps_isolated_spots_exact_and_uneven_lighting():
