@@ -545,6 +545,15 @@ def _window_table(k: int, lo: np.ndarray, length: np.ndarray, open_lo: np.ndarra
     the block centre); and their (b, 6) sums. The interior is the window shrunk by one pixel
     except on sides cut by the image edge (open_lo, open_hi), so the ring around it never
     lies on a spot the edge cuts through. Tabulated for small blocks."""
+    if k > 24:  # large blobs are rare: compute their rows instead of tabulating k^3 values
+        c = np.arange(k)
+        lo_, hi_ = lo[:, None], (lo + length)[:, None]
+        ind = (c >= lo_) & (c < hi_)
+        inner = (c > lo_ - open_lo[:, None]) & (c < hi_ - 1 + open_hi[:, None])
+        cc = c - (k - 1) * 0.5
+        rows = np.stack([ind * 1.0, ind * cc, ind * cc * cc,
+                         inner * 1.0, inner * cc, inner * cc * cc], axis=1)
+        return rows, rows.sum(axis=2)
     got = _tables.get(k)
     if got is None:
         c = np.arange(k)
@@ -559,11 +568,10 @@ def _window_table(k: int, lo: np.ndarray, length: np.ndarray, open_lo: np.ndarra
         rows = np.stack([ind * 1.0, ind * cc, ind * cc * cc,
                          inner * 1.0, inner * cc, inner * cc * cc], axis=4)
         got = (rows.reshape(-1, 6, k), rows.sum(axis=5).reshape(-1, 6))
-        if k <= 32:
-            if len(_tables) >= 8:
-                _tables.clear()
-            _tables[k] = got
-    at = ((lo * (k + 1) + length) * 2 + open_lo) * 2 + open_hi
+        if len(_tables) >= 8:
+            _tables.clear()
+        _tables[k] = got
+    at = ((lo * (k + 1) + length) * 2 + open_lo.astype(np.intp)) * 2 + open_hi.astype(np.intp)
     return got[0].take(at, axis=0), got[1].take(at, axis=0)
 
 
