@@ -425,8 +425,10 @@ def _measure(image: np.ndarray, regions: _Regions, config: DetectorConfig, thres
     finally:
         if owner is not None:
             owner[regions.pix] = 0
-    if config.mode == "multi" and flagged.any():
-        crowded = np.flatnonzero(flagged & (out[:, 2] > 0))
+    crowded = np.flatnonzero(flagged & (out[:, 2] > 0))
+    # Deblend touching spots in multi mode (skipped on frames that are mostly noise or
+    # glare, where thousands of regions touch and no centroid means much).
+    if config.mode == "multi" and len(crowded) and len(crowded) * len(keep) <= 1 << 22:
         # The global level: a crowded window's ring slopes with its neighbour's halo.
         level = np.full(len(out), background()[0])
         out[crowded, :2] = _deblend(image, out[:, :2], level, crowded, ax0, ay0, ax1, ay1,
