@@ -164,3 +164,15 @@ def test_bad_input_is_one_line_and_exit_2(calibkit_cli, tmp_path, args, message)
     assert len(lines) == 1 and lines[0].startswith("calibkit: error:"), res.err
     assert message in lines[0]
     assert not (tmp_path / "m.png").exists()
+
+
+def test_sim_with_the_simulator(calibkit_cli, tmp_path):
+    res = calibkit_cli("detect", "--sim", "--markers", "30", "--seed", "3", "--json",
+                       tmp_path / "s.json")
+    assert res.code == 0, res.err
+    data = json.loads((tmp_path / "s.json").read_text())
+    assert data["camera"] == "cam0" and len(data["blobs"]) >= 10
+    assert data["truth"]["recall"] >= 0.95 and data["truth"]["false_blobs"] == 0
+    assert data["truth"]["centroid_rms_px"] < 0.2
+    res = calibkit_cli("detect", "--sim", "--camera", "cam9")
+    assert res.code == 2 and "no camera" in res.err
