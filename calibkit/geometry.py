@@ -137,8 +137,10 @@ class Triangulation:
 
 def _solve3(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Batched 3x3 solves; singular systems give NaN rather than an exception."""
-    det = np.linalg.det(A)
-    good = np.abs(det) > 1e-18 * np.maximum(1.0, np.abs(A).max(axis=(1, 2)) ** 3)
+    with np.errstate(invalid="ignore", over="ignore"):
+        det = np.linalg.det(np.nan_to_num(A))
+    good = (np.abs(det) > 1e-18 * np.maximum(1.0, np.abs(A).max(axis=(1, 2)) ** 3)) & \
+        np.isfinite(b).all(axis=1)
     out = np.full(b.shape, np.nan)
     if np.any(good):
         out[good] = np.linalg.solve(A[good], b[good][:, :, None])[:, :, 0]
