@@ -1,6 +1,8 @@
-"""The `mocapd` command line."""
+"""The `mocapd` command line: one Typer app; each command lives in daemon/commands/."""
 
 from __future__ import annotations
+
+import importlib
 
 import typer
 
@@ -16,6 +18,15 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 
+# Each module defines register(app). Order here is the order of `mocapd --help`.
+COMMAND_MODULES = (
+    "start_cmd",
+    "control_cmd",
+    "rigid_cmd",
+    "unit_cmd",
+    "markerset_cmd",
+)
+
 
 def _version(value: bool) -> None:
     if value:
@@ -27,6 +38,16 @@ def _version(value: bool) -> None:
 def _root(version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
                                        help="Print the version and exit.")) -> None:
     """mocapd: the motion-capture tracking daemon."""
+
+
+for _name in COMMAND_MODULES:
+    try:
+        _module = importlib.import_module(f"daemon.commands.{_name}")
+    except ModuleNotFoundError as _exc:  # a command still being written (development only)
+        if _exc.name != f"daemon.commands.{_name}":
+            raise
+        continue
+    _module.register(app)
 
 
 def main() -> None:

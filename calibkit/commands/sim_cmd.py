@@ -1,0 +1,99 @@
+"""`calibkit sim`: write a simulated rig, or a simulated capture with its ground truth."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from calibkit import sim
+from calibkit.camera import WEBCAM_DIST, BASLER_658x492_DIST
+from calibkit.commands.common import load_rig_option, parse_floats, parse_size
+from calibkit.errors import UserError
+from calibkit.recording import save_observations, truth_path_for
+
+DISTORTIONS = {"none": (0.0, 0.0, 0.0, 0.0, 0.0), "webcam": WEBCAM_DIST,
+               "basler": BASLER_658x492_DIST}
+
+sim_app = typer.Typer(help="Simulated rigs and captures with ground truth.",
+                      no_args_is_help=True)
+
+Out = Annotated[Path, typer.Option("--out", help="Recording (.mcrec) or plain CSV (.csv).")]
+RigOpt = Annotated[Path | None, typer.Option("--rig", help="The true rig (calibkit sim rig).")]
+Frames = Annotated[int, typer.Option("--frames", help="Frames to simulate.")]
+Fps = Annotated[float, typer.Option("--fps", help="Frame rate, Hz.")]
+Noise = Annotated[float, typer.Option("--noise-px", help="Centroid noise sigma; 0 = exact.")]
+Dropout = Annotated[float, typer.Option("--dropout", help="Chance a marker is hidden.")]
+Ghosts = Annotated[float, typer.Option("--ghosts", help="Stray blobs per camera per frame.")]
+Seed = Annotated[int, typer.Option("--seed", help="Random seed: same seed, same data.")]
+
+
+def _write(out: Path, rig, truth, noise, dropout, ghosts, fps, seed) -> None:
+    obs = sim.observe(rig, truth, noise_px=noise, dropout=dropout, ghosts_per_camera=ghosts,
+                      fps=fps, seed=seed)
+    save_observations(out, obs, truth, rig)
+    where = f" (truth in {truth_path_for(out)})" if out.suffix.lower() == ".csv" else ""
+    typer.echo(f"wrote {out}: {len(obs.frames())} frames, {len(obs)} blobs from "
+               f"{len(rig)} cameras{where}")
+
+
+@sim_app.command("rig")
+def sim_rig(
+    out: Annotated[Path, typer.Option("--out", help="The rig file to write.")],
+    cameras: Annotated[int, typer.Option("--cameras", help="Number of cameras (2-32).")] = 6,
+    volume: Annotated[float, typer.Option("--volume", help="Volume across, metres.")] = 4.0,
+    size: Annotated[str, typer.Option("--size", help="Image size WIDTHxHEIGHT.")] = "640x480",
+    fov: Annotated[float, typer.Option("--fov", help="Horizontal field of view, deg.")] = 70.0,
+    distortion: Annotated[str, typer.Option(
+        "--distortion", help="Lens: none, webcam or basler.")] = "webcam",
+    seed: Seed = 0,
+) -> None:
+    """Write a true rig: cameras on a ring around a capture volume."""
+    if distortion not in DISTORTIONS:
+        raise UserError(f"--distortion must be one of {', '.join(DISTORTIONS)}, got "
+                        f"{distortion!r}")
+    rig = sim.make_rig(cameras, volume, parse_size(size), fov, DISTORTIONS[distortion], seed)
+    rig.save(out)
+    typer.echo(f"wrote {out}: {len(rig)} cameras around a {volume:g} m volume")
+
+
+@sim_app.command("static")
+def sim_static(out: Out, rig: RigOpt = None, markers: Annotated[int, typer.Option(
+        "--markers", help="Number of markers.")] = 20, frames: Frames = 100, fps: Fps = 100.0,
+        noise_px: Noise = 0.2, dropout: Dropout = 0.0, ghosts: Ghosts = 0.0,
+        seed: Seed = 0) -> None:
+    """Markers standing still in the volume."""
+    true_rig = load_rig_option(rig)
+    truth = sim.static_markers(markers, frames, float(true_rig.meta.get("volume_m", 4.0)), seed)
+    _write(out, true_rig, truth, noise_px, dropout, ghosts, fps, seed)
+
+
+@sim_app.command("wand")
+def sim_wand(out: Out, rig: RigOpt = None, frames: Frames = 3000, fps: Fps = 100.0,
+             spacing: Annotated[str, typer.Option(
+                 "--spacing", help="Marker positions along the wand, metres.")] = "0,0.2,0.5",
+             noise_px: Noise = 0.1, dropout: Dropout = 0.0, ghosts: Ghosts = 0.0,
+             seed: Seed = 0) -> None:
+    """A wand waved through the volume."""
+    true_rig = load_rig_option(rig)
+    truth = sim.wand_motion(frames, fps, float(true_rig.meta.get("volume_m", 4.0)),
+                            parse_floats(spacing, "--spacing"), seed)
+    _write(out, true_rig, truth, noise_px, dropout, ghosts, fps, seed)
+
+
+@sim_app.command("rigid")
+def sim_rigid(out: Out, rig: RigOpt = None, bodies: Annotated[int, typer.Option(
+        "--bodies", help="Number of rigid bodies.")] = 3, markers: Annotated[int, typer.Option(
+        "--markers", help="Markers per body (3-8).")] = 4, frames: Frames = 500,
+        fps: Fps = 100.0, noise_px: Noise = 0.2, dropout: Dropout = 0.0, ghosts: Ghosts = 0.0,
+        seed: Seed = 0) -> None:
+    """Rigid bodies moving through the volume."""
+    true_rig = load_rig_option(rig)
+    truth, _ = sim.rigid_body_motion(bodies, frames, fps,
+                                     float(true_rig.meta.get("volume_m", 4.0)), markers, seed)
+    _write(out, true_rig, truth, noise_px, dropout, ghosts, fps, seed)
+
+
+def register(app: typer.Typer) -> None:
+    app.add_typer(sim_app, name="sim")

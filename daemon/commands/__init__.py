@@ -1,0 +1,1 @@
+"""The `mocapd` subcommands: one module each, every one with register(app)."""
