@@ -136,14 +136,23 @@ class Triangulation:
 
 
 def _solve3(A: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Batched 3x3 solves; singular systems give NaN rather than an exception."""
-    with np.errstate(invalid="ignore", over="ignore"):
-        det = np.linalg.det(np.nan_to_num(A))
-    good = (np.abs(det) > 1e-18 * np.maximum(1.0, np.abs(A).max(axis=(1, 2)) ** 3)) & \
-        np.isfinite(b).all(axis=1)
-    out = np.full(b.shape, np.nan)
-    if np.any(good):
-        out[good] = np.linalg.solve(A[good], b[good][:, :, None])[:, :, 0]
+    """Batched 3x3 solves by the adjugate (several times faster than np.linalg.solve on
+    tiny systems); singular or non-finite systems give NaN rather than an exception."""
+    a, b_, c = A[:, 0, 0], A[:, 0, 1], A[:, 0, 2]
+    d, e, f = A[:, 1, 0], A[:, 1, 1], A[:, 1, 2]
+    g, h, i = A[:, 2, 0], A[:, 2, 1], A[:, 2, 2]
+    co0, co1, co2 = e * i - f * h, f * g - d * i, d * h - e * g
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        det = a * co0 + b_ * co1 + c * co2
+        scale = np.abs(A).max(axis=(1, 2))
+        good = np.abs(det) > 1e-18 * np.maximum(1.0, scale) ** 3
+        inv_det = np.where(good, 1.0 / np.where(good, det, 1.0), np.nan)
+        x, y, z = b[:, 0], b[:, 1], b[:, 2]
+        out = np.stack([
+            co0 * x + (c * h - b_ * i) * y + (b_ * f - c * e) * z,
+            co1 * x + (a * i - c * g) * y + (c * d - a * f) * z,
+            co2 * x + (b_ * g - a * h) * y + (a * e - b_ * d) * z,
+        ], axis=1) * inv_det[:, None]
     return out
 
 
@@ -201,7 +210,9 @@ def mean_ray_distance(point: np.ndarray, origins: np.ndarray, dirs: np.ndarray,
 
 def triangulate(rig: Rig, point: np.ndarray, camera: np.ndarray, uv: np.ndarray,
                 iterations: int = 3, n_points: int | None = None,
-                ray_distance: bool = True) -> Triangulation:
+                ray_distance: bool = True,
+                rays: tuple[np.ndarray, np.ndarray] | None = None,
+                start: np.ndarray | None = None) -> Triangulation:
     """Triangulate P points from M observations (point index, camera index, distorted pixels).
 
     Linear least squares on the undistorted rays gives the start; `iterations` Gauss-Newton
@@ -209,6 +220,8 @@ def triangulate(rig: Rig, point: np.ndarray, camera: np.ndarray, uv: np.ndarray,
     (the ray solution weights far cameras too little). Points seen by fewer than two
     cameras, or that end up behind one of their cameras, are NaN. `ray_distance=False`
     skips the pairwise ray figure (NaN) where only positions are needed, as in tracking.
+    `rays` (origins, directions) may be given when the caller has already computed them,
+    and `start` (P, 3) positions to refine instead of the linear solution.
     """
     arrays = RigArrays.from_rig(rig)
     point = np.asarray(point, dtype=np.int64).reshape(-1)
@@ -219,13 +232,20 @@ def triangulate(rig: Rig, point: np.ndarray, camera: np.ndarray, uv: np.ndarray,
     if len(point) == 0:
         empty = np.zeros(n)
         return Triangulation(np.full((n, 3), np.nan), empty + np.nan, empty + np.nan, n_cams)
-    origins, dirs = arrays.rays(camera, uv)
-    xyz = closest_point_to_rays(point, origins, dirs, n)
+    origins, dirs = arrays.rays(camera, uv) if rays is None else rays
+    if start is None:
+        xyz = closest_point_to_rays(point, origins, dirs, n)
+    else:
+        xyz = np.array(start, dtype=np.float64).reshape(n, 3)
+        missing = ~np.isfinite(xyz).all(axis=1)
+        if np.any(missing):
+            xyz[missing] = closest_point_to_rays(point, origins, dirs, n)[missing]
     xyz[n_cams < 2] = np.nan
     for _ in range(iterations):
         proj, z, J = arrays.project(camera, xyz[point], jacobian=True)
         r = proj - uv
-        H = group_sum(point, np.einsum("mki,mkj->mij", J, J), n)
+        JtJ = J[:, 0, :, None] * J[:, 0, None, :] + J[:, 1, :, None] * J[:, 1, None, :]
+        H = group_sum(point, JtJ, n)
         g = group_sum(point, np.einsum("mki,mk->mi", J, r), n)
         step = _solve3(H, g)
         finite = np.isfinite(step[:, 0])
