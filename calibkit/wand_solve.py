@@ -1,0 +1,228 @@
+"""The wand calibration from blobs to a graded rig: identify, hold frames out, initialise,
+bundle-adjust, set the world frame, evaluate. `calibrate_wand` is the one entry point the
+command line and the demo call; each step lives in its own module.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from calibkit import bundle, floor, wand_report
+from calibkit.camera import Rig
+from calibkit.errors import UserError
+from calibkit.geometry import RigArrays, triangulate
+from calibkit.observations import Observations
+from calibkit.wand import WandObservations, WandSpec, identify, initial_poses, point_index
+
+MIN_WAND_FRAMES = 20  # a camera that sees the wand fewer times is left out, with a warning
+
+
+@dataclass(eq=False)
+class WandCalibration:
+    rig: Rig
+    report: dict
+    wand: WandObservations  # identified markers, cameras numbered as the recording's
+    solved: dict  # wand_report.evaluate figures on the frames solved
+    held: dict  # ... and on the frames held out
+    bundle: bundle.BundleResult
+
+
+def _ordered_intrinsics(obs: Observations, intrinsics: Rig) -> Rig:
+    names = set(intrinsics.names)
+    missing = [n for n in obs.camera_names if n not in names]
+    if missing:
+        raise UserError(f"camera '{missing[0]}' of the recording has no intrinsics in the rig "
+                        f"file (it has {', '.join(intrinsics.names)})")
+    return Rig(tuple(intrinsics[n] for n in obs.camera_names), dict(intrinsics.quality),
+               dict(intrinsics.meta))
+
+
+def _edges(pinfo: np.ndarray, spec: WandSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Point pairs of the same frame joined by the wand, and their lengths."""
+    pairs, lengths = spec.edges()
+    key = pinfo[:, 0] * spec.n_markers + pinfo[:, 1]
+    E, L = [], []
+    for (a, b), d in zip(pairs.tolist(), lengths.tolist(), strict=True):
+        ia = np.flatnonzero(pinfo[:, 1] == a)
+        want = pinfo[ia, 0] * spec.n_markers + b
+        pos = np.minimum(np.searchsorted(key, want), max(0, len(key) - 1))
+        ok = key[pos] == want
+        E.append(np.stack([ia[ok], pos[ok]], axis=1))
+        L.append(np.full(int(ok.sum()), d))
+    return np.concatenate(E).reshape(-1, 2), np.concatenate(L)
+
+
+def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None = None,
+              refine_intrinsics: bool = False, holdout: float = 0.1, seed: int = 0,
+              world: Callable[[Rig, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
+              options: bundle.BundleOptions | None = None) -> WandCalibration:
+    """Everything: see calibrate_wand."""
+    spec = WandSpec(tuple(spacing_m))
+    intr = _ordered_intrinsics(obs, intrinsics)
+    wand = identify(obs, spec, intr)
+    warnings: list[str] = []
+    per_cam = np.bincount(wand.camera[wand.marker == 0], minlength=len(intr))
+    never = [intr[c].name for c in range(len(intr)) if per_cam[c] < MIN_WAND_FRAMES]
+    for name in never:
+        warnings.append(f"camera {name} saw the wand in {per_cam[intr.index(name)]} frames "
+                        f"(fewer than {MIN_WAND_FRAMES}): left out, not calibrated")
+    keep_cams = [c for c in range(len(intr)) if intr[c].name not in never]
+    if len(keep_cams) < 2:
+        raise UserError("fewer than two cameras saw the wand: nothing to calibrate (is the "
+                        "wand spacing right? see --spacing)")
+    # hold out 10 % of the wand frames, chosen at random
+    rng = np.random.default_rng(seed)
+    frames = wand.frames()
+    n_held = int(round(holdout * len(frames))) if holdout > 0 else 0
+    held_frames = np.sort(rng.choice(frames, n_held, replace=False)) if n_held else frames[:0]
+    train = wand.select(~np.isin(wand.frame, held_frames) & np.isin(wand.camera, keep_cams))
+    sub = Rig(tuple(intr[c] for c in keep_cams), dict(intr.quality), dict(intr.meta))
+    if initial is not None:
+        absent = [n for n in sub.names if n not in set(initial.names)]
+        if absent:
+            raise UserError(f"camera '{absent[0]}' is not in the --rig file")
+        start = Rig(tuple(sub[n].replace(rvec=initial[n].rvec, t=initial[n].t)
+                          for n in sub.names))
+        missing: list[str] = []
+    else:
+        local_wand = _renumber(train, keep_cams, len(intr))
+        start, missing = initial_poses(local_wand, sub, spec)
+        for name in missing:
+            warnings.append(f"camera {name} could not be placed (it shares too few wand "
+                            "sightings with the others): left out, not calibrated")
+    camera_of = np.full(len(intr), -1)
+    for k, name in enumerate(start.names):
+        camera_of[intr.index(name)] = k
+    if spec.n_markers == 2:
+        wand = _two_marker_labels(wand, start, camera_of)
+        train = wand.select(~np.isin(wand.frame, held_frames))
+    tw = train.select(camera_of[train.camera] >= 0)
+    cam = camera_of[tw.camera]
+    pidx, pinfo = point_index(tw, spec.n_markers)
+    tri = triangulate(start, pidx, cam, tw.uv, n_points=len(pinfo), ray_distance=False)
+    edge, length = _edges(pinfo, spec) if spec.n_markers > 1 else (np.zeros((0, 2)), [])
+    data = bundle.BundleData(start, pidx, cam, tw.uv, tri.xyz, edge, length)
+    opts = options or bundle.BundleOptions(refine_intrinsics=refine_intrinsics,
+                                           reference_camera=int(np.argmax(
+                                               np.bincount(cam, minlength=len(start)))))
+    result = bundle.solve(data, opts)
+    # the world frame
+    A, b = (world or floor.frame_from_cameras)(result.rig, result.xyz)
+    rig = floor.transform_rig(result.rig, A, b)
+    solved = wand_report.evaluate(rig, wand, spec, np.setdiff1d(frames, held_frames), camera_of)
+    held = wand_report.evaluate(rig, wand, spec, held_frames, camera_of) if n_held else solved
+    try:
+        cov = bundle.camera_covariances(result)
+    except RuntimeError as exc:  # an indeterminate system: say so rather than fail
+        warnings.append(f"no uncertainty: the marginals failed ({exc})")
+        cov = None
+    found = wand_report.checks(rig, solved["xyz"], solved["behind_share"])
+    grade, reason = wand_report.grade(held, found)
+    report = _report(rig, spec, result, solved, held, cov, found, grade, reason, warnings,
+                     never + missing, wand, intr, world is not None)
+    quality = {"reprojection_rms_px": report["solve"]["reprojection_rms_px"],
+               "held_out_rms_px": report["held_out"]["reprojection_rms_px"],
+               "wand_length_error_sd_mm": report["held_out"]["wand_length_error_sd_mm"],
+               "mean_ray_distance_mm": report["held_out"]["mean_ray_distance_mm"],
+               "grade": grade}
+    meta = {"source": "calibkit wand", "wand_spacing_m": list(spec.spacing_m),
+            "world_frame": report["world_frame"]}
+    rig = Rig(rig.cameras, quality, {**{k: v for k, v in intrinsics.meta.items()
+                                        if k in ("volume_m",)}, **meta})
+    return WandCalibration(rig, report, wand, solved, held, result)
+
+
+def calibrate_wand(observations: Observations, intrinsics_rig: Rig, wand_spacing_m,
+                   initial_rig: Rig | None = None, refine_intrinsics: bool = False,
+                   holdout: float = 0.1, seed: int = 0, world=None) -> tuple[Rig, dict]:
+    """Calibrate a rig from a wand capture: (the rig, the report's figures).
+
+    observations: unlabelled blobs (a recording); intrinsics_rig: every camera's
+    intrinsics (poses ignored); wand_spacing_m: marker positions along the wand, e.g.
+    (0, 0.2, 0.5); initial_rig: start from its poses instead of from nothing;
+    world(rig, xyz) -> (A, b): the world frame (floor.frame_from_*), else a provisional one
+    from the cameras' up direction.
+    """
+    cal = calibrate(observations, intrinsics_rig, wand_spacing_m, initial_rig,
+                    refine_intrinsics, holdout, seed, world)
+    return cal.rig, cal.report
+
+
+def _renumber(wand: WandObservations, keep: list[int], n: int) -> WandObservations:
+    local = np.full(n, -1)
+    local[keep] = np.arange(len(keep))
+    w = wand.select(local[wand.camera] >= 0)
+    w.camera = local[w.camera].astype(np.int32)
+    return w
+
+
+def _two_marker_labels(wand: WandObservations, rig: Rig, camera_of: np.ndarray
+                       ) -> WandObservations:
+    """Label a 2-marker wand's ends consistently across cameras: per frame, the first
+    camera's labels stand; every other camera's are swapped when its rays then pass
+    closer to the first camera's."""
+    w = wand.select(camera_of[wand.camera] >= 0)
+    w = w.select(np.lexsort((w.marker, w.camera, w.frame)))
+    f = w.frame[0::2]
+    cam = camera_of[w.camera[0::2]]
+    o, d = RigArrays.from_rig(rig).rays(np.repeat(cam, 2), w.uv)
+    o0, o1, d0, d1 = o[0::2], o[1::2], d[0::2], d[1::2]
+    first = np.r_[True, f[1:] != f[:-1]]
+    ref = np.maximum.accumulate(np.where(first, np.arange(len(f)), 0))
+
+    def gap(oa, da, ob, db):
+        n = np.cross(da, db)
+        nn = np.linalg.norm(n, axis=1)
+        return np.abs(np.sum((ob - oa) * n, axis=1)) / np.maximum(nn, 1e-12)
+
+    keep_cost = gap(o0[ref], d0[ref], o0, d0) + gap(o1[ref], d1[ref], o1, d1)
+    swap_cost = gap(o0[ref], d0[ref], o1, d1) + gap(o1[ref], d1[ref], o0, d0)
+    swap = (swap_cost < keep_cost) & ~first
+    marker = w.marker.copy()
+    marker[0::2] = np.where(swap, 1, 0)  # rows come in (0, 1) pairs
+    marker[1::2] = np.where(swap, 0, 1)
+    w.marker = marker.astype(np.int32)
+    return w.select(np.lexsort((w.marker, w.camera, w.frame)))
+
+
+def _report(rig, spec, result, solved, held, cov, found, grade, reason, warnings, left_out,
+            wand, intr, floor_given) -> dict:
+    cams = []
+    for k, cam in enumerate(rig):
+        row = {"name": cam.name, "observations": int(solved["camera_observations"][k]),
+               "reprojection_rms_px": float(solved["camera_rms_px"][k]),
+               "held_out_rms_px": float(held["camera_rms_px"][k]),
+               "centre_m": cam.centre.tolist()}
+        if cov is not None:
+            row["position_std_mm"] = float(cov["position_std_total_m"][k] * 1000)
+            row["orientation_std_deg"] = float(np.degrees(cov["orientation_std_total_rad"][k]))
+        cams.append(row)
+
+    def figures(e):
+        return {k: e[k] for k in ("frames", "observations", "reprojection_rms_px",
+                                  "wand_length_error_mean_mm", "wand_length_error_sd_mm",
+                                  "wand_length_error_rms_mm", "mean_ray_distance_mm")}
+
+    n_out = int(np.sum(~result.inlier))
+    return {
+        "wand_spacing_m": list(spec.spacing_m),
+        "cameras": cams,
+        "solve": {**figures(solved), "noise_px": result.noise_px,
+                  "iterations": result.iterations, "time_s": result.time_s,
+                  "outliers": n_out, "refine_intrinsics": result.options.refine_intrinsics},
+        "held_out": figures(held),
+        "uncertainty_reference_camera": None if cov is None else cov["reference_camera"],
+        "checks": found, "grade": grade, "grade_reason": reason,
+        "grade_thresholds": [{"grade": g, "held_out_rms_px": p, "wand_length_sd_mm": m}
+                             for g, p, m in wand_report.GRADES],
+        "left_out_cameras": left_out, "warnings": warnings,
+        "world_frame": "floor" if floor_given else "cameras (provisional: run calibkit floor)",
+        "identification": {"frames_with_wand": dict(zip(intr.names,
+                                                        wand.stats["frames_with_wand"],
+                                                        strict=True)),
+                           "ambiguous": dict(zip(intr.names, wand.stats["ambiguous"],
+                                                 strict=True))},
+    }
