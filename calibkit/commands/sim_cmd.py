@@ -11,7 +11,7 @@ from calibkit import sim
 from calibkit.camera import WEBCAM_DIST, BASLER_658x492_DIST
 from calibkit.commands.common import load_rig_option, parse_floats, parse_size
 from calibkit.errors import UserError
-from calibkit.recording import save_observations, truth_path_for
+from calibkit.recording import save_observations, save_truth_csv, truth_path_for
 
 DISTORTIONS = {"none": (0.0, 0.0, 0.0, 0.0, 0.0), "webcam": WEBCAM_DIST,
                "basler": BASLER_658x492_DIST}
@@ -20,7 +20,11 @@ sim_app = typer.Typer(help="Simulated rigs and captures with ground truth.",
                       no_args_is_help=True)
 
 Out = Annotated[Path, typer.Option("--out", help="Recording (.mcrec) or plain CSV (.csv).")]
-RigOpt = Annotated[Path | None, typer.Option("--rig", help="The true rig (calibkit sim rig).")]
+RigOpt = Annotated[Path | None, typer.Option(
+    "--rig", help="The true rig (calibkit sim rig); without it a ring of --cameras cameras is "
+                  "made and written beside the output as NAME.rig.toml.")]
+Cameras = Annotated[int, typer.Option("--cameras", help="Cameras, when no --rig is given.")]
+Volume = Annotated[float, typer.Option("--volume", help="Volume across (m), when no --rig.")]
 Frames = Annotated[int, typer.Option("--frames", help="Frames to simulate.")]
 Fps = Annotated[float, typer.Option("--fps", help="Frame rate, Hz.")]
 Noise = Annotated[float, typer.Option("--noise-px", help="Centroid noise sigma; 0 = exact.")]
@@ -29,13 +33,31 @@ Ghosts = Annotated[float, typer.Option("--ghosts", help="Stray blobs per camera 
 Seed = Annotated[int, typer.Option("--seed", help="Random seed: same seed, same data.")]
 
 
+def _scene_rig(rig: Path | None, cameras: int, volume: float, out: Path, seed: int):
+    """The rig a scene is seen by: the given one, or a new ring saved beside the output."""
+    if rig is not None:
+        return load_rig_option(rig)
+    made = sim.make_rig(cameras, volume, seed=seed)
+    rig_out = out.with_name(out.stem + ".rig.toml")
+    made.save(rig_out)
+    typer.echo(f"wrote {rig_out}: {cameras} cameras around a {volume:g} m volume")
+    return made
+
+
+def _volume(rig) -> float:
+    return float(rig.meta.get("volume_m", 4.0))
+
+
 def _write(out: Path, rig, truth, noise, dropout, ghosts, fps, seed) -> None:
+    """Observe the scene and write it, with the truth inside a recording and, for scripts,
+    always beside it as NAME.truth.csv."""
     obs = sim.observe(rig, truth, noise_px=noise, dropout=dropout, ghosts_per_camera=ghosts,
                       fps=fps, seed=seed)
     save_observations(out, obs, truth, rig)
-    where = f" (truth in {truth_path_for(out)})" if out.suffix.lower() == ".csv" else ""
+    if out.suffix.lower() != ".csv":
+        save_truth_csv(truth_path_for(out), truth)
     typer.echo(f"wrote {out}: {len(obs.frames())} frames, {len(obs)} blobs from "
-               f"{len(rig)} cameras{where}")
+               f"{len(rig)} cameras (truth in {truth_path_for(out)})")
 
 
 @sim_app.command("rig")
@@ -62,10 +84,10 @@ def sim_rig(
 def sim_static(out: Out, rig: RigOpt = None, markers: Annotated[int, typer.Option(
         "--markers", help="Number of markers.")] = 20, frames: Frames = 100, fps: Fps = 100.0,
         noise_px: Noise = 0.2, dropout: Dropout = 0.0, ghosts: Ghosts = 0.0,
-        seed: Seed = 0) -> None:
+        seed: Seed = 0, cameras: Cameras = 6, volume: Volume = 4.0) -> None:
     """Markers standing still in the volume."""
-    true_rig = load_rig_option(rig)
-    truth = sim.static_markers(markers, frames, float(true_rig.meta.get("volume_m", 4.0)), seed)
+    true_rig = _scene_rig(rig, cameras, volume, out, seed)
+    truth = sim.static_markers(markers, frames, _volume(true_rig), seed)
     _write(out, true_rig, truth, noise_px, dropout, ghosts, fps, seed)
 
 
@@ -74,10 +96,10 @@ def sim_wand(out: Out, rig: RigOpt = None, frames: Frames = 3000, fps: Fps = 100
              spacing: Annotated[str, typer.Option(
                  "--spacing", help="Marker positions along the wand, metres.")] = "0,0.2,0.5",
              noise_px: Noise = 0.1, dropout: Dropout = 0.0, ghosts: Ghosts = 0.0,
-             seed: Seed = 0) -> None:
+             seed: Seed = 0, cameras: Cameras = 6, volume: Volume = 4.0) -> None:
     """A wand waved through the volume."""
-    true_rig = load_rig_option(rig)
-    truth = sim.wand_motion(frames, fps, float(true_rig.meta.get("volume_m", 4.0)),
+    true_rig = _scene_rig(rig, cameras, volume, out, seed)
+    truth = sim.wand_motion(frames, fps, _volume(true_rig),
                             parse_floats(spacing, "--spacing"), seed)
     _write(out, true_rig, truth, noise_px, dropout, ghosts, fps, seed)
 
@@ -87,11 +109,10 @@ def sim_rigid(out: Out, rig: RigOpt = None, bodies: Annotated[int, typer.Option(
         "--bodies", help="Number of rigid bodies.")] = 3, markers: Annotated[int, typer.Option(
         "--markers", help="Markers per body (3-8).")] = 4, frames: Frames = 500,
         fps: Fps = 100.0, noise_px: Noise = 0.2, dropout: Dropout = 0.0, ghosts: Ghosts = 0.0,
-        seed: Seed = 0) -> None:
+        seed: Seed = 0, cameras: Cameras = 6, volume: Volume = 4.0) -> None:
     """Rigid bodies moving through the volume."""
-    true_rig = load_rig_option(rig)
-    truth, _ = sim.rigid_body_motion(bodies, frames, fps,
-                                     float(true_rig.meta.get("volume_m", 4.0)), markers, seed)
+    true_rig = _scene_rig(rig, cameras, volume, out, seed)
+    truth, _ = sim.rigid_body_motion(bodies, frames, fps, _volume(true_rig), markers, seed)
     _write(out, true_rig, truth, noise_px, dropout, ghosts, fps, seed)
 
 

@@ -1,0 +1,120 @@
+"""`calibkit triangulate`: 3D markers per frame from a recording's unlabelled blobs."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+
+from calibkit.camera import Rig
+from calibkit.clitools import Progress, print_table, write_json
+from calibkit.correspondence import CorrespondenceConfig, FramePoints, match_frames
+from calibkit.errors import UserError
+from calibkit.fileio import atomic_write
+from calibkit.recording import load_observations
+from calibkit.truthcheck import nearest_truth, score_points
+
+COLUMNS = ("frame", "x", "y", "z", "reproj_px", "ray_mm", "n_cameras", "cameras")
+
+
+def write_points_csv(path: Path, points: FramePoints, camera_names: list[str],
+                     error_mm: np.ndarray | None = None) -> None:
+    """The points as CSV (COLUMNS, then error_mm with truth); `cameras` lists the cameras
+    that saw each point, separated by ';'."""
+    names = np.asarray(camera_names, dtype=object)
+    seen = points.rows >= 0
+    with atomic_write(path, "w", encoding="utf-8") as handle:
+        handle.write(",".join(COLUMNS + (("error_mm",) if error_mm is not None else ())) + "\n")
+        for i in range(len(points.frame)):  # file output, not a hot path
+            x, y, z = points.xyz[i]
+            row = (f"{points.frame[i]},{x:.6f},{y:.6f},{z:.6f},{points.reproj_px[i]:.4f},"
+                   f"{points.ray_dist_m[i] * 1000:.4f},{points.n_cameras[i]},"
+                   f"{';'.join(names[seen[i]])}")
+            if error_mm is not None:
+                row += f",{error_mm[i]:.4f}"
+            handle.write(row + "\n")
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("triangulate")
+    def triangulate(
+        rig_path: Annotated[Path, typer.Option("--rig", help="The calibrated rig.")],
+        src: Annotated[Path, typer.Option("--from", help="Recording (.mcrec) or plain CSV.")],
+        out: Annotated[Path, typer.Option("--out", help="Points CSV to write.")],
+        json_path: Annotated[Path | None, typer.Option("--json", help="Write the figures.")]
+        = None,
+        epipolar_px: Annotated[float, typer.Option(
+            "--epipolar-px", help="How far a match may lie from the epipolar line.")] = 2.0,
+        max_reproj_px: Annotated[float, typer.Option(
+            "--max-reproj-px", help="Reject markers whose rays miss by more.")] = 1.5,
+        min_cameras: Annotated[int, typer.Option(
+            "--min-cameras", help="Cameras a new marker needs (3 rules out chance pairs).")]
+        = 3,
+        two_camera: Annotated[bool, typer.Option(
+            "--two-camera/--no-two-camera",
+            help="Also accept unambiguous two-camera matches.")] = True,
+    ) -> None:
+        """Match unlabelled blobs across cameras and triangulate them, frame by frame.
+
+        CSV columns: frame,x,y,z,reproj_px,ray_mm,n_cameras,cameras (and error_mm when the
+        recording carries the simulator's truth)."""
+        if epipolar_px <= 0 or max_reproj_px <= 0:
+            raise UserError("--epipolar-px and --max-reproj-px must be positive")
+        if min_cameras < 2:
+            raise UserError(f"--min-cameras must be at least 2, got {min_cameras}")
+        if out.suffix.lower() != ".csv":
+            raise UserError(f"--out {out}: points are written as CSV; give a .csv path")
+        if out.resolve() == src.resolve():
+            raise UserError(f"--out {out} is the input file; give another path")
+        rig = Rig.load(rig_path)
+        obs, truth = load_observations(src, rig)
+        if len(obs) == 0:
+            raise UserError(f"{src}: holds no blobs")
+        cfg = CorrespondenceConfig(epipolar_px=epipolar_px, max_reproj_px=max_reproj_px,
+                                   min_cameras=min_cameras, two_camera=two_camera)
+        n_frames = len(obs.frames())
+        progress = Progress("triangulate", n_frames)
+        start = time.perf_counter()
+        points = match_frames(rig, obs, cfg, progress=progress.update)
+        elapsed = time.perf_counter() - start
+        progress.finish(f"{len(points.frame)} points")
+
+        error_mm = None
+        figures: dict = {
+            "frames": n_frames, "points": int(len(points.frame)),
+            "points_per_frame": len(points.frame) / n_frames,
+            "reproj_px_median": _stat(np.median, points.reproj_px),
+            "reproj_px_p95": _stat(lambda a: np.percentile(a, 95), points.reproj_px),
+            "ray_mm_median": _stat(np.median, points.ray_dist_m * 1000),
+            "n_cameras": {str(k): int(v) for k, v in zip(
+                *np.unique(points.n_cameras, return_counts=True), strict=True)},
+            "seconds": elapsed, "frames_per_s": n_frames / elapsed if elapsed > 0 else None,
+        }
+        if truth is not None:
+            _, dist = nearest_truth(points.frame, points.xyz, truth)
+            error_mm = dist * 1000.0
+            figures["truth"] = score_points(points.frame, points.xyz, truth, obs).as_dict()
+        write_points_csv(out, points, rig.names, error_mm)
+        if json_path is not None:
+            write_json(json_path, figures)
+
+        rows = [["frames", n_frames], ["3D points", int(len(points.frame))],
+                ["points per frame", round(figures["points_per_frame"], 2)],
+                ["reprojection px (median)", figures["reproj_px_median"]],
+                ["ray distance mm (median)", figures["ray_mm_median"]],
+                ["frames per second", round(n_frames / elapsed, 1)]]
+        if truth is not None:
+            t = figures["truth"]
+            rows += [["3D error mm RMS (vs truth)", t["error_mm_rms"]],
+                     ["recall of markers seen by >= 3 cameras", t["recall_3"]],
+                     ["ghost points (fraction)", t["ghost_fraction"]]]
+        print_table(rows, ["what", "value"])
+        typer.echo(f"wrote {out}")
+
+
+def _stat(fn, values: np.ndarray) -> float:
+    v = values[np.isfinite(values)]
+    return float(fn(v)) if len(v) else float("nan")
