@@ -1,0 +1,192 @@
+"""A simulated camera watching a simulated monitor that shows the rendered dot patterns.
+
+The monitor's image is the real renderer's output (projector.display through headless
+EGL), so the simulated calibration measures the same anti-aliased dots a real monitor
+shows. Each camera pixel looks along its ray through the true lens model (distortion
+included) to the monitor plane; the screen image is sampled there on a 3 x 3 sub-grid per
+camera pixel (area integration, so there is no pixel locking), then blurred by the lens and
+given sensor noise. Time is simulated too: the display shows a requested pattern only after
+its latency, a camera frame exposed across the switch records a blend, frames can be
+dropped, and between views the user tilts the monitor (calibkit.sim.monitor_views).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from calibkit.camera import Camera
+from calibkit.sim import MonitorView, monitor_points, monitor_views
+from projector.display import Dots, OffscreenDisplay
+
+SUPERSAMPLE = 3
+
+
+@dataclass
+class MonitorSimConfig:
+    """The simulated hardware. Brightness in camera DN (8-bit)."""
+
+    screen_px: tuple[int, int] = (1920, 1080)
+    pixel_pitch_mm: float = 0.2715
+    fps: float = 30.0
+    latency_s: float = 0.07  # request -> light on the glass (input lag + refresh)
+    exposure_s: float = 0.012
+    black_dn: float = 10.0
+    white_dn: float = 200.0
+    noise_dn: float = 2.0
+    blur_px: float = 0.6
+    drop_rate: float = 0.0  # chance that a camera frame is lost
+    seed: int = 0
+
+
+@dataclass
+class _Shown:
+    t_s: float
+    dots: Dots
+    key: int
+
+
+@dataclass
+class MonitorSim:
+    """One camera, one monitor, a sequence of views. `show` requests a pattern, `grab`
+    returns the next camera frame (uint8) as the camera would deliver it."""
+
+    camera: Camera
+    views: list[MonitorView]
+    config: MonitorSimConfig = field(default_factory=MonitorSimConfig)
+
+    def __post_init__(self) -> None:
+        self.display = OffscreenDisplay(self.config.screen_px)
+        self.rng = np.random.default_rng(self.config.seed)
+        self.t_s = 0.0
+        self.view_index = 0
+        self.history: list[_Shown] = [_Shown(-1e9, Dots.make(np.zeros((0, 2))), -1)]
+        self._maps: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._warped: dict[int, np.ndarray] = {}
+        self._keys = 0
+        self.frames_grabbed = 0
+
+    def close(self) -> None:
+        self.display.close()
+
+    def __enter__(self) -> MonitorSim:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ---- the user and the display -------------------------------------------------------
+    def set_view(self, index: int) -> None:
+        """The user tilts the monitor into view `index` (takes a moment: time passes)."""
+        self.view_index = index
+        self._maps = None
+        self._warped.clear()
+        self.t_s += 1.0
+
+    def show(self, dots: Dots) -> None:
+        """Request a pattern now; it appears after the display latency."""
+        self._keys += 1
+        self.history.append(_Shown(self.t_s + self.config.latency_s, dots, self._keys))
+        self.history = self.history[-4:]
+
+    # ---- the camera -------------------------------------------------------------------------
+    def _screen_maps(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For each camera sub-sample: screen pixel coordinates (x, y) and a validity mask."""
+        if self._maps is None:
+            cam, s = self.camera, SUPERSAMPLE
+            w, h = cam.width, cam.height
+            sub = (np.arange(s) + 0.5) / s - 0.5
+            xs = (np.arange(w)[:, None] + sub[None, :]).ravel()
+            ys = (np.arange(h)[:, None] + sub[None, :]).ravel()
+            gx, gy = np.meshgrid(xs, ys)
+            ray = cam.replace(rvec=np.zeros(3), t=np.zeros(3)).undistort(
+                np.column_stack([gx.ravel(), gy.ravel()]))
+            d = np.column_stack([ray, np.ones(len(ray))])
+            view = self.views[self.view_index]
+            n = view.R[:, 2]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                depth = (n @ view.t) / (d @ n)
+            xyz = d * depth[:, None]
+            local = (xyz - view.t) @ view.R  # R^T (X - t)
+            scr = local[:, :2] / (self.config.pixel_pitch_mm / 1000.0)
+            sw, sh = self.config.screen_px
+            ok = ((depth > 0) & (scr[:, 0] >= -0.5) & (scr[:, 0] <= sw - 0.5)
+                  & (scr[:, 1] >= -0.5) & (scr[:, 1] <= sh - 0.5))
+            shape = (h * s, w * s)
+            self._maps = (scr[:, 0].astype(np.float32).reshape(shape),
+                          scr[:, 1].astype(np.float32).reshape(shape), ok.reshape(shape))
+        return self._maps
+
+    def warp(self, screen_image: np.ndarray) -> np.ndarray:
+        """The screen image (float 0..1) as the camera's noise-free float image in DN."""
+        mx, my, ok = self._screen_maps()
+        sampled = cv2.remap(screen_image.astype(np.float32), mx, my, cv2.INTER_LINEAR,
+                            borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+        sampled[~ok] = 0.0
+        s = SUPERSAMPLE
+        h, w = self.camera.height, self.camera.width
+        pix = sampled.reshape(h, s, w, s).mean(axis=(1, 3))
+        cfg = self.config
+        screen_area = ok.reshape(h, s, w, s).mean(axis=(1, 3))
+        # the room is dark (half the black level), the black screen glows a little
+        img = cfg.black_dn * (0.5 + 0.5 * screen_area) + (cfg.white_dn - cfg.black_dn) * pix
+        if cfg.blur_px > 0:
+            img = cv2.GaussianBlur(img, (0, 0), cfg.blur_px)
+        return img
+
+    def _warped_for(self, shown: _Shown) -> np.ndarray:
+        img = self._warped.get(shown.key)
+        if img is None:
+            img = self.warp(self.display.render(shown.dots))
+            if len(self._warped) > 6:
+                self._warped.pop(next(iter(self._warped)))
+            self._warped[shown.key] = img
+        return img
+
+    def grab(self) -> np.ndarray:
+        """The next delivered camera frame (dropped frames are skipped, as a driver would)."""
+        cfg = self.config
+        while True:
+            start = self.t_s
+            self.t_s += 1.0 / cfg.fps
+            self.frames_grabbed += 1
+            if cfg.drop_rate <= 0 or self.rng.random() >= cfg.drop_rate:
+                break
+        end = start + cfg.exposure_s
+        # what the display showed during the exposure, weighted by time
+        img = np.zeros((self.camera.height, self.camera.width), np.float32)
+        for i, shown in enumerate(self.history):
+            t0 = max(shown.t_s, start)
+            t1 = min(self.history[i + 1].t_s if i + 1 < len(self.history) else np.inf, end)
+            if t1 > t0:
+                img += self._warped_for(shown) * np.float32((t1 - t0) / cfg.exposure_s)
+        img += self.rng.normal(0.0, cfg.noise_dn, img.shape).astype(np.float32)
+        return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+    # ---- truth ------------------------------------------------------------------------------
+    def truth_uv(self, screen_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where screen points project in the current view: pixels (N, 2), in-front mask."""
+        pts = monitor_points(self.views[self.view_index], screen_xy, self.config.pixel_pitch_mm)
+        return self.camera.replace(rvec=np.zeros(3), t=np.zeros(3)).project(pts)
+
+
+def default_sim_camera(size: tuple[int, int] = (640, 480), seed: int = 0) -> Camera:
+    """A webcam-like camera to calibrate: ~60 degree field of view, mild barrel distortion,
+    principal point off centre."""
+    rng = np.random.default_rng(seed)
+    w, h = size
+    f = 0.87 * w * rng.uniform(0.95, 1.05)
+    return Camera("simcam", size, f, f * rng.uniform(0.998, 1.002),
+                  (w - 1) / 2 + rng.uniform(-8, 8), (h - 1) / 2 + rng.uniform(-6, 6), 0.0,
+                  (-0.12, 0.08, 0.0006, -0.0004, 0.0))
+
+
+def make_monitor_sim(n_views: int, size: tuple[int, int] = (640, 480), seed: int = 0,
+                     config: MonitorSimConfig | None = None,
+                     camera: Camera | None = None) -> MonitorSim:
+    cfg = config or MonitorSimConfig(seed=seed)
+    cam = camera or default_sim_camera(size, seed)
+    views = monitor_views(cam, n_views, cfg.screen_px, cfg.pixel_pitch_mm, seed=seed)
+    return MonitorSim(cam, views, cfg)
