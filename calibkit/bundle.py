@@ -172,7 +172,9 @@ def build_graph(data: BundleData, uv: np.ndarray, use: np.ndarray, noise_px: flo
         options.huber_k), gtsam.noiseModel.Isotropic.Sigma(2, noise_px))
     length = gtsam.noiseModel.Isotropic.Sigma(1, options.length_sigma_m)
     surveyed = gtsam.noiseModel.Isotropic.Sigma(3, options.known_sigma_m)
-    gauge_sigma = 1e-6 if tight_gauge else 1e-3
+    # a tight gauge for marginals; a weak one when plane points fix part of the frame
+    planes = bool(np.any(active[data.plane_point])) if len(data.plane_point) else False
+    gauge_sigma = 1e-6 if tight_gauge else (10.0 if planes else 1e-3)
     gauge = gtsam.noiseModel.Isotropic.Sigma(6, gauge_sigma)
     intrinsic = gtsam.noiseModel.Diagonal.Sigmas(np.array([
         options.focal_sigma_px, options.focal_sigma_px, 1e-6, options.centre_sigma_px,
@@ -231,15 +233,25 @@ def build_graph(data: BundleData, uv: np.ndarray, use: np.ndarray, noise_px: flo
     return graph, values, active
 
 
-def _optimise(graph, values, options: BundleOptions):
+def _optimise(graph, values, options: BundleOptions, progress=None):
+    """Levenberg-Marquardt, one iteration at a time so that long solves can show progress."""
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(options.max_iterations)
     params.setRelativeErrorTol(1e-7)
     params.setAbsoluteErrorTol(1e-9)
     optimiser = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-    initial = graph.error(values)
-    result = optimiser.optimize()
-    return result, optimiser.iterations(), initial, graph.error(result)
+    initial = error = optimiser.error()
+    for _ in range(options.max_iterations):
+        optimiser.iterate()
+        new = optimiser.error()
+        if progress is not None:
+            progress(optimiser.iterations(), new)
+        if gtsam.checkConvergence(1e-7, 1e-9, 0.0, error, new) or \
+                optimiser.lambda_() > params.getlambdaUpperBound():
+            error = new
+            break
+        error = new
+    return optimiser.values(), optimiser.iterations(), initial, error
 
 
 def _read(result: gtsam.Values, rig: Rig, active: np.ndarray, n_points: int,
@@ -255,9 +267,11 @@ def _read(result: gtsam.Values, rig: Rig, active: np.ndarray, n_points: int,
     return Rig(tuple(cams), dict(rig.quality), dict(rig.meta)), xyz
 
 
-def solve(data: BundleData, options: BundleOptions = BundleOptions()) -> BundleResult:
+def solve(data: BundleData, options: BundleOptions = BundleOptions(),
+          progress=None) -> BundleResult:
     """Levenberg-Marquardt on the whole graph; then drop observations beyond
-    `outlier_sigmas` robust sigmas and solve again with the noise re-estimated."""
+    `outlier_sigmas` robust sigmas and solve again with the noise re-estimated.
+    progress(text), if given, hears of every iteration."""
     start = time.perf_counter()
     uv = remove_k3(data.rig, data.obs_camera, data.obs_uv)
     k3_free = Rig(tuple(c.replace(dist=c.dist * [1, 1, 1, 1, 0]) for c in data.rig),
@@ -269,7 +283,9 @@ def solve(data: BundleData, options: BundleOptions = BundleOptions()) -> BundleR
     iterations, first_error = 0, None
     for round_ in range(max(1, options.rounds)):
         graph, values, active = build_graph(corrected, uv, use, noise, options, xyz, rig)
-        result, its, e0, e1 = _optimise(graph, values, options)
+        report = None if progress is None else (
+            lambda i, e, r=round_: progress(f"round {r + 1}, iteration {i}, error {e:.4g}"))
+        result, its, e0, e1 = _optimise(graph, values, options, report)
         iterations += its
         first_error = e0 if first_error is None else first_error
         rig, xyz = _read(result, rig, active, len(xyz), options)

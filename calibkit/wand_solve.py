@@ -58,7 +58,7 @@ def _edges(pinfo: np.ndarray, spec: WandSpec) -> tuple[np.ndarray, np.ndarray]:
 def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None = None,
               refine_intrinsics: bool = False, holdout: float = 0.1, seed: int = 0,
               world: Callable[[Rig, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
-              options: bundle.BundleOptions | None = None) -> WandCalibration:
+              options: bundle.BundleOptions | None = None, progress=None) -> WandCalibration:
     """Everything: see calibrate_wand."""
     spec = WandSpec(tuple(spacing_m))
     intr = _ordered_intrinsics(obs, intrinsics)
@@ -108,7 +108,7 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
     opts = options or bundle.BundleOptions(refine_intrinsics=refine_intrinsics,
                                            reference_camera=int(np.argmax(
                                                np.bincount(cam, minlength=len(start)))))
-    result = bundle.solve(data, opts)
+    result = bundle.solve(data, opts, progress)
     # the world frame
     A, b = (world or floor.frame_from_cameras)(result.rig, result.xyz)
     rig = floor.transform_rig(result.rig, A, b)

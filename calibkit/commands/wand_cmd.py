@@ -192,10 +192,10 @@ def register(app: typer.Typer) -> None:
                                                   spacing_m=spec.spacing_m)
         from calibkit.wand_solve import calibrate
 
-        progress = Progress("wand solve")
+        progress = Progress("wand solve, iterations")
         cal = calibrate(obs, intr, spec.spacing_m, initial, refine_intrinsics, holdout, seed,
-                        world)
-        progress.finish(f"{cal.report['solve']['iterations']} iterations")
+                        world, progress=lambda text: progress.update(progress.done + 1, text))
+        progress.finish(f"{cal.report['solve']['time_s']:.1f} s in the solver")
         cal.rig.save(out)
         if use_sim:
             true_rig.save(truth_rig_path(out))
