@@ -134,6 +134,12 @@ def wand_motion(n_frames: int, fps: float = 100.0, volume_m: float = 4.0,
     key_t = np.arange(0, n_frames / fps + 2.0, 0.8)
     keys = rng.normal(size=(len(key_t), 3))
     keys[:, 2] *= 0.6
+    keys /= np.linalg.norm(keys, axis=1, keepdims=True)
+    # each key within 90 degrees of the last, so the interpolated direction never passes
+    # near zero (where normalising it would spin the wand faster than a hand can)
+    for i in range(1, len(keys)):
+        if keys[i] @ keys[i - 1] < 0:
+            keys[i] = -keys[i]
     direction = CubicSpline(key_t, keys)(np.arange(n_frames) / fps)
     direction /= np.linalg.norm(direction, axis=1, keepdims=True)
     offsets = spacing - spacing.mean()

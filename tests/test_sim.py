@@ -1,0 +1,125 @@
+"""The simulator keeps its promises: what it reports agrees with the truth it knows."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calibkit import sim
+from calibkit.errors import UserError
+from calibkit.observations import Truth
+
+
+@pytest.fixture(scope="module")
+def rig():
+    return sim.make_rig(6, 4.0, seed=1)
+
+
+def test_rig_cameras_all_see_the_volume(rig) -> None:
+    assert rig.names == [f"cam{i}" for i in range(6)]
+    lo, hi = sim.volume_box(4.0)
+    centre = (lo + hi) / 2
+    for cam in rig:
+        uv, front = cam.project(centre[None])
+        assert front[0] and cam.in_image(uv)[0]
+        assert np.linalg.norm(cam.centre[:2]) > 2.0  # on the walls, outside the volume
+    with pytest.raises(UserError, match="--cameras must be between 2 and 32"):
+        sim.make_rig(1)
+    with pytest.raises(UserError, match="--volume"):
+        sim.make_rig(4, 20.0)
+
+
+def test_noise_free_observations_are_the_projections(rig) -> None:
+    truth = sim.static_markers(30, 2, 4.0, seed=2)
+    obs = sim.observe(rig, truth)
+    assert obs.marker is not None and np.all(obs.marker >= 0)
+    for c, cam in enumerate(rig):
+        mine = obs.camera == c
+        xyz = truth.xyz[(truth.frame == 0)][obs.marker[mine & (obs.frame == 0)]]
+        uv, _ = cam.project(xyz)
+        assert np.allclose(uv, obs.uv[mine & (obs.frame == 0)], atol=1e-9)
+
+
+def test_noise_dropouts_and_ghosts_have_the_requested_statistics(rig) -> None:
+    truth = sim.static_markers(50, 40, 4.0, seed=3)
+    clean = sim.observe(rig, truth, seed=4)
+    noisy = sim.observe(rig, truth, noise_px=0.5, dropout=0.25, ghosts_per_camera=3.0, seed=4)
+    real = noisy.marker >= 0
+    assert abs(real.sum() / len(clean) - 0.75) < 0.02
+    n_frames = len(np.unique(truth.frame))
+    assert abs((~real).sum() / (len(rig) * n_frames) - 3.0) < 0.3
+    # noise: match each noisy blob to its clean twin
+    key_c = clean.frame * 10_000 + clean.camera * 100 + clean.marker
+    key_n = noisy.frame[real] * 10_000 + noisy.camera[real] * 100 + noisy.marker[real]
+    idx = np.searchsorted(key_c, key_n)
+    diff = noisy.uv[real] - clean.uv[np.argsort(key_c)][idx] if not np.all(
+        np.diff(key_c) > 0) else noisy.uv[real] - clean.uv[idx]
+    assert abs(diff.std() - 0.5) < 0.02 and abs(diff.mean()) < 0.02
+    # same seed, same data; another seed, other data
+    again = sim.observe(rig, truth, noise_px=0.5, dropout=0.25, ghosts_per_camera=3.0, seed=4)
+    assert np.array_equal(again.uv, noisy.uv)
+    other = sim.observe(rig, truth, noise_px=0.5, dropout=0.25, ghosts_per_camera=3.0, seed=5)
+    assert len(other) != len(noisy) or not np.array_equal(other.uv, noisy.uv)
+
+
+def test_unsynchronised_cameras_see_the_marker_where_it_was_at_their_time(rig) -> None:
+    fps = 100.0
+    frames = np.arange(20)
+    xyz = np.stack([0.5 * frames / fps, np.zeros(20), np.full(20, 1.0)], axis=1)  # 0.5 m/s
+    truth = Truth(frames, np.zeros(20), xyz)
+    offsets = np.array([0.0, 2e6, 5e6, 0, 0, 0])  # ns: cam1 2 ms late, cam2 5 ms late
+    obs = sim.observe(rig, truth, fps=fps, clock_offset_ns=offsets)
+    for c in (0, 1, 2):
+        rows = (obs.camera == c) & (obs.frame == 10)
+        assert obs.t_ns[rows][0] == round(10 * 1e7 + offsets[c])
+        at = np.array([[0.5 * (0.1 + offsets[c] * 1e-9), 0.0, 1.0]])
+        uv, _ = rig[c].project(at)
+        assert np.allclose(obs.uv[rows], uv, atol=1e-6)
+
+
+def test_wand_keeps_its_spacing_and_stays_in_the_volume() -> None:
+    truth = sim.wand_motion(500, 100.0, 4.0, (0.0, 0.2, 0.5), seed=1)
+    xyz = truth.xyz.reshape(500, 3, 3)
+    assert np.allclose(np.linalg.norm(xyz[:, 1] - xyz[:, 0], axis=1), 0.2, atol=1e-12)
+    assert np.allclose(np.linalg.norm(xyz[:, 2] - xyz[:, 0], axis=1), 0.5, atol=1e-12)
+    # collinear
+    assert np.allclose(np.cross(xyz[:, 1] - xyz[:, 0], xyz[:, 2] - xyz[:, 0]), 0, atol=1e-12)
+    lo, hi = sim.volume_box(4.0)
+    assert np.all(truth.xyz >= lo - 0.3) and np.all(truth.xyz <= hi + 0.3)
+    # a hand's motion: smooth, under a few m/s
+    speed = np.linalg.norm(np.diff(xyz, axis=0), axis=2) * 100.0  # every marker, m/s
+    assert speed.max() < 4.0
+
+
+def test_rigid_bodies_are_rigid_distinct_and_follow_their_poses() -> None:
+    truth, bodies = sim.rigid_body_motion(4, 200, 100.0, 4.0, [3, 4, 5, 6], seed=2)
+    signatures = []
+    for body in bodies:
+        rows = np.isin(truth.marker, body.marker_ids)
+        xyz = truth.xyz[rows].reshape(200, len(body.marker_ids), 3)
+        world = np.einsum("fij,kj->fki", body.poses[:, :3, :3], body.markers_body) + \
+            body.poses[:, None, :3, 3]
+        assert np.allclose(xyz, world, atol=1e-12)
+        d = np.linalg.norm(xyz[:, :, None] - xyz[:, None], axis=3)
+        assert np.allclose(d, d[0], atol=1e-9)  # rigid
+        iu = np.triu_indices(len(body.marker_ids), 1)
+        signatures.append(np.sort(d[0][iu]))
+        assert np.min(np.diff(signatures[-1])) > 0.002  # distinct distances within a body
+    assert len({len(s) for s in signatures}) == 4
+
+
+def test_projector_dots_land_on_the_floor_and_the_table() -> None:
+    projector = sim.make_projector(4.0, seed=0)
+    table = sim.Table(-0.5, 0.5, -0.3, 0.3, 0.75)
+    gx, gy = np.meshgrid(np.linspace(0, 1279, 20), np.linspace(0, 799, 12))
+    dots = np.stack([gx.ravel(), gy.ravel()], axis=1)
+    xyz, plane = sim.projector_scene(projector, dots, table)
+    assert np.any(plane == 1) and np.any(plane == 0)
+    assert np.allclose(xyz[plane == 0, 2], 0.0, atol=1e-9)
+    assert np.allclose(xyz[plane == 1, 2], 0.75, atol=1e-9)
+    on = xyz[plane == 1]
+    assert np.all((on[:, 0] >= -0.5) & (on[:, 0] <= 0.5) & (on[:, 1] >= -0.3)
+                  & (on[:, 1] <= 0.3))
+    # the projector sees its own dots where it drew them
+    uv, _ = projector.project(xyz[plane >= 0])
+    assert np.allclose(uv, dots[plane >= 0], atol=1e-6)
