@@ -1,0 +1,192 @@
+"""`mocapd start`: run the tracking daemon in the foreground, as systemd expects."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from dataclasses import replace
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from calibkit.camera import Rig
+from calibkit.clitools import Progress, print_table, write_json
+from calibkit.errors import UserError
+from daemon.config import (
+    Config,
+    MavlinkOut,
+    SerialOut,
+    SimConfig,
+    UdpOut,
+    load_config,
+    parse_address,
+    parse_serial,
+)
+
+
+def setup_logging(verbose: bool) -> None:
+    root = logging.getLogger("mocapd")
+    if not any(getattr(h, "_mocapd", False) for h in root.handlers):
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("mocapd: %(message)s"))
+        handler._mocapd = True
+        root.addHandler(handler)
+    root.setLevel(logging.DEBUG if verbose else logging.INFO)
+    root.propagate = False
+
+
+def command_line_additions(udp: list[str], serial: list[str], mavlink: list[str],
+                           mavlink_body: int | None, mavlink_message: str | None):
+    """A function that adds the flags' outputs to a Config (and again after a reload)."""
+    outs_udp = []
+    for text in udp:
+        try:
+            host, port = parse_address(text)
+        except ValueError as exc:
+            raise UserError(f"--udp: {exc}") from None
+        outs_udp.append(UdpOut(host, port))
+    outs_serial = [SerialOut(*parse_serial(t)) for t in serial]
+    outs_mav = []
+    for t in mavlink:
+        dev, baud = parse_serial(t, 921600)
+        outs_mav.append((dev, baud))
+    if mavlink_message is not None and mavlink_message not in (
+            "vision_position_estimate", "odometry", "att_pos_mocap"):
+        raise UserError("--mavlink-message must be vision_position_estimate, odometry or "
+                        f"att_pos_mocap; got {mavlink_message!r}")
+
+    def extend(cfg: Config) -> Config:
+        body = mavlink_body
+        if body is None:
+            body = cfg.bodies[0].id if cfg.bodies else 1
+        mav = tuple(MavlinkOut(d, body, b, mavlink_message or "vision_position_estimate")
+                    for d, b in outs_mav)
+        return replace(cfg, udp=cfg.udp + tuple(outs_udp), serial=cfg.serial + tuple(outs_serial),
+                       mavlink=cfg.mavlink + mav)
+
+    return extend
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("start")
+    def start(
+        config: Annotated[Path | None, typer.Option(
+            "--config", help="mocapd.toml (rig, rigid bodies, outputs).")] = None,
+        sim: Annotated[bool, typer.Option(
+            "--sim", help="Track a simulated scene (the rig's cameras, moving rigid bodies).")]
+        = False,
+        rig: Annotated[Path | None, typer.Option(
+            "--rig", help="A calibrated rig (overrides the configuration's).")] = None,
+        truth_rig: Annotated[Path | None, typer.Option(
+            "--truth-rig", help="--sim: the true rig the blobs are made with (default: "
+                                "--rig itself).")] = None,
+        udp: Annotated[list[str], typer.Option(
+            "--udp", help="Send pose packets to HOST:PORT (repeatable).")] = [],  # noqa: B006
+        serial: Annotated[list[str], typer.Option(
+            "--serial", help="Send COBS-framed packets on DEV[:BAUD] (repeatable).")]
+        = [],  # noqa: B006
+        mavlink: Annotated[list[str], typer.Option(
+            "--mavlink", help="Send MAVLink to a flight controller on DEV[:BAUD].")]
+        = [],  # noqa: B006
+        mavlink_body: Annotated[int | None, typer.Option(
+            "--mavlink-body", help="Rigid body id for --mavlink (default: the first).")]
+        = None,
+        mavlink_message: Annotated[str | None, typer.Option(
+            "--mavlink-message", help="vision_position_estimate, odometry or "
+                                      "att_pos_mocap.")] = None,
+        mode: Annotated[str | None, typer.Option(
+            "--mode", help="Multiplexer: triggered (synchronised cameras) or greedy.")] = None,
+        frames: Annotated[int | None, typer.Option(
+            "--frames", help="Stop after N frames.")] = None,
+        duration: Annotated[float | None, typer.Option(
+            "--duration", help="Stop after SECONDS.")] = None,
+        json_path: Annotated[Path | None, typer.Option(
+            "--json", help="Write rate, latency and (with --sim) pose errors here.")] = None,
+        runtime_dir: Annotated[Path | None, typer.Option(
+            "--runtime-dir", help="Folder of the control socket.")] = None,
+        fast: Annotated[bool, typer.Option(
+            "--fast", help="--sim: as fast as the tracker goes, not at the camera rate.")]
+        = False,
+        sim_bodies: Annotated[int | None, typer.Option("--sim-bodies")] = None,
+        sim_cameras: Annotated[int | None, typer.Option("--sim-cameras")] = None,
+        sim_fps: Annotated[float | None, typer.Option("--sim-fps")] = None,
+        noise_px: Annotated[float | None, typer.Option("--noise-px")] = None,
+        seed: Annotated[int | None, typer.Option("--seed")] = None,
+        verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
+    ) -> None:
+        """Track markers and rigid bodies and serve their poses until stopped (SIGTERM).
+
+        SIGHUP reloads the configuration. With --frames or --duration it stops by itself
+        and prints (and with --json writes) its figures.
+        """
+        from daemon.service import Daemon
+
+        setup_logging(verbose)
+        for name, value in (("--frames", frames), ("--duration", duration)):
+            if value is not None and value <= 0:
+                raise UserError(f"{name} must be positive, got {value}")
+        if mode is not None and mode not in ("triggered", "greedy"):
+            raise UserError(f"--mode must be triggered or greedy, got {mode!r}")
+        extend = command_line_additions(udp, serial, mavlink, mavlink_body, mavlink_message)
+        base = load_config(config)
+
+        def full(cfg: Config) -> Config:
+            cfg = extend(cfg)
+            changes = {}
+            if rig is not None:
+                changes["rig"] = rig
+            if runtime_dir is not None:
+                changes["runtime_dir"] = runtime_dir
+            if mode is not None:
+                changes["mode"] = mode
+            if sim or cfg.sim is not None:
+                s = cfg.sim or SimConfig()
+                sim_changes = {"realtime": not fast} if fast else {}
+                for key, value in (("bodies", sim_bodies), ("cameras", sim_cameras),
+                                   ("fps", sim_fps), ("noise_px", noise_px), ("seed", seed)):
+                    if value is not None:
+                        sim_changes[key] = value
+                s = replace(s, **sim_changes)
+                changes["sim"] = s
+                changes["fps"] = s.fps
+            return replace(cfg, **changes)
+
+        cfg = full(base)
+        if cfg.sim is not None and cfg.sim.fps <= 0:
+            raise UserError(f"--sim-fps must be positive, got {cfg.sim.fps}")
+        truth = Rig.load(truth_rig) if truth_rig is not None else None
+        daemon = Daemon(cfg, truth, extend=full)
+        daemon.install_signals()
+        total = frames or (int(duration * cfg.sim.fps) if duration and cfg.sim else None)
+        progress = Progress("mocapd", total) if total else None
+        figures = daemon.run(frames, duration, progress.update if progress else None)
+        if progress:
+            progress.finish()
+        _report(figures)
+        if json_path is not None:
+            write_json(json_path, figures)
+
+
+def _report(fig: dict) -> None:
+    lat = fig["latency_to_poses"]
+    rows = [["frames", fig["frames"]],
+            ["rate (fps)", round(fig["rate_hz"] or 0.0, 1)],
+            ["latency to poses, median (ms)", lat["median_ms"] or float("nan")],
+            ["latency to poses, p99 (ms)", lat["p99_ms"] or float("nan")]]
+    if "latency_to_udp_sent" in fig:
+        u = fig["latency_to_udp_sent"]
+        rows += [["latency to UDP sent, median (ms)", u["median_ms"] or float("nan")],
+                 ["latency to UDP sent, p99 (ms)", u["p99_ms"] or float("nan")]]
+    print_table(rows, ["what", "value"])
+    truth = fig.get("truth")
+    if truth and truth["bodies"]:
+        typer.echo("")
+        print_table([[name, b["id"], round(100 * b["valid_fraction"], 1),
+                      b["position_error_mm_rms"] if b["position_error_mm_rms"] is not None
+                      else float("nan"),
+                      b["orientation_error_deg_rms"] if b["orientation_error_deg_rms"]
+                      is not None else float("nan")]
+                     for name, b in truth["bodies"].items()],
+                    ["body", "id", "valid_%", "pos_err_mm_rms", "rot_err_deg_rms"])
+        typer.echo(f"\nidentity swaps: {truth['track_swaps']} track, {truth['body_swaps']} body")

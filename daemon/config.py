@@ -1,0 +1,380 @@
+"""The mocapd configuration (mocapd.toml): reading, validation, and the command-line additions.
+
+Why validate everything up front: the daemon runs unattended under systemd; a typo found
+after the cameras are open, or at the first SIGHUP, is a robot without poses. Every problem
+is one line naming the file, the key and what is wrong, raised as UserError before anything
+opens. docs/daemon.md documents every key.
+
+    rig = "rig.toml"                     # the calibrated rig (not needed with [sim])
+    runtime_dir = "/run/mocapd"          # control socket; default $RUNTIME_DIRECTORY etc.
+
+    [pipeline]  mode = "triggered"|"greedy", fps, timeout_frames
+    [tracker]   gate_px, max_missing, outlier_px, new_tracks_every, ...
+    [rigid]     distance_tol_m, max_error_m
+    [sim]       cameras, bodies, markers_per_body, extra_markers, fps, noise_px, dropout,
+                ghosts, volume_m, size, seed, realtime, drop_camera, drop_from_s, drop_for_s
+    [[rigid_body]] name, id, markers = [[x, y, z], ...], pivot, min_markers_start,
+                   min_markers_keep, smoothing
+    [[udp]]     address = "HOST:PORT", rate_hz, ttl, bodies
+    [[serial]]  device, baud, rate_hz, bodies
+    [[mavlink]] device, baud, body, message, frame, rate_hz, system_id, component_id
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+
+import numpy as np
+import tomllib
+
+from calibkit.errors import UserError
+from daemon.publish.mavlink import MESSAGES, WORLD_TO_NED
+from daemon.rigid import BodyDef, RigidConfig
+from daemon.tracker import TrackerConfig
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    cameras: int = 8
+    bodies: int = 3
+    markers_per_body: int = 4
+    extra_markers: int = 0  # loose markers besides the bodies'
+    fps: float = 240.0
+    noise_px: float = 0.2
+    dropout: float = 0.0
+    ghosts: float = 0.0
+    volume_m: float = 4.0
+    size: tuple[int, int] = (640, 480)
+    seed: int = 0
+    realtime: bool = True  # pace frames at fps; False: as fast as the tracker goes
+    drop_camera: str = ""  # a camera that disconnects (fault injection)
+    drop_from_s: float = 0.5
+    drop_for_s: float = 0.5
+
+
+@dataclass(frozen=True)
+class UdpOut:
+    host: str
+    port: int
+    rate_hz: float = 0.0
+    ttl: int = 1
+    bodies: tuple[int, ...] | None = None
+
+
+@dataclass(frozen=True)
+class SerialOut:
+    device: str
+    baud: int = 115200
+    rate_hz: float = 100.0
+    bodies: tuple[int, ...] | None = None
+
+
+@dataclass(frozen=True)
+class MavlinkOut:
+    device: str
+    body: int
+    baud: int = 921600
+    message: str = "vision_position_estimate"
+    frame: str = "enu"
+    rate_hz: float = 50.0
+    system_id: int = 1
+    component_id: int = 197
+
+
+@dataclass(frozen=True)
+class Config:
+    path: Path | None = None
+    rig: Path | None = None
+    runtime_dir: Path | None = None
+    mode: str = "triggered"
+    fps: float = 240.0  # expected camera rate (the triggered multiplexer's timeout)
+    timeout_frames: float = 1.5  # triggered: wait this many frame periods for a full set
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    rigid: RigidConfig = field(default_factory=RigidConfig)
+    sim: SimConfig | None = None
+    bodies: tuple[BodyDef, ...] = ()
+    udp: tuple[UdpOut, ...] = ()
+    serial: tuple[SerialOut, ...] = ()
+    mavlink: tuple[MavlinkOut, ...] = ()
+
+
+class _Where:
+    """Error messages that name the file and the key."""
+
+    def __init__(self, path: Path | None) -> None:
+        self.path = path
+
+    def fail(self, key: str, problem: str):
+        where = f"{self.path}: " if self.path else ""
+        raise UserError(f"{where}{key}: {problem}")
+
+
+def _check_keys(w: _Where, table: dict, allowed, prefix: str) -> None:
+    for key in table:
+        if key not in allowed:
+            w.fail(f"{prefix}{key}", "unknown key (allowed: " + ", ".join(sorted(allowed)) + ")")
+
+
+def _number(w, table, key, prefix, default, kind=float, lo=None, hi=None):
+    if key not in table:
+        return default
+    v = table[key]
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or (kind is int and
+                                                                  not isinstance(v, int)):
+        w.fail(prefix + key, f"expected {'an integer' if kind is int else 'a number'}, "
+                             f"got {v!r}")
+    if (lo is not None and v < lo) or (hi is not None and v > hi):
+        rng = f"between {lo} and {hi}" if hi is not None else f"at least {lo}"
+        w.fail(prefix + key, f"must be {rng}, got {v}")
+    return kind(v)
+
+
+def _string(w, table, key, prefix, default=None, choices=None):
+    if key not in table:
+        if default is None:
+            w.fail(prefix + key, "missing (required)")
+        return default
+    v = table[key]
+    if not isinstance(v, str) or not v:
+        w.fail(prefix + key, f"expected a non-empty string, got {v!r}")
+    if choices and v not in choices:
+        w.fail(prefix + key, f"must be one of {', '.join(choices)}; got {v!r}")
+    return v
+
+
+def _bool(w, table, key, prefix, default):
+    if key not in table:
+        return default
+    if not isinstance(table[key], bool):
+        w.fail(prefix + key, f"expected true or false, got {table[key]!r}")
+    return table[key]
+
+
+def _vectors(w, table, key, prefix, rows=None):
+    v = table.get(key)
+    try:
+        a = np.asarray(v, dtype=np.float64)
+    except (TypeError, ValueError):
+        a = None
+    want = "[x, y, z]" if rows == 1 else "a list of [x, y, z] in metres"
+    if a is None or (rows == 1 and a.shape != (3,)) or (rows != 1 and (a.ndim != 2 or
+                                                                       a.shape[1] != 3)):
+        w.fail(prefix + key, f"expected {want}, got {v!r}")
+    if not np.all(np.isfinite(a)):
+        w.fail(prefix + key, "must be finite numbers")
+    return a
+
+
+def parse_address(text: str, what: str = "address") -> tuple[str, int]:
+    """'HOST:PORT' -> (host, port); ValueError with the reason."""
+    host, sep, port = str(text).rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"expected HOST:PORT with a port 1-65535, got {text!r}")
+    return host, int(port)
+
+
+def parse_serial(text: str, default_baud: int = 115200) -> tuple[str, int]:
+    """'DEV[:BAUD]' -> (device, baud); pyserial URLs (socket://, loop://) are kept whole."""
+    text = str(text)
+    if "://" not in text:
+        dev, sep, baud = text.rpartition(":")
+        if sep and baud.isdigit() and dev:
+            return dev, int(baud)
+    return text, default_baud
+
+
+def _ids(w, table, key, prefix):
+    if key not in table:
+        return None
+    v = table[key]
+    if not isinstance(v, list) or not all(isinstance(i, int) and not isinstance(i, bool)
+                                          for i in v):
+        w.fail(prefix + key, f"expected a list of body ids, got {v!r}")
+    return tuple(v)
+
+
+def _dataclass_table(w, table, cls, default, prefix):
+    """Overrides of a frozen config dataclass's numeric/bool fields from a TOML table."""
+    names = {f.name: f for f in fields(cls) if f.name != "correspondence"}
+    _check_keys(w, table, names, prefix)
+    changes = {}
+    for name in names:
+        if name not in table:
+            continue
+        current = getattr(default, name)
+        if isinstance(current, bool):
+            changes[name] = _bool(w, table, name, prefix, current)
+        elif isinstance(current, int):
+            changes[name] = _number(w, table, name, prefix, current, int, lo=0)
+        elif isinstance(current, float):
+            changes[name] = _number(w, table, name, prefix, current, float, lo=0)
+        elif isinstance(current, str):
+            changes[name] = _string(w, table, name, prefix, current)
+        elif isinstance(current, tuple):
+            v = table[name]
+            if not (isinstance(v, list) and len(v) == 2 and all(isinstance(x, int) for x in v)):
+                w.fail(prefix + name, f"expected [width, height], got {v!r}")
+            changes[name] = tuple(v)
+    return replace(default, **changes)
+
+
+def parse_config(data: dict, path: Path | None = None, base: Path | None = None) -> Config:
+    """A Config from parsed TOML; relative paths are taken from `base` (the file's folder)."""
+    w = _Where(path)
+    top = {"rig", "runtime_dir", "pipeline", "tracker", "rigid", "sim", "rigid_body", "udp",
+           "serial", "mavlink"}
+    _check_keys(w, data, top, "")
+    base = base or Path.cwd()
+    cfg = Config(path=path)
+    changes: dict = {}
+    if "rig" in data:
+        changes["rig"] = base / _string(w, data, "rig", "")
+    if "runtime_dir" in data:
+        changes["runtime_dir"] = base / _string(w, data, "runtime_dir", "")
+    pipe = _table(w, data, "pipeline")
+    _check_keys(w, pipe, {"mode", "fps", "timeout_frames"}, "pipeline.")
+    changes["mode"] = _string(w, pipe, "mode", "pipeline.", "triggered", ("triggered", "greedy"))
+    changes["fps"] = _number(w, pipe, "fps", "pipeline.", cfg.fps, lo=1, hi=10000)
+    changes["timeout_frames"] = _number(w, pipe, "timeout_frames", "pipeline.", 1.5, lo=0.1,
+                                        hi=100)
+    changes["tracker"] = _dataclass_table(w, _table(w, data, "tracker"), TrackerConfig,
+                                          TrackerConfig(), "tracker.")
+    changes["rigid"] = _dataclass_table(w, _table(w, data, "rigid"), RigidConfig,
+                                        RigidConfig(), "rigid.")
+    if "sim" in data:
+        sim = _dataclass_table(w, _table(w, data, "sim"), SimConfig, SimConfig(), "sim.")
+        _sim_limits(w, sim)
+        changes["sim"] = sim
+    changes["bodies"] = tuple(_bodies(w, data))
+    changes["udp"] = tuple(_udp(w, t, f"udp[{i}].") for i, t in enumerate(_list(w, data, "udp")))
+    changes["serial"] = tuple(_serial(w, t, f"serial[{i}].")
+                              for i, t in enumerate(_list(w, data, "serial")))
+    changes["mavlink"] = tuple(_mavlink(w, t, f"mavlink[{i}].")
+                               for i, t in enumerate(_list(w, data, "mavlink")))
+    return replace(cfg, **changes)
+
+
+def _sim_limits(w, sim: SimConfig) -> None:
+    if not 2 <= sim.cameras <= 32:
+        w.fail("sim.cameras", f"must be between 2 and 32, got {sim.cameras}")
+    if not 0 <= sim.bodies <= 20:
+        w.fail("sim.bodies", f"must be between 0 and 20, got {sim.bodies}")
+    if not 3 <= sim.markers_per_body <= 8:
+        w.fail("sim.markers_per_body", f"must be between 3 and 8, got {sim.markers_per_body}")
+    if sim.fps <= 0:
+        w.fail("sim.fps", f"must be positive, got {sim.fps}")
+    if not 0 <= sim.dropout < 1:
+        w.fail("sim.dropout", f"must be in [0, 1), got {sim.dropout}")
+
+
+def _table(w, data, key) -> dict:
+    v = data.get(key, {})
+    if not isinstance(v, dict):
+        w.fail(key, f"expected a table [{key}], got {v!r}")
+    return v
+
+
+def _list(w, data, key) -> list:
+    v = data.get(key, [])
+    if isinstance(v, dict):
+        v = [v]
+    if not isinstance(v, list) or not all(isinstance(t, dict) for t in v):
+        w.fail(key, f"expected tables [[{key}]], got {v!r}")
+    return v
+
+
+def _bodies(w, data) -> list[BodyDef]:
+    out, names, ids = [], set(), set()
+    allowed = {"name", "id", "markers", "pivot", "min_markers_start", "min_markers_keep",
+               "smoothing"}
+    for i, t in enumerate(_list(w, data, "rigid_body")):
+        p = f"rigid_body[{i}]."
+        _check_keys(w, t, allowed, p)
+        name = _string(w, t, "name", p)
+        p = f"rigid_body[{i}] ({name})."
+        if "id" not in t:
+            w.fail(p + "id", "missing (required)")
+        body_id = _number(w, t, "id", p, 0, int, lo=0, hi=65535)
+        markers = _vectors(w, t, "markers", p)
+        if not 3 <= len(markers) <= 32:
+            w.fail(p + "markers", f"a rigid body needs 3 to 32 markers, got {len(markers)}")
+        d = np.linalg.norm(markers[:, None] - markers[None], axis=2)
+        d = d[np.triu_indices(len(markers), 1)]
+        if d.min() < 0.01:
+            w.fail(p + "markers", f"two markers are {d.min() * 1000:.1f} mm apart; markers "
+                                  "need at least 10 mm between them")
+        pivot = _vectors(w, t, "pivot", p, rows=1) if "pivot" in t else np.zeros(3)
+        k = len(markers)
+        start = _number(w, t, "min_markers_start", p, min(k, 4) if k >= 4 else 3, int, 3, k)
+        keep = _number(w, t, "min_markers_keep", p, 3, int, 3, k)
+        smoothing = _number(w, t, "smoothing", p, 0.0, float, 0.0, 0.99)
+        if name in names:
+            w.fail(p + "name", f"two rigid bodies are called {name!r}")
+        if body_id in ids:
+            w.fail(p + "id", f"two rigid bodies have id {body_id}")
+        names.add(name)
+        ids.add(body_id)
+        out.append(BodyDef(name, body_id, markers, pivot, start, keep, smoothing))
+    return out
+
+
+def _udp(w, t, p) -> UdpOut:
+    _check_keys(w, t, {"address", "rate_hz", "ttl", "bodies"}, p)
+    try:
+        host, port = parse_address(_string(w, t, "address", p))
+    except ValueError as exc:
+        w.fail(p + "address", str(exc))
+    return UdpOut(host, port, _number(w, t, "rate_hz", p, 0.0, lo=0),
+                  _number(w, t, "ttl", p, 1, int, 0, 255), _ids(w, t, "bodies", p))
+
+
+def _serial(w, t, p) -> SerialOut:
+    _check_keys(w, t, {"device", "baud", "rate_hz", "bodies"}, p)
+    return SerialOut(_string(w, t, "device", p), _number(w, t, "baud", p, 115200, int, 50),
+                     _number(w, t, "rate_hz", p, 100.0, lo=0), _ids(w, t, "bodies", p))
+
+
+def _mavlink(w, t, p) -> MavlinkOut:
+    _check_keys(w, t, {"device", "baud", "body", "message", "frame", "rate_hz", "system_id",
+                       "component_id"}, p)
+    if "body" not in t:
+        w.fail(p + "body", "missing (the id of the rigid body to send)")
+    return MavlinkOut(_string(w, t, "device", p), _number(w, t, "body", p, 0, int, 0, 65535),
+                      _number(w, t, "baud", p, 921600, int, 50),
+                      _string(w, t, "message", p, "vision_position_estimate", MESSAGES),
+                      _string(w, t, "frame", p, "enu", tuple(WORLD_TO_NED)),
+                      _number(w, t, "rate_hz", p, 50.0, lo=0),
+                      _number(w, t, "system_id", p, 1, int, 1, 255),
+                      _number(w, t, "component_id", p, 197, int, 0, 255))
+
+
+def load_config(path: str | Path | None) -> Config:
+    """Read and validate a mocapd.toml; None gives the defaults (flags add the rest)."""
+    if path is None:
+        return Config()
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise UserError(f"{path}: no such configuration file") from None
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read: {exc.strerror}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise UserError(f"{path}: not valid TOML: {exc}") from None
+    return parse_config(data, path, path.parent)
+
+
+def default_runtime_dir() -> Path:
+    """Where the control socket lives: systemd's RuntimeDirectory, else the user's runtime
+    directory, else /tmp."""
+    if os.environ.get("MOCAPD_RUNTIME_DIR"):
+        return Path(os.environ["MOCAPD_RUNTIME_DIR"])
+    if os.environ.get("RUNTIME_DIRECTORY"):
+        return Path(os.environ["RUNTIME_DIRECTORY"].split(":")[0])
+    if os.environ.get("XDG_RUNTIME_DIR"):
+        return Path(os.environ["XDG_RUNTIME_DIR"]) / "mocapd"
+    return Path(f"/tmp/mocapd-{os.getuid()}")

@@ -1,0 +1,131 @@
+"""The one publisher interface: each output has its own bounded queue and worker thread.
+
+Why a thread and queue per output: tracking must never wait for a consumer. A serial port
+unplugged, a pty nobody reads, an unreachable address: the frame loop only appends to a
+queue (dropping the oldest frame when it is full, since a pose consumer wants the newest),
+and the worker logs the failure and retries opening the output, at most once a second.
+
+A protocol is one file with one subclass that implements `open`, `send(result)` and
+`close`; `rate_hz` throttles what it is handed. NatNet, VRPN and friends plug in the same way.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+
+log = logging.getLogger("mocapd.publish")
+
+
+class Publisher:
+    """Base class: subclasses set `name` and implement open/send/close."""
+
+    name = "publisher"
+
+    def __init__(self, rate_hz: float = 0.0, queue_size: int = 8, retry_s: float = 1.0) -> None:
+        self.rate_hz = float(rate_hz)
+        self.retry_s = retry_s
+        self._queue: deque = deque(maxlen=max(1, queue_size))
+        self._cond = threading.Condition()
+        self._stop = False
+        self._thread: threading.Thread | None = None
+        self._next_due = 0.0
+        self.sent = 0
+        self.dropped = 0  # frames pushed out of a full queue
+        self.errors = 0
+        self.last_error = ""
+        self.connected = False
+        self.send_ns: deque = deque(maxlen=4096)  # (arrival_ns, sent_ns) of recent sends
+
+    # ---- what a protocol implements ----------------------------------------------------
+
+    def open(self) -> None:
+        """Open the port or socket; raise OSError (or any error) when it cannot."""
+
+    def send(self, result) -> None:
+        """Send one FrameResult (daemon.pipeline) on the open output."""
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Release the port or socket; called on errors (before a retry) and at stop."""
+
+    # ---- the machinery -------------------------------------------------------------------
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name=f"pub-{self.name}", daemon=True)
+        self._thread.start()
+
+    def submit(self, result) -> None:
+        """Hand a frame to the worker; never blocks. Throttled to rate_hz if set."""
+        if self.rate_hz > 0:
+            now = time.monotonic()
+            if now < self._next_due:
+                return
+            self._next_due = max(self._next_due + 1.0 / self.rate_hz, now - 0.5 / self.rate_hz)
+        with self._cond:
+            if len(self._queue) == self._queue.maxlen:
+                self.dropped += 1
+            self._queue.append(result)
+            self._cond.notify()
+
+    def stop(self, timeout: float = 2.0) -> None:
+        """Send what is queued (flush), then close."""
+        with self._cond:
+            self._stop = True
+            self._cond.notify()
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def status(self) -> dict:
+        return {"name": self.name, "connected": self.connected, "sent": self.sent,
+                "dropped": self.dropped, "errors": self.errors, "last_error": self.last_error}
+
+    def _run(self) -> None:
+        next_open = 0.0
+        while True:
+            with self._cond:
+                while not self._queue and not self._stop:
+                    self._cond.wait(0.5)
+                if self._stop and (not self._queue or not self.connected):
+                    break
+                result = self._queue.popleft() if self._queue else None
+            if result is None:
+                continue
+            if not self.connected:
+                if time.monotonic() < next_open:
+                    self.dropped += 1
+                    continue
+                try:
+                    self.open()
+                    self.connected = True
+                    log.info("%s: open", self.name)
+                except Exception as exc:  # noqa: BLE001 - any failure is retried
+                    self._failed(f"cannot open: {exc}")
+                    next_open = time.monotonic() + self.retry_s
+                    self.dropped += 1
+                    continue
+            try:
+                self.send(result)
+                self.sent += 1
+                self.send_ns.append((result.arrival_ns, time.monotonic_ns()))
+            except Exception as exc:  # noqa: BLE001
+                self._failed(f"send failed: {exc}")
+                self._safe_close()
+                next_open = time.monotonic() + self.retry_s
+        self._safe_close()
+
+    def _failed(self, message: str) -> None:
+        self.errors += 1
+        if message != self.last_error:
+            log.warning("%s: %s (retrying every %.0f s)", self.name, message, self.retry_s)
+        self.last_error = message
+
+    def _safe_close(self) -> None:
+        if self.connected:
+            try:
+                self.close()
+            except Exception as exc:  # noqa: BLE001
+                log.warning("%s: close failed: %s", self.name, exc)
+        self.connected = False

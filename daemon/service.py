@@ -1,0 +1,473 @@
+"""The daemon as a service: sd_notify, signals, the control socket, and the run loop.
+
+systemd's notify protocol is one datagram per message to $NOTIFY_SOCKET, no library
+needed: READY=1 once the rig and cameras are up, WATCHDOG=1 from the frame loop (so a hung
+loop is restarted, not a hung thread elsewhere), STATUS= with rate and latency, RELOADING=1
+around a SIGHUP reload, STOPPING=1 on the way out. SIGTERM and SIGINT stop cleanly:
+publishers flush their queues and close their ports. The control socket (Unix, mode 0600,
+under the runtime directory) answers one JSON request per connection: status, stop,
+reload, record, record_stop, markers.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import socket
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from calibkit.camera import Rig
+from calibkit.errors import UserError
+from daemon.config import Config, SimConfig, default_runtime_dir, load_config
+from daemon.pipeline import CaptureThread, FrameSet, Multiplexer, Pipeline, latency_figures
+from daemon.publish.mavlink import MavlinkPublisher
+from daemon.publish.recorder import RecorderPublisher
+from daemon.publish.serial import SerialPublisher
+from daemon.publish.udp import UdpPublisher
+from daemon.rigid import alike_bodies
+from daemon.sources import Evaluator, SimCamera, SimScene
+
+log = logging.getLogger("mocapd")
+SOCKET_NAME = "mocapd.sock"
+
+
+# ---- systemd notify --------------------------------------------------------------------------
+
+def sd_notify(message: str) -> bool:
+    """Send one notify message; False when not under systemd (no NOTIFY_SOCKET)."""
+    address = os.environ.get("NOTIFY_SOCKET")
+    if not address:
+        return False
+    if address.startswith("@"):
+        address = "\0" + address[1:]
+    try:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as s:
+            s.connect(address)
+            s.sendall(message.encode())
+        return True
+    except OSError as exc:
+        log.debug("sd_notify failed: %s", exc)
+        return False
+
+
+def watchdog_interval_s() -> float | None:
+    usec = os.environ.get("WATCHDOG_USEC")
+    pid = os.environ.get("WATCHDOG_PID")
+    if not usec or (pid and pid != str(os.getpid())):
+        return None
+    return int(usec) / 2e6
+
+
+# ---- control socket ----------------------------------------------------------------------------
+
+def request(runtime_dir: Path | None, message: dict, timeout_s: float = 5.0) -> dict:
+    """Send one request to a running daemon's control socket; its JSON answer."""
+    path = Path(runtime_dir or default_runtime_dir()) / SOCKET_NAME
+    try:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+            s.settimeout(timeout_s)
+            s.connect(str(path))
+            s.sendall(json.dumps(message).encode() + b"\n")
+            data = b""
+            while not data.endswith(b"\n"):
+                chunk = s.recv(65536)
+                if not chunk:
+                    break
+                data += chunk
+    except (FileNotFoundError, ConnectionRefusedError):
+        raise UserError(f"no mocapd running (no control socket at {path}); start one with "
+                        "`mocapd start`, or pass --runtime-dir") from None
+    except OSError as exc:
+        raise UserError(f"cannot talk to mocapd at {path}: {exc}") from None
+    try:
+        answer = json.loads(data)
+    except json.JSONDecodeError:
+        raise UserError(f"mocapd at {path} sent a malformed answer") from None
+    if not answer.get("ok", False):
+        raise UserError(f"mocapd: {answer.get('error', 'request failed')}")
+    return answer
+
+
+class ControlServer:
+    """Accepts one JSON request per connection and answers with handler(request)."""
+
+    def __init__(self, runtime_dir: Path, handler) -> None:
+        self.dir = Path(runtime_dir)
+        self.path = self.dir / SOCKET_NAME
+        self.handler = handler
+        self.sock: socket.socket | None = None
+        self.thread: threading.Thread | None = None
+
+    def open(self) -> None:
+        self.dir.mkdir(parents=True, exist_ok=True, mode=0o700)
+        if self.path.exists():
+            probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            try:
+                probe.connect(str(self.path))
+                raise UserError(f"another mocapd is running (control socket {self.path}); "
+                                "stop it with `mocapd stop` or use another --runtime-dir")
+            except (ConnectionRefusedError, FileNotFoundError):
+                self.path.unlink(missing_ok=True)  # left over from a killed daemon
+            finally:
+                probe.close()
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        old = os.umask(0o177)
+        try:
+            sock.bind(str(self.path))
+        except OSError as exc:
+            sock.close()
+            raise UserError(f"cannot create the control socket {self.path}: {exc}") from None
+        finally:
+            os.umask(old)
+        os.chmod(self.path, 0o600)
+        sock.listen(8)
+        sock.settimeout(0.2)
+        self.sock = sock
+        self.thread = threading.Thread(target=self._serve, name="control", daemon=True)
+        self.thread.start()
+
+    def _serve(self) -> None:
+        while self.sock is not None:
+            try:
+                conn, _ = self.sock.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                break
+            with conn:
+                try:
+                    conn.settimeout(2.0)
+                    data = b""
+                    while not data.endswith(b"\n"):
+                        chunk = conn.recv(65536)
+                        if not chunk:
+                            break
+                        data += chunk
+                    try:
+                        answer = self.handler(json.loads(data or b"{}"))
+                    except UserError as exc:
+                        answer = {"ok": False, "error": str(exc)}
+                    except Exception as exc:  # noqa: BLE001 - never kill the server
+                        log.exception("control request failed")
+                        answer = {"ok": False, "error": f"internal error: {exc}"}
+                    conn.sendall(json.dumps(answer, default=_plain).encode() + b"\n")
+                except OSError:
+                    pass
+
+    def close(self) -> None:
+        sock, self.sock = self.sock, None
+        if sock is not None:
+            sock.close()
+        if self.thread is not None:
+            self.thread.join(1.0)
+        self.path.unlink(missing_ok=True)
+
+
+def _plain(value):
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return str(value)
+
+
+# ---- the daemon ------------------------------------------------------------------------------
+
+def make_publishers(config: Config) -> list:
+    pubs = []
+    for u in config.udp:
+        pubs.append(UdpPublisher([(u.host, u.port)], ttl=u.ttl, rate_hz=u.rate_hz,
+                                 bodies=u.bodies, name=f"udp:{u.host}:{u.port}"))
+    for s in config.serial:
+        pubs.append(SerialPublisher(s.device, s.baud, s.rate_hz, s.bodies))
+    for m in config.mavlink:
+        pubs.append(MavlinkPublisher(m.device, m.body, m.baud, m.rate_hz, m.message, m.frame,
+                                     m.system_id, m.component_id))
+    return pubs
+
+
+class Daemon:
+    """Builds the pipeline from a Config and runs it until stopped (or for a while)."""
+
+    def __init__(self, config: Config, truth_rig: Rig | None = None,
+                 extend=None) -> None:
+        """`extend(config) -> config` re-applies command-line additions after a reload."""
+        self.config = config
+        self.extend = extend or (lambda c: c)
+        self.stop_event = threading.Event()
+        self.reload_event = threading.Event()
+        self.recorder: RecorderPublisher | None = None
+        self.started_ns = time.monotonic_ns()
+        self.scene: SimScene | None = None
+        self.evaluator: Evaluator | None = None
+        self.captures: list[CaptureThread] = []
+        self.rig = self._rig(config)
+        self._truth_rig = truth_rig
+        self.control: ControlServer | None = None
+
+    @staticmethod
+    def _rig(config: Config) -> Rig | None:
+        if config.rig is not None:
+            try:
+                return Rig.load(config.rig)
+            except FileNotFoundError:
+                raise UserError(f"rig file {config.rig} not found") from None
+        if config.sim is None:
+            where = f"{config.path}: " if config.path else ""
+            raise UserError(f"{where}rig: no rig given; set rig = \"rig.toml\" in the "
+                            "configuration, pass --rig, or use --sim")
+        return None
+
+    # ---- lifecycle -------------------------------------------------------------------------
+
+    def setup(self, n_frames: int | None = None) -> None:
+        cfg = self.config
+        if cfg.sim is None:
+            raise UserError("live cameras are not configured yet: use --sim (with --rig for a "
+                            "calibrated rig), or replay a recording")
+        self.scene = SimScene(cfg.sim, self.rig, self._truth_rig, n_frames)
+        self.rig = self.scene.rig
+        bodies = list(cfg.bodies) or self.scene.body_defs()
+        self._warn_alike(bodies)
+        self.evaluator = Evaluator(self.scene)
+        self.pipeline = Pipeline(self.rig, cfg.tracker, cfg.rigid, bodies, make_publishers(cfg),
+                                 hooks=[self.evaluator])
+        runtime = cfg.runtime_dir or default_runtime_dir()
+        self.control = ControlServer(runtime, self.handle)
+        self.control.open()
+        for p in self.pipeline.publishers:
+            p.start()
+
+    def _warn_alike(self, bodies) -> None:
+        for a, b in alike_bodies(bodies, self.config.rigid.distance_tol_m):
+            log.warning("rigid bodies %s and %s have nearly the same marker distances; they "
+                        "may be confused", a, b)
+
+    def install_signals(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return
+        signal.signal(signal.SIGTERM, lambda *_: self.stop_event.set())
+        signal.signal(signal.SIGINT, lambda *_: self.stop_event.set())
+        signal.signal(signal.SIGHUP, lambda *_: self.reload_event.set())
+
+    def run(self, frames: int | None = None, duration_s: float | None = None,
+            progress=None) -> dict:
+        """Track until stopped, `frames` frames or `duration_s` seconds; the figures."""
+        sim_cfg: SimConfig = self.config.sim
+        n_scene = frames or (int(duration_s * sim_cfg.fps) + 10 if duration_s else None)
+        self.setup(n_scene)
+        try:
+            if sim_cfg.realtime:
+                self._run_live(frames, duration_s, progress)
+            else:
+                self._run_fast(frames, duration_s, progress)
+        finally:
+            self.shutdown()
+        return self.figures()
+
+    def _run_fast(self, frames, duration_s, progress) -> None:
+        """The simulator as fast as the tracker goes: one loop, no capture threads."""
+        scene = self.scene
+        period = 1e9 / scene.fps
+        total = frames or (int(duration_s * scene.fps) if duration_s else None)
+        sd_notify("READY=1")
+        log.info("tracking %d cameras (simulated, as fast as possible)", len(self.rig))
+        i = 0
+        while not self.stop_event.is_set() and (total is None or i < total):
+            t_ns = round(i * period)
+            samples = [scene.sample(c, i, t_ns) for c in range(len(self.rig))
+                       if not scene.dropped(c, i)]
+            self.pipeline.process(FrameSet(i, t_ns, time.monotonic_ns(), samples))
+            i += 1
+            self._tick(progress)
+
+    def _run_live(self, frames, duration_s, progress) -> None:
+        scene = self.scene
+        t0 = time.monotonic_ns() + 50_000_000
+        self.captures = [CaptureThread(SimCamera(scene, c, t0), None)
+                         for c in range(len(self.rig))]
+        cfg = self.config
+        self.mux = Multiplexer(len(self.rig), cfg.mode, scene.fps, cfg.timeout_frames,
+                               connected=lambda: np.array([c.connected or c.frames == 0
+                                                           for c in self.captures]))
+        for cap in self.captures:
+            cap.push = self.mux.push
+            cap.start()
+        sd_notify("READY=1")
+        log.info("tracking %d cameras (simulated at %.0f fps, %s)", len(self.rig), scene.fps,
+                 cfg.mode)
+        end = None if duration_s is None else t0 + int(duration_s * 1e9)
+        while not self.stop_event.is_set():
+            if end is not None and time.monotonic_ns() >= end:
+                break
+            if frames is not None and self.pipeline.stats.frames >= frames:
+                break
+            fs = self.mux.next(0.1)
+            if fs is not None:
+                self.pipeline.process(fs)
+            self._tick(progress)
+
+    def _tick(self, progress) -> None:
+        """Per frame: watchdog, status line, a pending reload."""
+        now = time.monotonic()
+        if not hasattr(self, "_next_beat"):
+            self._next_beat, self._next_status = now, now
+        if now >= self._next_beat:
+            interval = watchdog_interval_s()
+            if interval:
+                sd_notify("WATCHDOG=1")
+            self._next_beat = now + (interval or 1.0)
+        if now >= self._next_status:
+            lat = latency_figures(self.pipeline.stats.latency)
+            med = lat["median_ms"] or 0.0
+            sd_notify(f"STATUS={self.pipeline.stats.rate_hz():.0f} fps, latency "
+                      f"{med:.2f} ms, {self.pipeline.stats.valid_bodies} bodies")
+            self._next_status = now + 1.0
+        if self.reload_event.is_set():
+            self.reload_event.clear()
+            self.reload()
+        if progress is not None:
+            progress(self.pipeline.stats.frames)
+
+    def reload(self) -> bool:
+        """Re-read the configuration: rigid bodies and outputs change, the stream goes on.
+        A bad file is logged and the running configuration kept."""
+        sd_notify("RELOADING=1")
+        try:
+            new = self.extend(load_config(self.config.path)) if self.config.path else self.config
+        except UserError as exc:
+            log.error("reload failed, keeping the running configuration: %s", exc)
+            sd_notify("READY=1")
+            return False
+        bodies = list(new.bodies) or self.scene.body_defs()
+        self._warn_alike(bodies)
+        self.pipeline.replace(bodies=bodies, publishers=make_publishers(new))
+        self.config = new
+        log.info("configuration reloaded: %d rigid bodies, %d outputs", len(bodies),
+                 len(new.udp) + len(new.serial) + len(new.mavlink))
+        sd_notify("READY=1")
+        return True
+
+    def shutdown(self) -> None:
+        sd_notify("STOPPING=1")
+        for cap in self.captures:
+            cap.stop()
+        for cap in self.captures:
+            cap.join(1.0)
+        if hasattr(self, "pipeline"):
+            self.pipeline._apply_pending()
+            for p in self.pipeline.publishers:
+                p.stop()
+        if self.recorder is not None:
+            self.recorder.stop()
+        if self.control is not None:
+            self.control.close()
+
+    # ---- control requests ------------------------------------------------------------------
+
+    def handle(self, req: dict) -> dict:
+        cmd = req.get("cmd")
+        if cmd == "status":
+            return {"ok": True, **self.status()}
+        if cmd == "stop":
+            self.stop_event.set()
+            return {"ok": True}
+        if cmd == "reload":
+            self.reload_event.set()
+            return {"ok": True}
+        if cmd == "record":
+            return self._record(req.get("path"))
+        if cmd == "record_stop":
+            if self.recorder is None:
+                raise UserError("not recording")
+            rec, self.recorder = self.recorder, None
+            self.pipeline.hooks.remove(rec.submit)
+            rec.stop(timeout=10.0)
+            return {"ok": True, "path": str(rec.path), "frames": rec.sent}
+        if cmd == "markers":
+            return {"ok": True, **self._markers()}
+        raise UserError(f"unknown request {cmd!r}")
+
+    def _record(self, path) -> dict:
+        if not path:
+            raise UserError("record needs a PATH")
+        if self.recorder is not None:
+            raise UserError(f"already recording to {self.recorder.path}; "
+                            "`mocapd record --stop` first")
+        rec = RecorderPublisher(Path(path), self.rig, self.scene.fps if self.scene else None)
+        rec.start()
+        self.recorder = rec
+        self.pipeline.hooks.append(rec.submit)
+        return {"ok": True, "path": str(path)}
+
+    def _markers(self) -> dict:
+        """The seen tracks of the latest frame, and whether a body holds each (for
+        `mocapd rigid-body add --from-live`)."""
+        res = self.pipeline.last_result
+        if res is None:
+            return {"markers": []}
+        tr, poses = res.tracks, res.poses
+        taken = np.isin(tr.ids, poses.tracks[poses.tracks >= 0])
+        sel = tr.seen
+        return {"markers": [{"id": int(i), "xyz": [float(v) for v in p], "body": bool(t)}
+                            for i, p, t in zip(tr.ids[sel], tr.xyz[sel], taken[sel],
+                                               strict=True)]}
+
+    def status(self) -> dict:
+        st = self.pipeline.stats
+        cams = []
+        for i, name in enumerate(self.rig.names):
+            cap = self.captures[i] if i < len(self.captures) else None
+            mux = getattr(self, "mux", None)
+            cams.append({"name": name,
+                         "connected": bool(cap.connected) if cap else True,
+                         "rate_hz": cap.rate_hz() if cap else st.rate_hz(),
+                         "frames": cap.frames if cap else st.frames,
+                         "dropped": int(mux.missing[i]) if mux else 0,
+                         "failures": cap.failures if cap else 0})
+        poses = getattr(self.pipeline, "last_result", None)
+        return {
+            "uptime_s": (time.monotonic_ns() - self.started_ns) * 1e-9,
+            "frames": st.frames, "rate_hz": st.rate_hz(),
+            "latency": latency_figures(st.latency),
+            "cameras": cams,
+            "bodies": [] if poses is None else [
+                {"id": int(b.id), "name": b.name, "valid": bool(v)}
+                for b, v in zip(self.pipeline.rigid.bodies, poses.poses.valid, strict=True)],
+            "bodies_tracked": st.valid_bodies,
+            "outputs": [p.status() for p in self.pipeline.publishers],
+            "recording": str(self.recorder.path) if self.recorder else None,
+        }
+
+    def figures(self) -> dict:
+        st = self.pipeline.stats
+        elapsed = (st.done[-1] - st.done[0]) * 1e-9 if len(st.done) > 1 else 0.0
+        out = {
+            "frames": st.frames,
+            "rate_hz": (len(st.done) - 1) / elapsed if elapsed > 0 else None,
+            "latency_to_poses": latency_figures(st.all_latency),
+            "cameras": self.status()["cameras"],
+            "outputs": [p.status() for p in self.pipeline.publishers],
+        }
+        sent = [p for p in self.pipeline.publishers if isinstance(p, UdpPublisher)]
+        if sent:
+            out["latency_to_udp_sent"] = latency_figures(
+                [s - a for a, s in sent[0].send_ns])
+        if self.mux_stats():
+            out["multiplexer"] = self.mux_stats()
+        if self.evaluator is not None:
+            out["truth"] = self.evaluator.figures()
+        return out
+
+    def mux_stats(self) -> dict | None:
+        mux = getattr(self, "mux", None)
+        if mux is None:
+            return None
+        return {"incomplete_sets": mux.incomplete, "late_samples": mux.late,
+                "overflow": mux.overflow, "skipped_behind": mux.skipped}

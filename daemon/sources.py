@@ -1,0 +1,264 @@
+"""Daemon-side blob sources: what each capture thread reads, and the simulator's truth.
+
+A blob source yields CameraSample (one camera's blobs of one frame). Real cameras are
+frame sources (calibkit.sources) followed by detection; the simulator yields blobs directly
+(rendering 8 images at 240 fps would measure the renderer, not the tracker), with the
+true marker of each blob so tracking can be scored. Industrial cameras come from optional
+plugins; a plugin whose library is missing is reported and skipped.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import logging
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from calibkit import sim
+from calibkit.camera import Rig
+from calibkit.errors import UserError
+from daemon.config import SimConfig
+from daemon.rigid import BodyDef
+
+log = logging.getLogger("mocapd.sources")
+
+PLUGINS = {"basler": "pypylon", "genicam": "harvesters"}
+
+
+@dataclass(eq=False)
+class CameraSample:
+    """One camera's blobs of one frame."""
+
+    camera: int
+    index: int  # frame number (the same number across cameras when they are triggered)
+    t_ns: int  # capture time (monotonic ns)
+    arrival_ns: int  # when the daemon got it
+    uv: np.ndarray  # (N, 2) distorted pixels
+    area: np.ndarray  # (N,)
+    peak: np.ndarray  # (N,)
+    marker: np.ndarray | None = None  # (N,) true marker ids (simulator only)
+    scene_frame: int = -1  # the simulator's frame (truth index)
+
+
+def missing_plugins(kinds) -> list[str]:
+    """The camera plugins asked for whose library is not installed."""
+    return [f"{k} (needs {PLUGINS[k]})" for k in kinds
+            if k in PLUGINS and importlib.util.find_spec(PLUGINS[k]) is None]
+
+
+# ---- the simulator -------------------------------------------------------------------------
+
+class SimScene:
+    """A simulated capture for the daemon: rig, moving rigid bodies, per-camera blobs, truth.
+
+    `rig` is what the daemon tracks with (a calibrated rig); `truth_rig` is what the blobs
+    are made with (the true cameras). The scene is `n_frames` long; longer runs play it
+    back and forth (motion stays continuous), `scene_frame(i)` says which frame is shown.
+    """
+
+    def __init__(self, cfg: SimConfig, rig: Rig | None = None, truth_rig: Rig | None = None,
+                 n_frames: int | None = None) -> None:
+        self.cfg = cfg
+        if rig is None:
+            rig = sim.make_rig(cfg.cameras, cfg.volume_m, size=cfg.size, seed=cfg.seed)
+        self.rig = rig
+        self.truth_rig = truth_rig or rig
+        if self.truth_rig.names != rig.names:
+            raise UserError("the true rig and the tracking rig have different cameras")
+        volume = float(rig.meta.get("volume_m", cfg.volume_m)) if rig.meta else cfg.volume_m
+        self.fps = cfg.fps
+        n = int(n_frames or round(20 * cfg.fps))
+        n = max(2, min(n, int(60 * cfg.fps)))
+        self.n_frames = n
+        truth, self.bodies_truth = sim.rigid_body_motion(
+            max(cfg.bodies, 1), n, cfg.fps, volume, cfg.markers_per_body, seed=cfg.seed + 1)
+        if cfg.bodies == 0:
+            truth, self.bodies_truth = sim._frames_truth(np.zeros((n, 0, 3))), []
+        if cfg.extra_markers:
+            loose = sim.static_markers(cfg.extra_markers, n, volume, seed=cfg.seed + 2)
+            truth = type(truth)(np.concatenate([truth.frame, loose.frame]),
+                                np.concatenate([truth.marker, loose.marker + 1000]),
+                                np.concatenate([truth.xyz, loose.xyz]))
+        self.truth = truth
+        obs = sim.observe(self.truth_rig, truth, noise_px=cfg.noise_px, dropout=cfg.dropout,
+                          ghosts_per_camera=cfg.ghosts, fps=cfg.fps, seed=cfg.seed + 3)
+        self.obs = obs.sorted()
+        key = self.obs.frame * len(rig) + self.obs.camera
+        self.starts = np.searchsorted(key, np.arange(n * len(rig) + 1))
+
+    def body_defs(self) -> list[BodyDef]:
+        """The scene's bodies as the daemon would have them defined."""
+        return [BodyDef(b.name, b.id, b.markers_body, np.zeros(3)) for b in self.bodies_truth]
+
+    def scene_frame(self, i: int) -> int:
+        period = 2 * (self.n_frames - 1)
+        k = i % period
+        return k if k < self.n_frames else period - k
+
+    def blobs(self, camera: int, i: int):
+        """(uv, area, peak, marker) of camera `camera` at daemon frame i."""
+        f = self.scene_frame(i)
+        s, e = self.starts[f * len(self.rig) + camera], self.starts[f * len(self.rig) + camera + 1]
+        o = self.obs
+        return o.uv[s:e], o.area[s:e], o.peak[s:e], o.marker[s:e]
+
+    def sample(self, camera: int, i: int, t_ns: int) -> CameraSample:
+        uv, area, peak, marker = self.blobs(camera, i)
+        return CameraSample(camera, i, t_ns, time.monotonic_ns(), uv, area, peak, marker,
+                            self.scene_frame(i))
+
+    def dropped(self, camera: int, i: int) -> bool:
+        """True while the configured camera is disconnected (fault injection)."""
+        cfg = self.cfg
+        if not cfg.drop_camera or self.rig.names[camera] != cfg.drop_camera:
+            return False
+        t = i / self.fps
+        return cfg.drop_from_s <= t < cfg.drop_from_s + cfg.drop_for_s
+
+
+class SimCamera:
+    """One simulated camera as a capture thread reads it: paced at the scene's rate from a
+    shared start time, so all cameras' frame i share one capture time (a triggered rig)."""
+
+    def __init__(self, scene: SimScene, camera: int, t0_ns: int) -> None:
+        self.scene, self.camera, self.t0_ns = scene, camera, t0_ns
+        self.name = scene.rig.names[camera]
+
+    def open(self) -> Iterator[CameraSample]:
+        period = 1e9 / self.scene.fps
+        i = max(0, int(np.ceil((time.monotonic_ns() - self.t0_ns) / period)))
+        while True:
+            due = self.t0_ns + round(i * period)
+            wait = due - time.monotonic_ns()
+            if wait > 0:
+                time.sleep(wait * 1e-9)
+            if self.scene.dropped(self.camera, i):
+                raise OSError("camera disconnected (simulated)")
+            yield self.scene.sample(self.camera, i, due)
+            i += 1
+
+
+class DetectCamera:
+    """A real camera: a calibkit frame source, detection, and undistortion left to the
+    tracker (it works in distorted pixels)."""
+
+    def __init__(self, name: str, camera: int, spec: str, detector=None, fps: float = 30.0):
+        self.name, self.camera, self.spec, self.fps = name, camera, spec, fps
+        self.detector = detector
+
+    def open(self) -> Iterator[CameraSample]:
+        from calibkit.detect import DetectorConfig, detect
+        from calibkit.sources import open_source
+
+        source = open_source(self.spec, fps=self.fps)
+        cfg = self.detector or DetectorConfig()
+        try:
+            for frame in source:
+                arrival = time.monotonic_ns()
+                blobs = detect(frame.image, cfg)
+                yield CameraSample(self.camera, frame.index, frame.t_ns, arrival, blobs.uv,
+                                   blobs.area, blobs.peak)
+        finally:
+            source.close()
+
+
+# ---- scoring against the truth --------------------------------------------------------------
+
+class Evaluator:
+    """Pose errors of the daemon's rigid bodies against the simulator, and identity swaps.
+
+    A track's identity is the true marker most of its blobs came from this frame; a swap is
+    a track whose identity changes. A body is posed wrongly when its error exceeds 2 cm or
+    5 degrees (it took another body's markers): counted as a body swap when it starts.
+    """
+
+    def __init__(self, scene: SimScene, skip_frames: int = 5) -> None:
+        self.scene = scene
+        self.skip = skip_frames
+        self.ids = [b.id for b in scene.bodies_truth]
+        self.pos_sq = {i: [] for i in self.ids}
+        self.ang = {i: [] for i in self.ids}
+        self.valid = dict.fromkeys(self.ids, 0)
+        self.frames = 0
+        self.track_label: dict[int, int] = {}
+        self.track_swaps = 0
+        self.wrong = dict.fromkeys(self.ids, False)
+        self.body_swaps = 0
+        self.wrong_frames = 0
+
+    def __call__(self, result) -> None:
+        if result.scene_frame < 0:
+            return
+        self.frames += 1
+        if self.frames <= self.skip:
+            return
+        self._tracks(result)
+        p = result.poses
+        f = result.scene_frame
+        for b in self.scene.bodies_truth:
+            hit = np.flatnonzero(p.ids == b.id)
+            if not len(hit) or not p.valid[hit[0]]:
+                continue
+            i = hit[0]
+            T = b.poses[f]
+            e = float(np.linalg.norm(p.position[i] - T[:3, 3]))
+            cos = (np.trace(p.rotation[i] @ T[:3, :3].T) - 1) / 2
+            a = float(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+            wrong = e > 0.02 or a > 5.0
+            if wrong:
+                self.wrong_frames += 1
+                if not self.wrong[b.id]:
+                    self.body_swaps += 1
+            self.wrong[b.id] = wrong
+            if not wrong:
+                self.valid[b.id] += 1
+                self.pos_sq[b.id].append(e * e)
+                self.ang[b.id].append(a)
+
+    def _tracks(self, result) -> None:
+        marker = result.blob_marker
+        if marker is None or not len(result.tracks):
+            return
+        tb = result.tracks.blobs
+        labels = np.where(tb >= 0, marker[np.maximum(tb, 0)], -1)
+        for tid, row in zip(result.tracks.ids, labels, strict=True):
+            row = row[row >= 0]
+            if not len(row):
+                continue
+            vals, counts = np.unique(row, return_counts=True)
+            label = int(vals[np.argmax(counts)])
+            old = self.track_label.get(int(tid))
+            if old is not None and old != label:
+                self.track_swaps += 1
+            self.track_label[int(tid)] = label
+
+    def figures(self) -> dict:
+        n = max(self.frames - self.skip, 1)
+        bodies = {}
+        for b in self.scene.bodies_truth:
+            pos = np.array(self.pos_sq[b.id])
+            ang = np.array(self.ang[b.id])
+            bodies[b.name] = {
+                "id": b.id,
+                "valid_fraction": self.valid[b.id] / n,
+                "position_error_mm_rms": float(np.sqrt(pos.mean()) * 1000) if len(pos) else None,
+                "orientation_error_deg_rms": float(np.sqrt(np.mean(ang**2))) if len(ang)
+                else None,
+                "orientation_error_deg_max": float(ang.max()) if len(ang) else None,
+            }
+        all_pos = np.concatenate([np.array(v) for v in self.pos_sq.values()] or [np.zeros(0)])
+        all_ang = np.concatenate([np.array(v) for v in self.ang.values()] or [np.zeros(0)])
+        return {
+            "frames_scored": n,
+            "bodies": bodies,
+            "position_error_mm_rms": float(np.sqrt(all_pos.mean()) * 1000) if len(all_pos)
+            else None,
+            "orientation_error_deg_rms": float(np.sqrt(np.mean(all_ang**2))) if len(all_ang)
+            else None,
+            "track_swaps": self.track_swaps,
+            "body_swaps": self.body_swaps,
+            "body_wrong_frames": self.wrong_frames,
+        }
