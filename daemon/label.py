@@ -1,0 +1,557 @@
+"""Labelling unlabelled 3D points with a marker set: tracking, structure checks, ghosts.
+
+The third seed labelled each frame from scratch by matching modules by their distances.
+Here that matching only starts a take (`initial_labels`); after that every marker is
+tracked: predicted from its velocity, assigned to the nearest point by one global
+assignment, checked against its steadiest neighbours' distances (which rejects ghosts and
+swaps), and a marker that was lost is predicted from its neighbours' rigid motion since it
+was last seen (the shape carried along), so it is re-identified when it reappears.
+
+Live use (one frame at a time, e.g. in the daemon's pipeline):
+
+    lab = Labeller(markerset, rate_hz=120)
+    lab.seed(first_frame_xyz)          # optional: a labelled frame (n, 3), NaN = unseen
+    labels, confidence = lab.update(points_xyz)   # (k,) marker index or -1, (k,) 0..1
+    lab.positions                      # (n, 3) current labelled positions, NaN = not seen
+
+Without a seed the first update labels the frame from the marker set alone.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from daemon.c3dio import Points, Take
+from daemon.markerset import MarkerSet, signed_volume
+
+K_NEIGHBOURS = 6
+BIG = 1e6
+
+
+class Labeller:
+    """Frame-by-frame labeller; see the module docstring for the interface."""
+
+    def __init__(self, markerset: MarkerSet, rate_hz: float = 120.0, gate_m: float = 0.04,
+                 reacquire_gate_m: float = 0.06, noise_m: float = 0.003,
+                 adapt: float = 0.02, smooth: float = 1.0, structure_limit: float = 2.0,
+                 candidate_limit: float = 1.0, ambiguity: float = 2.0) -> None:
+        self.ms = markerset
+        n = markerset.n
+        self.n = n
+        self.rate_hz = rate_hz
+        self.gate_m = gate_m
+        self.reacquire_gate_m = reacquire_gate_m
+        self.noise_m = noise_m
+        self.adapt = adapt
+        self.smooth = smooth
+        self.structure_limit = structure_limit
+        self.candidate_limit = candidate_limit
+        self.ambiguity = ambiguity
+        sd = markerset.sd_m.copy()
+        np.fill_diagonal(sd, np.inf)
+        self.nb = np.argsort(sd, axis=1)[:, :K_NEIGHBOURS]          # steadiest neighbours
+        rows = np.arange(n)[:, None]
+        self.nb_mean = markerset.mean_m[rows, self.nb].copy()
+        self.nb_sd = markerset.sd_m[rows, self.nb]
+        self.nb_subject = markerset.subject_sd_m[rows, self.nb]
+        # prediction weights: how steadily each marker keeps its distance to each other
+        w = 1.0 / (markerset.sd_m ** 2 + 0.005 ** 2)
+        np.fill_diagonal(w, 0.0)
+        self.pred_w = w / w.max(1, keepdims=True)
+        # swap checks: pairs of markers close enough to be confused
+        tol_all = 3.0 * np.sqrt(markerset.sd_m ** 2 + 2 * noise_m ** 2) + 0.004
+        self.swap_w = np.where(markerset.sd_m < 0.02, 1.0 / tol_all ** 2, 0.0) * 9.0
+        np.fill_diagonal(self.swap_w, 0.0)
+        self.mean_all = markerset.mean_m.copy()
+        iu = np.argwhere(np.triu(markerset.mean_m < 0.25, 1))
+        self.swap_pairs = iu
+        self.adapted = False
+        self.known_frames = np.zeros(n, int)    # frames whose distances this take taught
+        self.adapt_tol = 3.0 * np.sqrt(markerset.sd_m ** 2 + markerset.subject_sd_m ** 2
+                                       + 2 * noise_m ** 2) + 0.004
+        self.pos = np.full((n, 3), np.nan)
+        self.vel = np.zeros((n, 3))
+        self.age = np.full(n, 10 ** 6)
+        self.snap = np.full((n, n, 3), np.nan)
+        self.frames = 0
+
+    # ------------------------------------------------------------------ state
+    @property
+    def positions(self) -> np.ndarray:
+        out = self.pos.copy()
+        out[self.age > 0] = np.nan
+        return out
+
+    def _tol(self) -> np.ndarray:
+        """Allowed deviation of a neighbour distance: spread of the body's motion, marker
+        noise and, until the take's own distances are learned, the spread between
+        subjects."""
+        known = self.known_frames >= 30
+        both = known[:, None] & known[self.nb]
+        subject = np.where(both, 0.0, self.nb_subject)
+        return 3.0 * np.sqrt(self.nb_sd ** 2 + subject ** 2 + 2 * self.noise_m ** 2) + 0.004
+
+    def seed(self, xyz: np.ndarray) -> None:
+        """Start from a labelled frame (n, 3), NaN for markers not seen in it."""
+        xyz = np.asarray(xyz, float)
+        ok = np.isfinite(xyz).all(1)
+        self.pos = np.where(ok[:, None], xyz, np.nan)
+        self.vel[:] = 0.0
+        self.age = np.where(ok, 0, 10 ** 6)
+        self.snap[ok] = self.pos[None]
+        self._learn_distances(self.pos, rate=1.0 if not self.adapted else self.adapt)
+        self.known_frames[ok] = 10 ** 6
+        self.adapted = True
+
+    def seed_take(self, xyz: np.ndarray) -> None:
+        """Start from several labelled frames (f, n, 3): distances from all of them."""
+        d = np.linalg.norm(xyz[:, :, None] - xyz[:, None], axis=3)  # (f, n, n)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            med = np.nanmedian(d, axis=0)
+        self.mean_all = np.where(np.isfinite(med), med, self.mean_all)
+        seen = np.isfinite(xyz).all(2).any(0)
+        self.known_frames[seen] = 10 ** 6
+        self.adapt_tol = 3.0 * np.sqrt(self.ms.sd_m ** 2 + 2 * self.noise_m ** 2) + 0.004
+        self.nb_mean = self.mean_all[np.arange(self.n)[:, None], self.nb]
+        self.adapted = True
+        if len(xyz) >= 2:
+            self.seed(xyz[-2])
+            self.update_labelled(xyz[-1])
+        else:
+            self.seed(xyz[-1])
+
+    def update_labelled(self, xyz: np.ndarray) -> None:
+        """Advance the tracker with a frame whose labels are known (seed frames)."""
+        ok = np.isfinite(xyz).all(1)
+        self._commit(np.where(ok[:, None], xyz, np.nan), ok)
+
+    def _learn_distances(self, cur: np.ndarray, rate: float) -> None:
+        """Follow this take's own marker distances (another subject, other placement)."""
+        seen = np.isfinite(cur).all(1)
+        idx = np.nonzero(seen)[0]
+        x = cur[idx]
+        d = np.linalg.norm(x[:, None] - x[None], axis=2)
+        sub = self.mean_all[np.ix_(idx, idx)]
+        step = d - sub
+        # robust: a distance far off (a swap, a ghost) teaches nothing
+        step[np.abs(step) > self.adapt_tol[np.ix_(idx, idx)]] = 0.0
+        self.mean_all[np.ix_(idx, idx)] = sub + rate * step
+        self.known_frames[idx] += 1
+        self.nb_mean = self.mean_all[np.arange(self.n)[:, None], self.nb]
+
+    # ------------------------------------------------------------------ one frame
+    def update(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Label one frame's points (k, 3): marker index per point (-1 = ghost/unknown)
+        and a confidence 0..1 per point."""
+        P = np.asarray(points, float).reshape(-1, 3)
+        k = len(P)
+        n = self.n
+        if not np.isfinite(self.pos).any():
+            lab = initial_labels(P, self.ms)
+            cur = np.full((n, 3), np.nan)
+            got = lab >= 0
+            cur[lab[got]] = P[got]
+            ok = np.isfinite(cur).all(1)
+            self._commit(cur, ok)
+            return lab, np.where(got, 0.5, 0.0)
+
+        marker_of = np.full(k, -1)
+        point_of = np.full(n, -1)
+        # 1. tracked markers: constant-velocity prediction, one global assignment
+        tracked = np.nonzero(self.age <= 2)[0]
+        if len(tracked) and k:
+            q = self.pos[tracked] + self.vel[tracked] * (self.age[tracked, None] + 1)
+            cost = np.linalg.norm(q[:, None] - P[None], axis=2)
+            cost[cost > self.gate_m] = BIG
+            r, c = linear_sum_assignment(cost)
+            good = cost[r, c] < BIG
+            point_of[tracked[r[good]]] = c[good]
+            marker_of[c[good]] = tracked[r[good]]
+        cur = np.full((n, 3), np.nan)
+        has = point_of >= 0
+        cur[has] = P[point_of[has]]
+
+        # 2. structure check: a marker far off its steady neighbours' distances is a
+        #    ghost or a swap; drop it and let step 3 find it again.
+        err = self._structure_error(cur)
+        bad = has & (err > self.structure_limit)
+        if bad.any():
+            marker_of[point_of[bad]] = -1
+            point_of[bad] = -1
+            cur[bad] = np.nan
+
+        # 3. lost and rejected markers: predicted from their neighbours' motion since they
+        #    were last seen; assigned among the points left over.
+        lost = np.nonzero(point_of < 0)[0]
+        free = np.nonzero(marker_of < 0)[0]
+        if len(lost) and len(free):
+            pred = self._predict_from_neighbours(lost, cur)
+            if len(lost):
+                cost = np.linalg.norm(pred[:, None] - P[free][None], axis=2)
+                cost[~np.isfinite(cost)] = BIG
+                gate = self.reacquire_gate_m + 0.002 * np.minimum(self.age[lost], 120)
+                cost[cost > gate[:, None]] = BIG
+                # distances to labelled neighbours must also fit
+                cerr, cnum = self._candidate_error(lost, P[free], cur)
+                cost += BIG * (cerr > self.candidate_limit)
+                # never seen since the start: found by distances alone, from >= 3 neighbours
+                fresh = ~np.isfinite(self.snap[lost, lost]).all(1)
+                if fresh.any():
+                    cost[fresh] = np.where((cnum[fresh] >= 3) & (cerr[fresh] <= 0.5),
+                                           cerr[fresh] * 0.01, BIG)
+                r, c = linear_sum_assignment(cost)
+                good = cost[r, c] < BIG
+                # ambiguous: another lost marker fits the same point almost as well
+                if len(lost) > 1:
+                    alt = cost[:, c].copy()
+                    alt[r, np.arange(len(c))] = np.inf
+                    second = alt.min(0)
+                    good &= ~(second < self.ambiguity * cost[r, c] + 0.003)
+                point_of[lost[r[good]]] = free[c[good]]
+                marker_of[free[c[good]]] = lost[r[good]]
+                cur[lost[r[good]]] = P[free[c[good]]]
+
+        self._repair_swaps(cur, point_of, marker_of)
+        has = point_of >= 0
+        err = self._structure_error(cur)
+        conf_m = np.where(has, np.exp(-0.5 * np.nan_to_num(err, nan=0.5) ** 2 * 4), 0.0)
+        self._commit(cur, has)
+        conf = np.zeros(k)
+        conf[point_of[has]] = conf_m[has]
+        return marker_of, conf
+
+    def _structure_error(self, cur: np.ndarray) -> np.ndarray:
+        """Per marker: mean over its labelled neighbours of |d - mean| / tolerance (each
+        capped at 3, so one bad neighbour cannot condemn a marker alone)."""
+        d = np.linalg.norm(cur[:, None] - cur[self.nb], axis=2)
+        e = np.abs(d - self.nb_mean) / self._tol()
+        ok = np.isfinite(e)
+        num = ok.sum(1)
+        mean = np.where(ok, np.minimum(e, 3.0), 0.0).sum(1) / np.maximum(num, 1)
+        return np.where(num > 0, mean, np.nan)
+
+    def _candidate_error(self, markers: np.ndarray, P: np.ndarray, cur: np.ndarray
+                         ) -> np.ndarray:
+        """(len(markers), len(P)): neighbour-distance error if marker took that point."""
+        nbx = cur[self.nb[markers]]                                    # (L, K, 3)
+        d = np.linalg.norm(P[None, :, None] - nbx[:, None], axis=3)    # (L, k, K)
+        e = np.abs(d - self.nb_mean[markers][:, None]) / self._tol()[markers][:, None]
+        ok = np.isfinite(e)
+        num = ok.sum(2)
+        mean = np.where(ok, np.minimum(e, 3.0), 0.0).sum(2) / np.maximum(num, 1)
+        return mean, num
+
+    def _predict_from_neighbours(self, lost: np.ndarray, cur: np.ndarray) -> np.ndarray:
+        """Where each lost marker should be now: the rigid motion, from when it was last
+        seen to now, of the markers seen both then and now, weighted by how steadily they
+        keep their distance to it (weighted Kabsch, batched over lost markers); with too
+        little support, their weighted mean translation; with none, its last position
+        moved by its last velocity."""
+        A = self.snap[lost]                                     # (L, n, 3) then
+        B = cur                                                 # (n, 3) now
+        w = self.pred_w[lost] * (np.isfinite(A).all(2) & np.isfinite(B).all(1)[None])
+        A0 = np.nan_to_num(A)
+        B0 = np.nan_to_num(B)
+        sw = w.sum(1)
+        ca = np.einsum("ln,lni->li", w, A0) / np.maximum(sw, 1e-12)[:, None]
+        cb = (w @ B0) / np.maximum(sw, 1e-12)[:, None]
+        H = np.einsum("ln,lni,lnj->lij", w, A0 - ca[:, None], B0[None] - cb[:, None])
+        U, S, Vt = np.linalg.svd(H)
+        d = np.sign(np.linalg.det(np.einsum("lji,lkj->lik", Vt, U)))
+        D = np.ones((len(lost), 3))
+        D[:, 2] = d
+        R = np.einsum("lji,lj,lkj->lik", Vt, D, U)               # V D U^T
+        support = (w > 0.05 * self.pred_w[lost].max(1, keepdims=True)).sum(1)
+        R[(support < 3) | (S[:, 1] <= 1e-12 * np.maximum(S[:, 0], 1e-30))] = np.eye(3)
+        last = A[np.arange(len(lost)), lost]                     # (L, 3)
+        pred = np.einsum("lij,lj->li", R, last - ca) + cb
+        none = sw <= 0
+        if none.any():
+            pred[none] = self.pos[lost[none]] + self.vel[lost[none]] * \
+                np.minimum(self.age[lost[none]] + 1, 3)[:, None]
+        return pred
+
+    def _repair_swaps(self, cur: np.ndarray, point_of: np.ndarray, marker_of: np.ndarray
+                      ) -> None:
+        """Swap two labelled markers when their distances to the other markers fit much
+        better the other way round (a swap that tracking alone would carry on)."""
+        i, j = self.swap_pairs[:, 0], self.swap_pairs[:, 1]
+        ok = np.isfinite(cur[i]).all(1) & np.isfinite(cur[j]).all(1)
+        if not ok.any():
+            return
+        i, j = i[ok], j[ok]
+        x = np.nan_to_num(cur)
+        seen = np.isfinite(cur).all(1)
+        di = np.linalg.norm(cur[i][:, None] - x[None], axis=2)       # (p, n)
+        dj = np.linalg.norm(cur[j][:, None] - x[None], axis=2)
+        wi = self.swap_w[i] * seen[None]
+        wj = self.swap_w[j] * seen[None]
+        wi[np.arange(len(i)), j] = 0
+        wj[np.arange(len(j)), i] = 0
+        mi, mj = self.mean_all[i], self.mean_all[j]
+        keep = (wi * (di - mi) ** 2 + wj * (dj - mj) ** 2).sum(1)
+        swap = (wi * (dj - mi) ** 2 + wj * (di - mj) ** 2).sum(1)
+        better = (swap < 0.25 * keep) & (keep - swap > 25.0)
+        for a, b in zip(i[better], j[better], strict=True):
+            if point_of[a] < 0 or point_of[b] < 0:
+                continue
+            pa, pb = point_of[a], point_of[b]
+            point_of[a], point_of[b] = pb, pa
+            marker_of[pa], marker_of[pb] = b, a
+            cur[[a, b]] = cur[[b, a]]
+            self.pos[[a, b]] = self.pos[[b, a]]
+            self.vel[[a, b]] = self.vel[[b, a]]
+
+    def _commit(self, cur: np.ndarray, has: np.ndarray) -> None:
+        seen_prev = has & (self.age == 0)
+        newvel = np.where(seen_prev[:, None], cur - self.pos, 0.0)
+        self.vel = np.where(seen_prev[:, None], self.smooth * newvel + (1 - self.smooth) * self.vel,
+                            np.where(has[:, None], 0.0, self.vel))
+        # a reacquired marker takes its neighbours' velocity
+        re = has & ~seen_prev
+        if re.any():
+            nbv = self.vel[self.nb[re]]
+            ok = has[self.nb[re]]
+            self.vel[re] = (nbv * ok[:, :, None]).sum(1) / np.maximum(ok.sum(1), 1)[:, None]
+        self.pos = np.where(has[:, None], cur, self.pos)
+        self.age = np.where(has, 0, self.age + 1)
+        if has.any():
+            self.snap[has] = cur[None]
+        if self.adapt > 0 and has.sum() > 3:
+            self._learn_distances(cur, self.adapt)
+        self.frames += 1
+
+
+# ---------------------------------------------------------------------- from scratch
+
+
+def _tolerance(ms: MarkerSet, noise_m: float = 0.003) -> np.ndarray:
+    return 3.0 * np.sqrt(ms.sd_m ** 2 + ms.subject_sd_m ** 2 + 2 * noise_m ** 2) + 0.006
+
+
+def _match_segment(P: np.ndarray, D: np.ndarray, members: list[int], ms: MarkerSet,
+                   tol: np.ndarray, free: np.ndarray, limit: int = 64) -> list:
+    """All assignments of `members` to free points whose pairwise distances fit, best
+    first (backtracking over the gated pair table)."""
+    m = len(members)
+    mean = ms.mean_m[np.ix_(members, members)]
+    tl = tol[np.ix_(members, members)]
+    out: list[tuple[float, list[int]]] = []
+    cand = np.nonzero(free)[0]
+
+    def rec(chosen: list[int], cost: float) -> None:
+        if len(out) > 4 * limit:
+            return
+        i = len(chosen)
+        if i == m:
+            out.append((cost, list(chosen)))
+            return
+        c = cand[~np.isin(cand, chosen)]
+        if i:
+            e = np.abs(D[np.ix_(chosen, c)] - mean[:i, i:i + 1]) / tl[:i, i:i + 1]
+            ok = (e <= 1.0).all(0)
+            c, e = c[ok], e[:, ok]
+            costs = (e ** 2).sum(0)
+        else:
+            costs = np.zeros(len(c))
+        for j, cc in zip(c, costs, strict=True):
+            rec([*chosen, int(j)], cost + float(cc))
+
+    rec([], 0.0)
+    out.sort(key=lambda t: t[0])
+    return out[:limit]
+
+
+def initial_labels(P: np.ndarray, ms: MarkerSet, n_hypotheses: int = 24) -> np.ndarray:
+    """Label one frame from the marker set alone: the steadiest multi-marker segment is
+    matched by its distances (every fitting assignment is a hypothesis), the others grow
+    from it by their distances to labelled markers, and the handedness checks (signed
+    volumes) pick between a body and its mirror image. Returns a label per point (-1:
+    ghost or unknown)."""
+    P = np.asarray(P, float)
+    k = len(P)
+    lab = np.full(k, -1)
+    if k < 3:
+        return lab
+    D = np.linalg.norm(P[:, None] - P[None], axis=2)
+    tol = _tolerance(ms)
+    order = sorted([s for s in ms.segments if len(s.markers) >= 3],
+                   key=lambda s: s.spread_m)
+    best = None
+    for seg in order[:2]:
+        hyps = _match_segment(P, D, seg.markers, ms, tol, np.ones(k, bool),
+                              limit=n_hypotheses)
+        for cost0, chosen in hyps:
+            marker_point = np.full(ms.n, -1)
+            marker_point[seg.markers] = chosen
+            cost = cost0 + _grow(P, D, ms, tol, marker_point)
+            chir = _chirality(P, ms, marker_point)
+            n_lab = int((marker_point >= 0).sum())
+            score = (chir, n_lab, -cost)
+            if best is None or score > best[0]:
+                best = (score, marker_point)
+    if best is None:
+        return lab
+    mp = best[1]
+    got = mp >= 0
+    lab[mp[got]] = np.nonzero(got)[0]
+    return lab
+
+
+def _grow(P: np.ndarray, D: np.ndarray, ms: MarkerSet, tol: np.ndarray,
+          marker_point: np.ndarray, rounds: int = 12) -> float:
+    """Label the rest by distances to already labelled markers, steadiest first."""
+    total = 0.0
+    k = len(P)
+    for _ in range(rounds):
+        todo = np.nonzero(marker_point < 0)[0]
+        done = np.nonzero(marker_point >= 0)[0]
+        used = np.zeros(k, bool)
+        used[marker_point[done]] = True
+        free = np.nonzero(~used)[0]
+        if not len(todo) or not len(free) or not len(done):
+            break
+        # the K steadiest labelled anchors per unlabelled marker
+        t = tol[np.ix_(todo, done)]
+        a = np.argsort(t, axis=1)[:, :4]
+        anchors = done[a]                                          # (T, 4)
+        quality = np.take_along_axis(t, a, 1).mean(1)
+        pick = quality <= np.quantile(quality, 0.5) + 1e-12
+        todo, anchors = todo[pick], anchors[pick]
+        na = anchors.shape[1]
+        dist = D[np.ix_(free, marker_point[anchors].ravel())].reshape(len(free), len(todo), na)
+        e = (dist.transpose(1, 0, 2) - ms.mean_m[todo[:, None], anchors][:, None]) / \
+            tol[todo[:, None], anchors][:, None]
+        cost = (e ** 2).mean(2)
+        cost[cost > 1.0] = BIG
+        r, c = linear_sum_assignment(cost)
+        good = cost[r, c] < BIG
+        if not good.any():
+            break
+        marker_point[todo[r[good]]] = free[c[good]]
+        total += float(cost[r[good], c[good]].sum())
+    return total
+
+
+def _chirality(P: np.ndarray, ms: MarkerSet, marker_point: np.ndarray) -> int:
+    """Votes for this labelling's handedness matching the marker set's (+) or its mirror."""
+    if not len(ms.chiral):
+        return 0
+    ok = (marker_point[ms.chiral] >= 0).all(1)
+    if not ok.any():
+        return 0
+    x = np.full((ms.n, 3), np.nan)
+    got = marker_point >= 0
+    x[got] = P[marker_point[got]]
+    v = signed_volume(x, ms.chiral[ok])
+    return int((np.sign(v) == ms.chiral_sign[ok]).sum() - (np.sign(v) != ms.chiral_sign[ok]).sum())
+
+
+# ---------------------------------------------------------------------- a whole take
+
+
+def label_take(points: Points, ms: MarkerSet, rate_hz: float = 120.0,
+               seed: Take | None = None, seed_frames: int = 0, progress=None,
+               options: dict | None = None) -> tuple[Take, np.ndarray, np.ndarray]:
+    """Label every frame of `points`. Returns the labelled take, per-frame confidence
+    (mean over labelled markers) and the per-point labels (aligned with points rows after
+    sorting by frame, see `Points.split`)."""
+    frames, per_frame = points.split()
+    lab = Labeller(ms, rate_hz, **(options or {}))
+    n_frames = int(frames[-1] - frames[0] + 1) if len(frames) else 0
+    first = int(frames[0]) if len(frames) else 0
+    xyz = np.full((n_frames, ms.n, 3), np.nan)
+    conf = np.zeros(n_frames)
+    labels_out = []
+    start = 0
+    if seed is not None and seed_frames > 0:
+        s = seed.select(ms.labels)
+        use = min(seed_frames, s.n_frames)
+        sx = s.xyz_m[:use]
+        lab.seed_take(sx)
+        fidx = np.arange(use) + s.first_frame - first
+        keep = (fidx >= 0) & (fidx < n_frames)
+        xyz[fidx[keep]] = sx[keep]
+        conf[fidx[keep]] = 1.0
+        start = int(np.searchsorted(frames, s.first_frame + use))
+        for f in range(start):
+            labels_out.append(np.full(len(per_frame[f]), -2))
+    for i in range(start, len(frames)):
+        P = per_frame[i]
+        m, c = lab.update(P)
+        fi = int(frames[i] - first)
+        got = m >= 0
+        xyz[fi, m[got]] = P[got]
+        conf[fi] = float(c[got].mean()) if got.any() else 0.0
+        labels_out.append(m)
+        if progress is not None and i % 200 == 0:
+            progress.update(i)
+    take = Take(list(ms.labels), xyz, rate_hz, first)
+    return take, conf, labels_out
+
+
+# ---------------------------------------------------------------------- scoring on truth
+
+
+def hide_spans(take: Take, fraction: float, span_s: tuple[float, float] = (0.1, 1.0),
+               seed: int = 0) -> Take:
+    """A copy with random spans hidden until `fraction` of marker-frames are gone."""
+    rng = np.random.default_rng(seed)
+    xyz = take.xyz_m.copy()
+    F, n = xyz.shape[:2]
+    hidden = np.zeros((F, n), bool)
+    target = fraction * F * n
+    lo, hi = (max(1, int(round(v * take.rate_hz))) for v in span_s)
+    while hidden.sum() < target:
+        m = rng.integers(n)
+        L = int(rng.integers(lo, hi + 1))
+        s = int(rng.integers(0, max(1, F - L)))
+        hidden[s:s + L, m] = True
+    xyz[hidden] = np.nan
+    return Take(list(take.labels), xyz, take.rate_hz, take.first_frame)
+
+
+def points_with_ghosts(take: Take, ghosts_per_frame: int, seed: int = 0
+                       ) -> tuple[Points, np.ndarray]:
+    """Unlabelled, shuffled points of a take plus uniform ghost points in each frame's
+    marker bounding box (grown by 0.1 m). Returns the points and each point's true marker
+    index (-1 for ghosts)."""
+    rng = np.random.default_rng(seed)
+    vis = take.visible
+    fr, mk = np.nonzero(vis)
+    xyz = take.xyz_m[fr, mk]
+    F = take.n_frames
+    if ghosts_per_frame:
+        lo = np.nanmin(take.xyz_m, axis=1) - 0.1
+        hi = np.nanmax(take.xyz_m, axis=1) + 0.1
+        gf = np.repeat(np.arange(F), ghosts_per_frame)
+        g = lo[gf] + rng.random((len(gf), 3)) * (hi[gf] - lo[gf])
+        ok = np.isfinite(g).all(1)
+        fr = np.concatenate([fr, gf[ok]])
+        mk = np.concatenate([mk, np.full(ok.sum(), -1)])
+        xyz = np.concatenate([xyz, g[ok]])
+    order = np.argsort(fr + rng.random(len(fr)))
+    return Points(fr[order] + take.first_frame, xyz[order]), mk[order]
+
+
+def score(points: Points, truth_marker: np.ndarray, labels_per_frame: list[np.ndarray],
+          start_frame_index: int = 0) -> dict:
+    """Fraction of real marker-points labelled correctly, and of ghosts left unlabelled,
+    counted from the frame index `start_frame_index` (after any seed frames)."""
+    order = np.argsort(points.frame, kind="stable")
+    tm = truth_marker[order]
+    f = points.frame[order]
+    _, starts = np.unique(f, return_index=True)
+    tm_split = np.split(tm, starts[1:])
+    got = np.concatenate(labels_per_frame[start_frame_index:])
+    want = np.concatenate(tm_split[start_frame_index:])
+    real = want >= 0
+    return {"marker_frames": int(real.sum()),
+            "correct": float((got[real] == want[real]).mean()) if real.any() else 1.0,
+            "unlabelled": float((got[real] < 0).mean()) if real.any() else 0.0,
+            "ghosts": int((~real).sum()),
+            "ghosts_rejected": float((got[~real] < 0).mean()) if (~real).any() else 1.0}
