@@ -123,16 +123,44 @@ def camera_fields(cam: Camera) -> dict:
     }
 
 
+def _toml_array(values) -> str:
+    """A numeric (nested) array on one line; repr keeps every float's full precision."""
+    if isinstance(values, (list, tuple)):
+        return "[" + ", ".join(_toml_array(v) for v in values) + "]"
+    return repr(int(values)) if isinstance(values, (int, np.integer)) else repr(float(values))
+
+
+def _camera_toml(cam: Camera) -> str:
+    f = camera_fields(cam)
+    return "\n".join([
+        "[[cameras]]",
+        f"name = {_toml_string(cam.name)}",
+        f"size = {_toml_array(f['size'])}  # width, height (px)",
+        f"K = {_toml_array(f['K'])}  # [[fx, skew, cx], [0, fy, cy], [0, 0, 1]] (px)",
+        f"dist = {_toml_array(f['dist'])}  # k1, k2, p1, p2, k3 (OpenCV)",
+        f"R = {_toml_array(f['R'])}  # world-to-camera rotation vector (rad)",
+        f"t = {_toml_array(f['t'])}  # world-to-camera translation (m)",
+    ]) + "\n"
+
+
+def _toml_string(text: str) -> str:
+    import tomli_w
+
+    return tomli_w.dumps({"x": text}).split("=", 1)[1].strip()
+
+
 def rig_to_toml(rig: Rig) -> str:
+    """The rig as TOML: header, [meta], [quality], then one [[cameras]] table per camera
+    with one line per field, so the file stays easy to read and to edit by hand."""
     import tomli_w
 
     meta = {"created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
     meta.update({k: v for k, v in rig.meta.items() if v is not None})
-    doc = {"format": FORMAT, "version": VERSION, "meta": meta}
+    doc = {"format": FORMAT, "version": VERSION, "meta": _plain(meta)}
     if rig.quality:
         doc["quality"] = _plain(rig.quality)
-    doc["cameras"] = [camera_fields(c) for c in rig.cameras]
-    return tomli_w.dumps(doc, multiline_strings=False)
+    head = tomli_w.dumps(doc, multiline_strings=False)
+    return head + "".join("\n" + _camera_toml(c) for c in rig.cameras)
 
 
 def _plain(value):
