@@ -23,7 +23,14 @@ from calibkit.detect import DetectorConfig, detect
 from calibkit.errors import UserError
 from calibkit.settle import SettleDetector, signature_noise
 from projector.display import Dots
-from projector.patterns import ROLE_DOT, ROLE_OFF, ROLE_ON, Schedule, decode_layer
+from projector.patterns import (
+    ROLE_DOT,
+    ROLE_OFF,
+    ROLE_ON,
+    Schedule,
+    decode_layer,
+    identify_by_neighbours,
+)
 
 
 class DotDevice(Protocol):
@@ -87,6 +94,17 @@ class DotCapture:
         self.settle.start(frames[-1])
         self.frames = len(frames)
 
+    def _wait_still(self) -> None:
+        """Before a view: wait until the user holds the target still."""
+        assert self.settle is not None
+        self.settle.start(expect_change=False)
+        for _ in range(self.max_settle_frames):
+            self.frames += 1
+            if self.settle.feed(self.device.grab()):
+                return
+        raise UserError(f"the camera image kept changing for {self.max_settle_frames} "
+                        "frames: hold the camera and monitor still")
+
     def _shoot(self, dots: Dots) -> tuple[np.ndarray, list[np.ndarray]]:
         """Show one pattern; the mean of the settled samples and the samples themselves."""
         assert self.settle is not None
@@ -114,6 +132,7 @@ class DotCapture:
         if self.settle is None:
             self.calibrate_noise()
         start_frames = self.frames
+        self._wait_still()
         sch = self.schedule
         step_images: dict[int, np.ndarray | None] = {}
         on_shots: dict[int, list[np.ndarray]] = {}
@@ -130,10 +149,11 @@ class DotCapture:
         for layer in range(len(sch.layers)):
             idx = sch.layer_frames(layer)
             on_i = idx[0]
+            predicted = sch.kind == "coded" and len(idx) == 1
             if sch.kind == "raster":
                 off_img = off
             else:
-                off_i = idx[1]
+                off_i = sch.layer_frames(0)[1] if predicted else idx[1]
                 assert sch.frames[off_i].role == ROLE_OFF
                 off_img = step_images[off_i]
             found, spread = self._find_dots(step_images[on_i], off_img, on_shots[on_i])
@@ -142,6 +162,13 @@ class DotCapture:
                     rejected += len(found)
                     continue
                 got = sch.layers[layer]
+            elif predicted:
+                known = np.concatenate(ids) if ids else np.zeros(0, np.int64)
+                ref_uv = np.concatenate(uv) if uv else np.zeros((0, 2))
+                layer_ids = sch.layers[layer]
+                pick = identify_by_neighbours(sch.points_xy[known], ref_uv,
+                                              sch.points_xy[layer_ids], found)
+                got = np.where(pick >= 0, layer_ids[np.maximum(pick, 0)], -1)
             else:
                 got, _ = decode_layer(sch, layer, step_images, found,
                                       window_px=max(1.0, self._radius_img(found)))

@@ -22,7 +22,6 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
 
 from calibkit.camera import Camera, rotation_from_rvec
 from calibkit.errors import UserError
@@ -73,6 +72,18 @@ class IntrinsicResult:
 def camera_figures(camera: Camera) -> dict:
     return {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
             "skew": camera.skew, "dist": camera.dist.tolist()}
+
+
+def monitor_plane_view(dots, schedule, pixel_pitch_mm: float, name: str = "",
+                       min_points: int = MIN_POINTS_PER_VIEW) -> PlaneView:
+    """Identified dots (calibkit.dotcapture.DotView) -> a PlaneView in metres on the screen
+    plane; a UserError when the monitor is (mostly) not in view."""
+    if len(dots) < min_points:
+        raise UserError(f"the monitor is not in view: only {len(dots)} dots were identified "
+                        f"in {name or 'this view'} (need {min_points}); point the camera at "
+                        "the screen, dim the room and turn off auto exposure")
+    xy = schedule.points_xy[dots.ids] * (pixel_pitch_mm / 1000.0)
+    return PlaneView(np.column_stack([xy, np.zeros(len(xy))]), dots.uv, name)
 
 
 # ---- geometry helpers ---------------------------------------------------------------------
@@ -166,15 +177,31 @@ def refine(intr: np.ndarray, rvecs: np.ndarray, tvecs: np.ndarray, views: list[P
         p, rv, tv = unpack(x)
         return (_project(p, _rotations(rv), tv, obj, view) - uv).ravel()
 
-    m = 2 * len(uv)
-    sparsity = lil_matrix((m, n_int + 6 * nv), dtype=np.int8)
-    sparsity[:, :n_int] = 1
-    rows = np.arange(m)
-    for k in range(6):
-        sparsity[rows, n_int + 6 * np.repeat(view, 2) + k] = 1
+    rows2 = np.repeat(view, 2)
+
+    def jac(x):
+        """Forward differences grouped by structure: one evaluation per intrinsic, and one
+        per pose component for all views at once (a residual sees only its own view).
+        Dense: the normal equations are small, and the exact trust-region solve beats
+        iterative LSMR by far here."""
+        r0 = residual(x)
+        J = np.zeros((len(r0), len(x)))
+        at = np.arange(len(r0))
+        for k in range(n_int + 6):
+            dx = np.zeros_like(x)
+            if k < n_int:
+                h = 1e-7 * max(1.0, abs(x[k]))
+                dx[k] = h
+                J[:, k] = (residual(x + dx) - r0) / h
+            else:
+                h = 1e-7
+                dx[n_int + (k - n_int)::6] = h
+                J[at, n_int + 6 * rows2 + (k - n_int)] = (residual(x + dx) - r0) / h
+        return J
+
     x0 = np.concatenate([intr[fi], np.column_stack([rvecs, tvecs]).ravel()])
-    sol = least_squares(residual, x0, jac_sparsity=sparsity, loss=loss, f_scale=scale_px,
-                        x_scale="jac", method="trf", max_nfev=200)
+    sol = least_squares(residual, x0, jac=jac, loss=loss, f_scale=scale_px,
+                        x_scale="jac", method="trf", tr_solver="exact", max_nfev=200)
     res = residual(sol.x).reshape(-1, 2)
     # outliers: beyond 3 robust sigma; then a plain least-squares polish on the inliers,
     # whose Jacobian gives the covariance
@@ -186,8 +213,11 @@ def refine(intr: np.ndarray, rvecs: np.ndarray, tvecs: np.ndarray, views: list[P
     def inlier_residual(x):
         return residual(x) * w
 
-    pol = least_squares(inlier_residual, sol.x, jac_sparsity=sparsity, x_scale="jac",
-                        method="trf", max_nfev=20)
+    def inlier_jac(x):
+        return jac(x) * w[:, None]
+
+    pol = least_squares(inlier_residual, sol.x, jac=inlier_jac, x_scale="jac", method="trf",
+                        tr_solver="exact", max_nfev=20)
     p, rv, tv = unpack(pol.x)
     res = residual(pol.x).reshape(-1, 2)
     J = pol.jac.toarray() if hasattr(pol.jac, "toarray") else np.asarray(pol.jac)

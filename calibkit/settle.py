@@ -72,14 +72,15 @@ class SettleDetector:
         """Median frames from a pattern change to the first changed camera frame."""
         return int(np.median(self.latencies)) if self.latencies else None
 
-    def start(self, image: np.ndarray | None = None) -> None:
+    def start(self, image: np.ndarray | None = None, expect_change: bool = True) -> None:
         """A new pattern was just requested. `image` (optional): the last frame of the old
-        pattern, if not already fed."""
+        pattern, if not already fed. With expect_change=False, settle as soon as the image
+        stops changing (after the user moved the target, before the first pattern)."""
         if image is not None:
             self._last = signature(image, self.block_px)
         self._reference = self._last
         self._frames = 0
-        self._changed_at = -1
+        self._changed_at = -1 if expect_change else 0
         self._still = 0
 
     def feed(self, image: np.ndarray) -> bool:

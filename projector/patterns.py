@@ -99,10 +99,16 @@ def grid_positions(screen_px: tuple[int, int], step_px: float, offset_px=(0.0, 0
 
 
 def coded_schedule(screen_px: tuple[int, int], step_px: float = 80.0, shifts: int = 2,
-                   radius_px: float = 6.0, margin_px: float | None = None) -> Schedule:
+                   radius_px: float = 6.0, margin_px: float | None = None,
+                   predict: bool = True) -> Schedule:
     """The fast schedule: a grid with `step_px` spacing, shown in shifts x shifts layers
-    offset by fractions (i / shifts, j / shifts) of the step; each layer takes
-    2 + n_bits + 1 frames."""
+    offset by fractions (i / shifts, j / shifts) of the step.
+
+    The first layer takes 2 + n_bits + 1 frames (on, off, bits, parity). With `predict`,
+    every further layer is a single all-on frame: its dots are named by where the
+    already identified dots around them say they must be (identify_by_neighbours), which
+    cuts a view's frames by two thirds; without it each layer is coded like the first.
+    """
     if step_px < 4 * radius_px:
         raise ValueError(f"step {step_px} px is too small for dots of radius {radius_px} px")
     if shifts < 1:
@@ -122,12 +128,15 @@ def coded_schedule(screen_px: tuple[int, int], step_px: float = 80.0, shifts: in
         layers.append(ids)
         bits = code_bits(np.arange(len(xy)), n_bits)
         frames.append(PatternFrame(xy, ids, layer, ROLE_ON))
+        if predict and layer > 0:
+            continue
         frames.append(PatternFrame(xy[:0], ids[:0], layer, ROLE_OFF))
         for b in range(n_bits + 1):
             on = bits[:, b]
             frames.append(PatternFrame(xy[on], ids[on], layer, ROLE_BIT, b))
     return Schedule(tuple(screen_px), np.concatenate(all_xy), layers, frames, n_bits,
-                    float(radius_px), float(step_px), "coded", {"shifts": shifts})
+                    float(radius_px), float(step_px), "coded",
+                    {"shifts": shifts, "predict": predict})
 
 
 def raster_schedule(screen_px: tuple[int, int], step_px: float = 80.0, radius_px: float = 6.0,
@@ -235,3 +244,53 @@ def decode_layer(schedule: Schedule, layer: int, step_images: dict[int, np.ndarr
     ids = schedule.layers[layer]
     dec = decode_levels(on, off, bits, len(ids), min_contrast)
     return np.where(dec.ok, ids[np.maximum(dec.index, 0)], -1), dec
+
+
+def identify_by_neighbours(ref_screen: np.ndarray, ref_uv: np.ndarray, screen: np.ndarray,
+                           uv: np.ndarray, k: int = 8, max_px: float | None = None,
+                           max_fit_px: float = 1.0) -> np.ndarray:
+    """Name detected dots from their identified neighbours, without a code.
+
+    ref_screen/ref_uv: (M, 2) already identified dots (screen and image positions);
+    screen: (P, 2) the screen positions shown now; uv: (N, 2) the dots detected now.
+    Around each shown position the k nearest identified dots (on the screen) give a local
+    affine map screen -> image (lens distortion is smooth, so it holds over a few dot
+    spacings); the detection nearest to the prediction is taken if it is within `max_px`
+    (default a quarter of the image spacing of the reference dots), the match is mutual,
+    and the affine fit itself is good to `max_fit_px`. Returns, per detection, the index
+    into `screen` (-1 when not identified).
+    """
+    from scipy.spatial import cKDTree
+
+    out = np.full(len(uv), -1, dtype=np.int64)
+    if len(ref_uv) < max(k, 4) or len(uv) == 0 or len(screen) == 0:
+        return out
+    k = min(k, len(ref_uv))
+    dist, nb = cKDTree(ref_screen).query(screen, k=k)
+    # batched affine least squares: [x y 1] A = uv, per shown position
+    S = np.concatenate([ref_screen[nb], np.ones((len(screen), k, 1))], axis=2)  # (P, k, 3)
+    U = ref_uv[nb]  # (P, k, 2)
+    centre = screen[:, None, :]
+    S[:, :, :2] -= centre  # centred for conditioning
+    StS = np.einsum("pki,pkj->pij", S, S)
+    StU = np.einsum("pki,pkj->pij", S, U)
+    ok_fit = np.abs(np.linalg.det(StS)) > 1e-9
+    StS[~ok_fit] = np.eye(3)
+    A = np.linalg.solve(StS, StU)  # (P, 3, 2)
+    fit_err = np.sqrt(np.mean(np.sum((np.einsum("pki,pij->pkj", S, A) - U) ** 2, axis=2),
+                              axis=1))
+    pred = A[:, 2, :]  # the affine map at the centre (offset 0): the prediction
+    # neighbours must surround the position: reject extrapolation far outside them
+    reach = dist[:, -1] <= 3.0 * np.median(dist[:, 0] + 1e-9) + np.median(dist[:, -1])
+    good = ok_fit & (fit_err <= max_fit_px) & reach
+    if max_px is None:
+        spacing, _ = cKDTree(ref_uv).query(ref_uv, k=2)
+        max_px = 0.25 * float(np.median(spacing[:, 1]))
+    tree_uv = cKDTree(uv)
+    d_pu, j = tree_uv.query(pred)
+    d_up, i_back = cKDTree(pred).query(uv)
+    for_good = good & (d_pu <= max_px)
+    cand = np.nonzero(for_good)[0]
+    mutual = i_back[j[cand]] == cand
+    out[j[cand[mutual]]] = cand[mutual]
+    return out
