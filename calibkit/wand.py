@@ -333,6 +333,21 @@ def initial_poses(wand: WandObservations, intrinsics: Rig, spec: WandSpec,
         rvec, tvec = cv2.solvePnPRefineLM(xyz[pidx[rows]], norm[rows], np.eye(3), None,
                                           rvec, tvec)
         cams[best] = intrinsics[best].replace(rvec=rvec.ravel(), t=tvec.ravel())
+    # two cheap passes of "triangulate with everyone, re-solve each camera by PnP" spread
+    # the first pair's errors over all cameras before the bundle adjustment
+    for _ in range(2):
+        xyz = _triangulate_placed(wand, cams, pidx, n_points)
+        known = np.isfinite(xyz[:, 0])
+        for c in list(cams):
+            rows = np.flatnonzero((wand.camera == c) & known[pidx])
+            if len(rows) < min_points:
+                continue
+            rvec, tvec = cv2.solvePnPRefineLM(xyz[pidx[rows]], norm[rows], np.eye(3), None,
+                                              cams[c].rvec.copy(), cams[c].t.copy())
+            cams[c] = cams[c].replace(rvec=rvec.ravel(), t=tvec.ravel())
+        scale = _scale_from_length(_triangulate_placed(wand, cams, pidx, n_points), pinfo,
+                                   spec)
+        cams = {c: cam.replace(t=cam.t * scale) for c, cam in cams.items()}
     placed = Rig(tuple(cams[c] for c in sorted(cams)), meta=dict(intrinsics.meta))
     return placed, missing
 

@@ -17,10 +17,12 @@ from calibkit.geometry import triangulate
 from calibkit.wand import WandObservations, WandSpec, point_index
 
 # Grade thresholds, on the held-out frames (docs/wand.md explains them).
-GRADES = (  # (name, reprojection RMS px at most, wand length error SD mm at most)
-    ("excellent", 0.25, 0.5),
-    ("good", 0.5, 1.0),
-    ("usable", 1.0, 3.0),
+# (name, reprojection RMS px at most, wand length error SD at most as % of the wand's
+# length: per-frame length noise scales with the volume and the cameras' resolution)
+GRADES = (
+    ("excellent", 0.25, 0.15),
+    ("good", 0.5, 0.3),
+    ("usable", 1.0, 1.0),
 )
 BEHIND_SHARE = 0.01  # more observations than this behind their camera: a mirrored solution
 
@@ -110,20 +112,26 @@ def checks(rig: Rig, points_xyz: np.ndarray, behind_share: float) -> dict:
     }
 
 
-def grade(held: dict, found: dict) -> tuple[str, str]:
+def grade(held: dict, found: dict, wand_length_m: float) -> tuple[str, str]:
     """(grade, the reason in plain words) from the held-out figures and the checks."""
     if not found["ok"]:
         what = [k for k in ("camera_behind_volume", "upside_down", "mirrored") if found[k]]
         return "failed", ("the solution is impossible (" + ", ".join(what).replace("_", " ")
                           + "): recapture or check the floor frame")
     rms, sd = held["reprojection_rms_px"], held["wand_length_error_sd_mm"]
-    for name, max_px, max_mm in GRADES:
-        if rms <= max_px and sd <= max_mm:
+    if not wand_length_m > 0 or not np.isfinite(sd):  # a 1-marker wand: pixels only
+        for name, max_px, _ in GRADES:
+            if rms <= max_px:
+                return name, f"held-out reprojection {rms:.3f} px <= {max_px} px (no wand length)"
+        return "poor", f"held-out reprojection {rms:.3f} px > {GRADES[-1][1]} px"
+    pct = 100.0 * sd / (1000.0 * wand_length_m)
+    for name, max_px, max_pct in GRADES:
+        if rms <= max_px and pct <= max_pct:
             return name, (f"held-out reprojection {rms:.3f} px <= {max_px} px and wand length "
-                          f"spread {sd:.3f} mm <= {max_mm} mm")
-    return "poor", (f"held-out reprojection {rms:.3f} px or wand length spread {sd:.3f} mm is "
-                    f"beyond 'usable' ({GRADES[-1][1]} px, {GRADES[-1][2]} mm): recapture "
-                    "with more coverage or check the intrinsics")
+                          f"spread {sd:.2f} mm = {pct:.2f} % <= {max_pct} % of its length")
+    return "poor", (f"held-out reprojection {rms:.3f} px or wand length spread {sd:.2f} mm "
+                    f"({pct:.2f} %) is beyond 'usable' ({GRADES[-1][1]} px, {GRADES[-1][2]} "
+                    "%): recapture with more coverage or check the intrinsics")
 
 
 # ---- plots ------------------------------------------------------------------------------------

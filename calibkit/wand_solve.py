@@ -120,7 +120,7 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
         warnings.append(f"no uncertainty: the marginals failed ({exc})")
         cov = None
     found = wand_report.checks(rig, solved["xyz"], solved["behind_share"])
-    grade, reason = wand_report.grade(held, found)
+    grade, reason = wand_report.grade(held, found, spec.length_m)
     report = _report(rig, spec, result, solved, held, cov, found, grade, reason, warnings,
                      never + missing, wand, intr, world is not None)
     quality = {"reprojection_rms_px": report["solve"]["reprojection_rms_px"],
@@ -181,10 +181,13 @@ def _two_marker_labels(wand: WandObservations, rig: Rig, camera_of: np.ndarray
     keep_cost = gap(o0[ref], d0[ref], o0, d0) + gap(o1[ref], d1[ref], o1, d1)
     swap_cost = gap(o0[ref], d0[ref], o1, d1) + gap(o1[ref], d1[ref], o0, d0)
     swap = (swap_cost < keep_cost) & ~first
+    # where both labellings fit about as well (the wand along an epipolar line) say nothing
+    clear = first | (np.minimum(keep_cost, swap_cost) < 0.3 * np.maximum(keep_cost, swap_cost))
     marker = w.marker.copy()
     marker[0::2] = np.where(swap, 1, 0)  # rows come in (0, 1) pairs
     marker[1::2] = np.where(swap, 0, 1)
     w.marker = marker.astype(np.int32)
+    w = w.select(np.repeat(clear, 2))
     return w.select(np.lexsort((w.marker, w.camera, w.frame)))
 
 
@@ -216,7 +219,7 @@ def _report(rig, spec, result, solved, held, cov, found, grade, reason, warnings
         "held_out": figures(held),
         "uncertainty_reference_camera": None if cov is None else cov["reference_camera"],
         "checks": found, "grade": grade, "grade_reason": reason,
-        "grade_thresholds": [{"grade": g, "held_out_rms_px": p, "wand_length_sd_mm": m}
+        "grade_thresholds": [{"grade": g, "held_out_rms_px": p, "wand_length_sd_pct": m}
                              for g, p, m in wand_report.GRADES],
         "left_out_cameras": left_out, "warnings": warnings,
         "world_frame": "floor" if floor_given else "cameras (provisional: run calibkit floor)",
