@@ -1,0 +1,67 @@
+"""`mocapd status`, `mocapd stop`, `mocapd record`: talk to a running daemon's control socket."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from calibkit.clitools import print_table, write_json
+
+RuntimeDir = Annotated[Path | None, typer.Option(
+    "--runtime-dir", help="Folder of the daemon's control socket (as given to start).")]
+
+
+def register(app: typer.Typer) -> None:
+    from daemon.service import request
+
+    @app.command("status")
+    def status(runtime_dir: RuntimeDir = None,
+               json_path: Annotated[Path | None, typer.Option("--json")] = None) -> None:
+        """Rate per camera, dropped frames, latency, bodies tracked, outputs."""
+        st = request(runtime_dir, {"cmd": "status"})
+        lat = st["latency"]
+        typer.echo(f"frames {st['frames']}, {st['rate_hz']:.1f} fps, latency median "
+                   f"{lat['median_ms'] or 0:.2f} ms, p99 {lat['p99_ms'] or 0:.2f} ms, "
+                   f"{st['bodies_tracked']} of {len(st['bodies'])} bodies tracked")
+        print_table([[c["name"], "yes" if c["connected"] else "NO", round(c["rate_hz"], 1),
+                      c["frames"], c["dropped"]] for c in st["cameras"]],
+                    ["camera", "connected", "fps", "frames", "dropped"])
+        if st["outputs"]:
+            print_table([[o["name"], "yes" if o["connected"] else "no", o["sent"], o["dropped"],
+                          o["last_error"] or "-"] for o in st["outputs"]],
+                        ["output", "open", "sent", "dropped", "last error"])
+        if st.get("recording"):
+            typer.echo(f"recording to {st['recording']}")
+        if json_path is not None:
+            write_json(json_path, st)
+
+    @app.command("stop")
+    def stop(runtime_dir: RuntimeDir = None) -> None:
+        """Stop the daemon cleanly (as SIGTERM does)."""
+        request(runtime_dir, {"cmd": "stop"})
+        typer.echo("mocapd: stopping")
+
+    @app.command("reload")
+    def reload(runtime_dir: RuntimeDir = None) -> None:
+        """Re-read the configuration (as SIGHUP does)."""
+        request(runtime_dir, {"cmd": "reload"})
+        typer.echo("mocapd: reloading")
+
+    @app.command("record")
+    def record(path: Annotated[Path | None, typer.Argument(
+                   help="Recording to write (.mcrec).")] = None,
+               stop: Annotated[bool, typer.Option("--stop", help="Stop recording.")] = False,
+               runtime_dir: RuntimeDir = None) -> None:
+        """Record the cameras' blobs to a .mcrec recording, or stop recording."""
+        from calibkit.errors import UserError
+
+        if stop:
+            answer = request(runtime_dir, {"cmd": "record_stop"})
+            typer.echo(f"mocapd: recorded {answer['frames']} frames to {answer['path']}")
+            return
+        if path is None:
+            raise UserError("give a PATH to record to, or --stop")
+        answer = request(runtime_dir, {"cmd": "record", "path": str(path.resolve())})
+        typer.echo(f"mocapd: recording to {answer['path']}")

@@ -1,0 +1,101 @@
+"""`mocapd rigid-body add NAME --from-live` and `mocapd rigid-body list`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import tomli_w
+import tomllib
+import typer
+
+from calibkit.clitools import print_table
+from calibkit.commands.common import parse_floats
+from calibkit.errors import UserError
+from calibkit.fileio import write_text_atomic
+from daemon.config import load_config, parse_config
+
+rigid_app = typer.Typer(help="Rigid-body definitions in the configuration.",
+                        no_args_is_help=True)
+ConfigOpt = Annotated[Path, typer.Option("--config", help="The mocapd.toml to edit.")]
+
+
+def body_from_markers(xyz: np.ndarray) -> np.ndarray:
+    """Marker positions in a new body frame: origin at their centroid, axes the world's
+    (the body's orientation is zero where it was defined)."""
+    return xyz - xyz.mean(axis=0)
+
+
+def append_body(config_path: Path, name: str, body_id: int, markers: np.ndarray) -> None:
+    """Add a [[rigid_body]] table at the end of the file (its comments stay), after checking
+    that the whole file still validates."""
+    text = config_path.read_text(encoding="utf-8") if config_path.exists() else ""
+    table = {"rigid_body": [{"name": name, "id": body_id,
+                             "markers": np.round(markers, 6).tolist()}]}
+    new_text = text.rstrip("\n") + ("\n\n" if text.strip() else "") + tomli_w.dumps(table)
+    parse_config(tomllib.loads(new_text), config_path, config_path.parent)
+    write_text_atomic(config_path, new_text)
+
+
+def register(app: typer.Typer) -> None:
+    app.add_typer(rigid_app, name="rigid-body")
+
+    @rigid_app.command("add")
+    def add(
+        name: Annotated[str, typer.Argument(help="The body's name.")],
+        config: ConfigOpt,
+        from_live: Annotated[bool, typer.Option(
+            "--from-live", help="Take the markers the running daemon sees now.")] = False,
+        body_id: Annotated[int | None, typer.Option("--id", help="Streaming id.")] = None,
+        near: Annotated[str | None, typer.Option(
+            "--near", help="Only markers within --radius of X,Y,Z (metres).")] = None,
+        radius: Annotated[float, typer.Option("--radius", help="Metres.")] = 0.3,
+        runtime_dir: Annotated[Path | None, typer.Option("--runtime-dir")] = None,
+        reload: Annotated[bool, typer.Option(
+            "--reload/--no-reload", help="Ask the daemon to reload afterwards.")] = True,
+    ) -> None:
+        """Define a rigid body from the free markers the daemon tracks now; the body's
+        frame has its origin at their centroid and the world's axes."""
+        from daemon.service import request
+
+        if not from_live:
+            raise UserError("give --from-live (place the body alone in the volume), or "
+                            "write its [[rigid_body]] table in the configuration by hand")
+        cfg = load_config(config) if config.exists() else None
+        if cfg is not None and any(b.name == name for b in cfg.bodies):
+            raise UserError(f"{config}: a rigid body called {name!r} exists already")
+        markers = request(runtime_dir, {"cmd": "markers"})["markers"]
+        free = np.array([m["xyz"] for m in markers if not m["body"]]).reshape(-1, 3)
+        if near is not None:
+            centre = np.array(parse_floats(near, "--near"))
+            if centre.shape != (3,):
+                raise UserError(f"--near takes X,Y,Z, got {near!r}")
+            free = free[np.linalg.norm(free - centre, axis=1) <= radius]
+        if not 3 <= len(free) <= 8:
+            raise UserError(f"the daemon sees {len(free)} markers not on a body"
+                            f"{' near ' + near if near else ''}; a new body needs 3 to 8 "
+                            "(use --near X,Y,Z --radius R to pick them)")
+        if body_id is None:
+            body_id = max((b.id for b in cfg.bodies), default=0) + 1 if cfg else 1
+        append_body(config, name, body_id, body_from_markers(free))
+        typer.echo(f"added rigid body {name!r} (id {body_id}, {len(free)} markers) to {config}")
+        if reload:
+            request(runtime_dir, {"cmd": "reload"})
+            typer.echo("mocapd: reloading")
+
+    @rigid_app.command("list")
+    def list_bodies(config: ConfigOpt) -> None:
+        """The rigid bodies a configuration defines, with their closest distance gap."""
+        cfg = load_config(config)
+        rows = []
+        for b in cfg.bodies:
+            d = np.sort(b.distances[np.triu_indices(len(b.markers), 1)])
+            gap = float(np.min(np.diff(d))) * 1000 if len(d) > 1 else float("nan")
+            rows.append([b.name, b.id, len(b.markers), round(float(d.min()) * 1000, 1),
+                         round(float(d.max()) * 1000, 1), round(gap, 1)])
+        if not rows:
+            typer.echo(f"{config}: no rigid bodies")
+            return
+        print_table(rows, ["name", "id", "markers", "min_dist_mm", "max_dist_mm",
+                           "min_gap_mm"])

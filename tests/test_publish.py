@@ -1,0 +1,231 @@
+"""Pose packets, serial framing, the C header, MAVLink frames and the publisher machinery."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from daemon.publish import packet
+from daemon.publish.base import Publisher
+from daemon.publish.mavlink import mavlink_message, to_ned
+from daemon.publish.serial import SerialPublisher
+from daemon.publish.udp import UdpPublisher
+
+HEADER_H = Path(__file__).resolve().parents[1] / "daemon" / "publish" / "mocapd_packet.h"
+
+
+def _bodies(n, rng):
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return dict(ids=np.arange(1, n + 1), valid=rng.random(n) > 0.3,
+                markers=rng.integers(3, 9, n), position=rng.normal(size=(n, 3)),
+                quaternion=q, error_m=rng.random(n) * 1e-3)
+
+
+def test_packet_round_trip_and_layout():
+    rng = np.random.default_rng(0)
+    b = _bodies(5, rng)
+    data = packet.encode(123456, 987654321012, 1500, **b)
+    assert len(data) == 24 + 5 * 36
+    p = packet.decode(data)
+    assert (p.frame, p.t_ns, p.latency_ns) == (123456, 987654321012, 1500)
+    np.testing.assert_array_equal(p.ids, b["ids"])
+    np.testing.assert_array_equal(p.valid, b["valid"])
+    np.testing.assert_allclose(p.position, b["position"], rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(p.quaternion, b["quaternion"], rtol=1e-6, atol=1e-7)
+    # the documented offsets: magic, count, frame at 4, t_ns at 8, first body's x at 28
+    assert data[:2] == b"MC"[::-1] or int.from_bytes(data[:2], "little") == 0x434D
+    assert data[3] == 5
+    assert int.from_bytes(data[4:8], "little") == 123456
+    assert np.frombuffer(data[28:32], "<f4")[0] == np.float32(b["position"][0, 0])
+
+
+def test_packet_decode_rejects_garbage():
+    good = packet.encode(1, 2, 3, **_bodies(2, np.random.default_rng(1)))
+    for bad in (good[:10], b"XX" + good[2:], good[:-1], good + b"\0"):
+        with pytest.raises(ValueError):
+            packet.decode(bad)
+
+
+def test_crc16_check_value():
+    assert packet.crc16(b"123456789") == 0x29B1  # CRC-16/CCITT-FALSE's check value
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.binary(max_size=700))
+def test_cobs_round_trip_has_no_zero(data):
+    enc = packet.cobs_encode(data)
+    assert b"\x00" not in enc
+    assert packet.cobs_decode(enc) == data
+    assert len(enc) <= len(data) + len(data) // 254 + 2
+
+
+def test_cobs_known_vectors():
+    # the examples of Cheshire & Baker's paper (as listed on Wikipedia)
+    assert packet.cobs_encode(b"\x00") == b"\x01\x01"
+    assert packet.cobs_encode(b"\x00\x00") == b"\x01\x01\x01"
+    assert packet.cobs_encode(b"\x11\x22\x00\x33") == b"\x03\x11\x22\x02\x33"
+    assert packet.cobs_encode(b"\x11\x00\x00\x00") == b"\x02\x11\x01\x01\x01"
+    assert packet.cobs_encode(bytes(range(1, 255))) == b"\xff" + bytes(range(1, 255))
+
+
+def test_serial_frame_detects_corruption():
+    payload = packet.encode(7, 8, 9, **_bodies(3, np.random.default_rng(2)))
+    frame = packet.serial_frame(payload)
+    assert frame.endswith(b"\x00") and b"\x00" not in frame[:-1]
+    assert packet.read_serial_frame(frame[:-1]) == payload
+    broken = bytearray(frame[:-1])
+    broken[10] ^= 0x40 if broken[10] != 0x40 else 0x01
+    with pytest.raises(ValueError):
+        packet.read_serial_frame(bytes(broken))
+
+
+@pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler on this machine")
+def test_c_header_decodes_a_serial_frame(tmp_path):
+    rng = np.random.default_rng(3)
+    b = _bodies(3, rng)
+    frame = packet.serial_frame(packet.encode(42, 123456789, 777, **b))[:-1]
+    src = tmp_path / "t.c"
+    src.write_text(f"""
+#include <stdio.h>
+#include "{HEADER_H}"
+int main(void) {{
+    uint8_t in[4096], dec[4096]; size_t n = fread(in, 1, sizeof in, stdin);
+    size_t m = mocapd_cobs_decode(in, n, dec); size_t len = mocapd_check_crc(dec, m);
+    mocapd_header_t h; int count = mocapd_parse(dec, len, &h);
+    if (count < 0) {{ puts("bad"); return 1; }}
+    printf("%u %lld %u %d\\n", h.frame, (long long)h.t_ns, h.latency_ns, count);
+    for (int i = 0; i < count; i++) {{ mocapd_body_t b; mocapd_body(dec, i, &b);
+        printf("%u %u %.6f %.6f %.6f %.6f\\n", b.id, b.flags, b.pos[0], b.pos[1], b.pos[2],
+               b.quat[3]); }}
+    return 0;
+}}""")
+    exe = tmp_path / "t"
+    subprocess.run(["cc", "-std=c99", "-Wall", "-Werror", "-o", str(exe), str(src)], check=True)
+    out = subprocess.run([str(exe)], input=frame, capture_output=True, check=True).stdout
+    lines = out.decode().split("\n")
+    assert lines[0] == "42 123456789 777 3"
+    for i in range(3):
+        f = lines[1 + i].split()
+        assert int(f[0]) == b["ids"][i] and int(f[1]) == int(b["valid"][i])
+        np.testing.assert_allclose([float(v) for v in f[2:5]], b["position"][i], atol=1e-5)
+        assert abs(float(f[5]) - b["quaternion"][i, 3]) < 1e-5
+
+
+def test_ned_conversion_of_an_enu_pose():
+    # a body at x=1 (east), y=2 (north), z=3 (up), turned 90 degrees left (yaw +90 in ENU)
+    Rz = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    p, R = to_ned(np.array([1.0, 2, 3]), Rz, "enu")
+    np.testing.assert_allclose(p, [2, 1, -3])
+    # body x axis (forward) pointed north in ENU -> north in NED: first column (1, 0, 0)
+    np.testing.assert_allclose(R[:, 0], [1, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("message", ["vision_position_estimate", "odometry", "att_pos_mocap"])
+def test_mavlink_messages_decode_with_pymavlink(message):
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=197)
+    yaw = np.radians(30)
+    Rz = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+    msg = mavlink_message(mav, message, 5_000_000, [0.5, -1.0, 1.2], Rz, "flu")
+    got = mavlink2.MAVLink(None).parse_buffer(msg.pack(mav))
+    assert len(got) == 1
+    m = got[0]
+    # FLU world -> NED: (x, -y, -z); a left (counter-clockwise) yaw is negative in NED
+    assert (m.x, m.y, m.z) == pytest.approx((0.5, 1.0, -1.2), abs=1e-6)
+    if message == "vision_position_estimate":
+        assert m.yaw == pytest.approx(-yaw, abs=1e-6)
+        assert np.isnan(m.covariance[0])
+    else:
+        w, x, y, z = (m.q[i] for i in range(4))
+        assert abs(w) == pytest.approx(np.cos(yaw / 2), abs=1e-6)
+        assert np.sign(z) == -np.sign(w)  # negative yaw
+        cov = m.pose_covariance if message == "odometry" else m.covariance
+        assert np.isnan(cov[0])
+
+
+class _Result:
+    def __init__(self, i, bodies):
+        from daemon.rigid import BodyPoses, matrix_from_quaternion
+
+        self.frame, self.t_ns, self.arrival_ns = i, time.monotonic_ns(), time.monotonic_ns()
+        q = bodies["quaternion"]
+        self.poses = BodyPoses(bodies["ids"], bodies["valid"], bodies["position"],
+                               matrix_from_quaternion(q), q, bodies["error_m"],
+                               bodies["markers"], np.zeros((len(q), 4), np.int64))
+
+
+def test_udp_publisher_sends_decodable_packets():
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", 0))
+    rx.settimeout(2.0)
+    pub = UdpPublisher([rx.getsockname()], bodies=[2, 3])
+    pub.start()
+    b = _bodies(4, np.random.default_rng(4))
+    pub.submit(_Result(5, b))
+    p = packet.decode(rx.recv(2048))
+    pub.stop()
+    rx.close()
+    assert p.frame == 5
+    np.testing.assert_array_equal(p.ids, [2, 3])
+    np.testing.assert_allclose(p.position, b["position"][1:3], atol=1e-6)
+
+
+class _Stuck(Publisher):
+    name = "stuck"
+
+    def send(self, result):
+        time.sleep(0.05)
+
+
+def test_a_slow_output_never_blocks_submit():
+    pub = _Stuck()
+    pub.start()
+    t0 = time.perf_counter()
+    for i in range(200):
+        pub.submit(i)
+    elapsed = time.perf_counter() - t0
+    pub.stop(timeout=1.0)
+    assert elapsed < 0.05  # 200 submits, while the worker handles one per 50 ms
+    assert pub.dropped >= 200 - 8 - 2  # queue of 8: the rest were pushed out, oldest first
+
+
+def test_serial_publisher_to_a_pseudo_terminal_that_stops_reading():
+    master, slave = os.openpty()
+    try:
+        pub = SerialPublisher(os.ttyname(slave), 115200, rate_hz=0)
+        pub.start()
+        b = _bodies(2, np.random.default_rng(5))
+        pub.submit(_Result(1, b))
+        data = b""
+        deadline = time.monotonic() + 2
+        while not data.endswith(b"\x00") and time.monotonic() < deadline:
+            data += os.read(master, 4096)
+        p = packet.decode(packet.read_serial_frame(data[:-1]))
+        assert p.frame == 1
+        # now nobody reads: the pty fills up, writes time out, submit still never blocks
+        t0 = time.perf_counter()
+        for i in range(3000):
+            pub.submit(_Result(i, b))
+            time.sleep(0.0002)
+        assert time.perf_counter() - t0 < 3.0
+        deadline = time.monotonic() + 3
+        while pub.errors == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert pub.errors >= 1 and "send failed" in pub.last_error
+        pub.stop(timeout=1.0)
+    finally:
+        os.close(master)
+        os.close(slave)
