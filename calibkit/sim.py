@@ -296,23 +296,47 @@ def observe(rig: Rig, truth: Truth, noise_px: float = 0.0, dropout: float = 0.0,
 def render_frame(camera: Camera, xyz: np.ndarray, marker_radius_m: float = MARKER_RADIUS_M,
                  background: float = 8.0, noise_sigma: float = 2.0, seed=0,
                  peak: float = 230.0, blur_px: float = 0.5,
-                 stray: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 stray: np.ndarray | None = None, xyz_end: np.ndarray | None = None,
+                 occluders: np.ndarray | None = None,
+                 motion_samples: int = 9) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """An 8-bit image of markers as `camera` sees them: (image, true centres (N, 2), visible).
 
     A marker's spot shrinks with distance (radius = marker radius * focal / depth) and dims
     with it; `stray` (S, 3) rows of (u, v, radius_px) add static reflections such as lamps.
-    The true centre is the projection of the marker's centre.
+    Motion blur: with `xyz_end` (the positions when the exposure ends) each spot is smeared
+    along its path during the exposure, and its true centre is the path's mean, which is
+    what an ideal centroid of the smear measures. Occlusion: a marker whose centre is
+    covered by a nearer marker's disc is hidden, and so is one behind any of `occluders`
+    ((K, 4) spheres: x, y, z, radius in metres, e.g. a body or an arm).
     """
     from calibkit.spots import render_spots
 
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-    uv, in_front = camera.project(xyz)
-    depth = camera.to_camera(xyz)[:, 2]
-    visible = in_front & camera.in_image(uv)
+    n = len(xyz)
+    if xyz_end is None:
+        path = xyz[None]
+    else:
+        xyz_end = np.asarray(xyz_end, dtype=np.float64).reshape(n, 3)
+        a = (np.arange(motion_samples) + 0.5) / motion_samples
+        path = xyz[None] * (1 - a)[:, None, None] + xyz_end[None] * a[:, None, None]
+    flat = path.reshape(-1, 3)
+    uv_all, front_all = camera.project(flat)
+    uv_all = uv_all.reshape(len(path), n, 2)
+    in_front = front_all.reshape(len(path), n).all(axis=0)
+    uv = uv_all.mean(axis=0)
+    depth = camera.to_camera(path.mean(axis=0))[:, 2]
     safe_depth = np.where(in_front, depth, 1.0)
     radius = marker_radius_m * camera.fx / safe_depth
+    visible = in_front & camera.in_image(uv)
+    visible &= ~_hidden_by_markers(uv, radius, safe_depth, visible)
+    if occluders is not None and len(occluders):
+        visible &= ~_hidden_by_spheres(camera.centre, path.mean(axis=0),
+                                       np.asarray(occluders, dtype=np.float64).reshape(-1, 4))
     brightness = peak * np.clip((3.0 / safe_depth) ** 2, 0.35, 1.0)
-    draw_uv, draw_r, draw_peak = uv[visible], radius[visible], brightness[visible]
+    k = len(path)
+    draw_uv = uv_all[:, visible].reshape(-1, 2)
+    draw_r = np.tile(radius[visible], k)
+    draw_peak = np.tile(brightness[visible], k) / k
     if stray is not None and len(stray):
         stray = np.asarray(stray, dtype=np.float64).reshape(-1, 3)
         draw_uv = np.concatenate([draw_uv, stray[:, :2]])
@@ -321,6 +345,32 @@ def render_frame(camera: Camera, xyz: np.ndarray, marker_radius_m: float = MARKE
     image = render_spots(camera.size, draw_uv, draw_r, draw_peak, background=background,
                          noise_sigma=noise_sigma, blur_px=blur_px, rng=seed)
     return image, uv, visible
+
+
+def _hidden_by_markers(uv: np.ndarray, radius: np.ndarray, depth: np.ndarray,
+                       candidates: np.ndarray) -> np.ndarray:
+    """Markers whose image centre lies inside the disc of a nearer marker."""
+    idx = np.flatnonzero(candidates)
+    hidden = np.zeros(len(uv), dtype=bool)
+    if len(idx) < 2:
+        return hidden
+    d = np.linalg.norm(uv[idx, None] - uv[None, idx], axis=2)
+    nearer = depth[idx][None, :] < depth[idx][:, None]
+    hidden[idx] = np.any(nearer & (d < radius[idx][None, :]), axis=1)
+    return hidden
+
+
+def _hidden_by_spheres(centre: np.ndarray, xyz: np.ndarray, spheres: np.ndarray) -> np.ndarray:
+    """Markers whose line of sight from the camera centre passes through a sphere."""
+    ray = xyz - centre  # (N, 3)
+    length = np.linalg.norm(ray, axis=1)
+    direction = ray / np.maximum(length, 1e-12)[:, None]
+    to_sphere = spheres[None, :, :3] - centre  # (1, K, 3)
+    along = np.einsum("nk,nmk->nm", direction, np.broadcast_to(to_sphere, (len(xyz),
+                                                                           *to_sphere.shape[1:])))
+    closest = np.linalg.norm(to_sphere - along[..., None] * direction[:, None, :], axis=2)
+    before = (along > 0) & (along < length[:, None])
+    return np.any(before & (closest < spheres[None, :, 3]), axis=1)
 
 
 # ---- a monitor in front of a camera; a projector over the floor ------------------------------

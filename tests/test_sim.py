@@ -123,3 +123,54 @@ def test_projector_dots_land_on_the_floor_and_the_table() -> None:
     # the projector sees its own dots where it drew them
     uv, _ = projector.project(xyz[plane >= 0])
     assert np.allclose(uv, dots[plane >= 0], atol=1e-6)
+
+
+def test_motion_blur_smears_the_spot_along_its_path() -> None:
+    from calibkit.detect import DetectorConfig, detect
+
+    cam = sim.make_rig(4, 4.0, seed=0)[0]
+    start = np.array([[0.0, 0.0, 1.0]])
+    # 40 mm of travel during the exposure: several pixels at this distance
+    end = start + [[0.0, 0.0, 0.04]]
+    image, uv, visible = sim.render_frame(cam, start, xyz_end=end, seed=1, noise_sigma=1.0)
+    still, uv_still, _ = sim.render_frame(cam, start, seed=1, noise_sigma=1.0)
+    path_px = np.linalg.norm(cam.project(end)[0] - cam.project(start)[0])
+    assert path_px > 2.0 and visible[0]
+    # the true centre is the middle of the path
+    assert np.allclose(uv[0], (cam.project(end)[0][0] + cam.project(start)[0][0]) / 2,
+                       atol=0.02)
+    blobs = detect(image, DetectorConfig())
+    still_blobs = detect(still, DetectorConfig())
+    assert len(blobs) == 1 and np.linalg.norm(blobs.uv[0] - uv[0]) < 0.1
+    assert blobs.roundness[0] < still_blobs.roundness[0] - 0.1  # elongated
+    assert blobs.peak[0] < still_blobs.peak[0]  # spread over more pixels
+
+
+def test_nearer_markers_and_bodies_hide_markers_behind_them() -> None:
+    cam = sim.make_rig(4, 4.0, seed=0)[0]
+    direction = np.array([0.0, 0.0, 1.0]) - cam.centre
+    direction /= np.linalg.norm(direction)
+    near = cam.centre + 2.0 * direction
+    far = cam.centre + 3.0 * direction
+    aside = cam.centre + 3.0 * direction + [0.0, 0.0, 0.3]
+    _, _, visible = sim.render_frame(cam, np.array([near, far, aside]), seed=0)
+    assert visible.tolist() == [True, False, True]
+    # a 10 cm sphere (an arm) between the camera and `aside` hides it, and nothing else
+    arm = np.array([[*(cam.centre + 1.5 * (aside - cam.centre) / 3.0), 0.1]])
+    _, _, visible = sim.render_frame(cam, np.array([near, aside]), occluders=arm, seed=0)
+    assert visible.tolist() == [True, False]
+
+
+def test_sim_unsync_option_offsets_each_camera(tmp_path, calibkit_cli) -> None:
+    from calibkit.recording import load_observations
+
+    res = calibkit_cli("sim", "static", "--cameras", "4", "--frames", "3", "--unsync-ms",
+                       "8", "--out", tmp_path / "u.mcrec")
+    assert res.code == 0, res.err
+    obs, _ = load_observations(tmp_path / "u.mcrec")
+    t1 = np.array([obs.t_ns[(obs.frame == 1) & (obs.camera == c)][0] for c in range(4)])
+    offsets = t1 - 1e7  # 100 fps: frame 1 at 10 ms
+    assert np.all(offsets >= 0) and np.all(offsets < 8e6) and len(set(offsets.tolist())) == 4
+    res = calibkit_cli("sim", "static", "--cameras", "4", "--unsync-ms", "-1", "--out",
+                       tmp_path / "v.mcrec")
+    assert res.code == 2 and "must not be negative" in res.err

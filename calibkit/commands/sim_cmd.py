@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated
 
+import numpy as np
 import typer
 
 from calibkit import sim
@@ -31,6 +32,11 @@ Noise = Annotated[float, typer.Option("--noise-px", help="Centroid noise sigma; 
 Dropout = Annotated[float, typer.Option("--dropout", help="Chance a marker is hidden.")]
 Ghosts = Annotated[float, typer.Option("--ghosts", help="Stray blobs per camera per frame.")]
 Seed = Annotated[int, typer.Option("--seed", help="Random seed: same seed, same data.")]
+Unsync = Annotated[float, typer.Option(
+    "--unsync-ms", help="Cameras not in sync: each camera's clock is offset by a random "
+                        "amount up to this (ms); 0 = triggered cameras.")]
+Jitter = Annotated[float, typer.Option(
+    "--jitter-ms", help="Random jitter (sigma, ms) of each frame's capture time.")]
 
 
 def _scene_rig(rig: Path | None, cameras: int, volume: float, out: Path, seed: int):
@@ -48,11 +54,15 @@ def _volume(rig) -> float:
     return float(rig.meta.get("volume_m", 4.0))
 
 
-def _write(out: Path, rig, truth, noise, dropout, ghosts, fps, seed) -> None:
+def _write(out: Path, rig, truth, noise, dropout, ghosts, fps, seed, unsync_ms=0.0,
+           jitter_ms=0.0) -> None:
     """Observe the scene and write it, with the truth inside a recording and, for scripts,
     always beside it as NAME.truth.csv."""
+    if unsync_ms < 0 or jitter_ms < 0:
+        raise UserError("--unsync-ms and --jitter-ms must not be negative")
+    offsets = np.random.default_rng(seed + 7).uniform(0.0, unsync_ms * 1e6, len(rig))
     obs = sim.observe(rig, truth, noise_px=noise, dropout=dropout, ghosts_per_camera=ghosts,
-                      fps=fps, seed=seed)
+                      fps=fps, seed=seed, clock_offset_ns=offsets, jitter_ns=jitter_ms * 1e6)
     save_observations(out, obs, truth, rig)
     if out.suffix.lower() != ".csv":
         save_truth_csv(truth_path_for(out), truth)
@@ -84,11 +94,12 @@ def sim_rig(
 def sim_static(out: Out, rig: RigOpt = None, markers: Annotated[int, typer.Option(
         "--markers", help="Number of markers.")] = 20, frames: Frames = 100, fps: Fps = 100.0,
         noise_px: Noise = 0.2, dropout: Dropout = 0.0, ghosts: Ghosts = 0.0,
-        seed: Seed = 0, cameras: Cameras = 6, volume: Volume = 4.0) -> None:
+        seed: Seed = 0, cameras: Cameras = 6, volume: Volume = 4.0, unsync_ms: Unsync = 0.0,
+        jitter_ms: Jitter = 0.0) -> None:
     """Markers standing still in the volume."""
     true_rig = _scene_rig(rig, cameras, volume, out, seed)
     truth = sim.static_markers(markers, frames, _volume(true_rig), seed)
-    _write(out, true_rig, truth, noise_px, dropout, ghosts, fps, seed)
+    _write(out, true_rig, truth, noise_px, dropout, ghosts, fps, seed, unsync_ms, jitter_ms)
 
 
 @sim_app.command("wand")
@@ -96,12 +107,13 @@ def sim_wand(out: Out, rig: RigOpt = None, frames: Frames = 3000, fps: Fps = 100
              spacing: Annotated[str, typer.Option(
                  "--spacing", help="Marker positions along the wand, metres.")] = "0,0.2,0.5",
              noise_px: Noise = 0.1, dropout: Dropout = 0.0, ghosts: Ghosts = 0.0,
-             seed: Seed = 0, cameras: Cameras = 6, volume: Volume = 4.0) -> None:
+             seed: Seed = 0, cameras: Cameras = 6, volume: Volume = 4.0,
+             unsync_ms: Unsync = 0.0, jitter_ms: Jitter = 0.0) -> None:
     """A wand waved through the volume."""
     true_rig = _scene_rig(rig, cameras, volume, out, seed)
     truth = sim.wand_motion(frames, fps, _volume(true_rig),
                             parse_floats(spacing, "--spacing"), seed)
-    _write(out, true_rig, truth, noise_px, dropout, ghosts, fps, seed)
+    _write(out, true_rig, truth, noise_px, dropout, ghosts, fps, seed, unsync_ms, jitter_ms)
 
 
 @sim_app.command("rigid")
@@ -109,11 +121,12 @@ def sim_rigid(out: Out, rig: RigOpt = None, bodies: Annotated[int, typer.Option(
         "--bodies", help="Number of rigid bodies.")] = 3, markers: Annotated[int, typer.Option(
         "--markers", help="Markers per body (3-8).")] = 4, frames: Frames = 500,
         fps: Fps = 100.0, noise_px: Noise = 0.2, dropout: Dropout = 0.0, ghosts: Ghosts = 0.0,
-        seed: Seed = 0, cameras: Cameras = 6, volume: Volume = 4.0) -> None:
+        seed: Seed = 0, cameras: Cameras = 6, volume: Volume = 4.0, unsync_ms: Unsync = 0.0,
+        jitter_ms: Jitter = 0.0) -> None:
     """Rigid bodies moving through the volume."""
     true_rig = _scene_rig(rig, cameras, volume, out, seed)
     truth, _ = sim.rigid_body_motion(bodies, frames, fps, _volume(true_rig), markers, seed)
-    _write(out, true_rig, truth, noise_px, dropout, ghosts, fps, seed)
+    _write(out, true_rig, truth, noise_px, dropout, ghosts, fps, seed, unsync_ms, jitter_ms)
 
 
 def register(app: typer.Typer) -> None:
