@@ -95,8 +95,8 @@ def _bases_cached(arrays: RigArrays) -> np.ndarray:
 def _pairs(arrays: RigArrays, group: np.ndarray, camera: np.ndarray, n: np.ndarray,
            origins: np.ndarray, dirs: np.ndarray, tol_px: float):
     """Candidate blob pairs (a, b) in different cameras of the same group (frame) whose
-    epipolar distance is below tol_px both ways; their ray meeting points and the depths
-    along each ray.
+    epipolar distance is below tol_px both ways, and the depths along each ray where the
+    two rays pass closest.
 
     Two rays can only meet if they lie in the same plane through both camera centres, so
     matching blobs share that plane's angle about the baseline; a pixel of epipolar
@@ -154,7 +154,7 @@ def _pairs(arrays: RigArrays, group: np.ndarray, camera: np.ndarray, n: np.ndarr
             out_b.append(b[ib[keep]])
     if not out_a:
         empty = np.zeros(0, dtype=np.int64)
-        return empty, empty, np.zeros((0, 3)), np.zeros(0), np.zeros(0)
+        return empty, empty, np.zeros(0), np.zeros(0)
     pa, pb = np.concatenate(out_a), np.concatenate(out_b)
     # closest points of the two rays: o_a + s d_a and o_b + u d_b
     da, db = dirs[pa], dirs[pb]
@@ -165,9 +165,8 @@ def _pairs(arrays: RigArrays, group: np.ndarray, camera: np.ndarray, n: np.ndarr
     denom = np.maximum(1.0 - b_ * b_, 1e-12)
     s = (b_ * e_ - d_) / denom
     u = (e_ - b_ * d_) / denom
-    point = 0.5 * (origins[pa] + s[:, None] * da + origins[pb] + u[:, None] * db)
     front = (s > 0) & (u > 0)
-    return pa[front], pb[front], point[front], s[front], u[front]
+    return pa[front], pb[front], s[front], u[front]
 
 
 def _clusters(ref: np.ndarray, other: np.ndarray, depth: np.ndarray, camera: np.ndarray,
@@ -281,7 +280,7 @@ def _cluster_pass(rig: Rig, arrays: RigArrays, group: np.ndarray, camera: np.nda
     first positions, and the candidate pairs found (for the two-camera step)."""
     n_cams_rig = len(rig)
     sub = np.flatnonzero(available)
-    pa, pb, _, s, u = _pairs(arrays, group[sub], camera[sub], n[sub], origins[sub],
+    pa, pb, s, u = _pairs(arrays, group[sub], camera[sub], n[sub], origins[sub],
                              dirs[sub], cfg.epipolar_px)
     pa, pb = sub[pa], sub[pb]
     none = np.zeros((0, n_cams_rig), dtype=np.int64)
@@ -380,7 +379,7 @@ def match_groups(rig: Rig, group: np.ndarray, camera: np.ndarray, uv: np.ndarray
     table = np.concatenate(tables)
     point, cam = np.nonzero(table >= 0)
     blob = table[point, cam]
-    tri = triangulate(rig, point, cam, uv[blob], iterations=2, n_points=len(table),
+    tri = triangulate(rig, point, cam, uv[blob], iterations=1, n_points=len(table),
                       rays=(origins[blob], dirs[blob]), start=np.concatenate(starts))
     ok = np.isfinite(tri.reproj_px) & (tri.reproj_px <= cfg.max_reproj_px)
     two = np.sum(table >= 0, axis=1) == 2
