@@ -28,6 +28,7 @@ from projector.patterns import (
     ROLE_OFF,
     ROLE_ON,
     Schedule,
+    check_by_neighbours,
     decode_layer,
     identify_by_neighbours,
 )
@@ -172,6 +173,9 @@ class DotCapture:
             else:
                 got, _ = decode_layer(sch, layer, step_images, found,
                                       window_px=max(1.0, self._radius_img(found)))
+                named = np.nonzero(got >= 0)[0]
+                agree = check_by_neighbours(sch.points_xy[got[named]], found[named])
+                got[named[~agree]] = -1
             keep = got >= 0
             rejected += int((~keep).sum())
             ids.append(got[keep])

@@ -246,6 +246,67 @@ def decode_layer(schedule: Schedule, layer: int, step_images: dict[int, np.ndarr
     return np.where(dec.ok, ids[np.maximum(dec.index, 0)], -1), dec
 
 
+def predict_from_neighbours(ref_screen: np.ndarray, ref_uv: np.ndarray, screen: np.ndarray,
+                            k: int = 8, skip_self: bool = False
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Image positions of screen points (P, 2) predicted by a local affine map fitted to the
+    k nearest identified dots around each (lens distortion is smooth, so an affine map holds
+    over a few dot spacings). Returns predictions (P, 2), the fit's RMS (P,) px, and whether
+    the neighbours surround the point closely enough to trust it (P,). With skip_self the
+    points are the reference dots themselves, each predicted without itself."""
+    from scipy.spatial import cKDTree
+
+    k = min(k, len(ref_uv) - (1 if skip_self else 0))
+    dist, nb = cKDTree(ref_screen).query(screen, k=k + (1 if skip_self else 0))
+    if skip_self:
+        dist, nb = dist[:, 1:], nb[:, 1:]
+    S = np.concatenate([ref_screen[nb] - screen[:, None, :], np.ones((len(screen), k, 1))],
+                       axis=2)  # (P, k, 3), centred on the point for conditioning
+    U = ref_uv[nb]  # (P, k, 2)
+    StS = np.einsum("pki,pkj->pij", S, S)
+    StU = np.einsum("pki,pkj->pij", S, U)
+    ok_fit = np.abs(np.linalg.det(StS)) > 1e-9
+    StS[~ok_fit] = np.eye(3)
+    A = np.linalg.solve(StS, StU)  # (P, 3, 2)
+    fit_rms = np.sqrt(np.mean(np.sum((np.einsum("pki,pij->pkj", S, A) - U) ** 2, axis=2),
+                              axis=1))
+    # neighbours must surround the point: no extrapolation far outside them
+    near = dist[:, -1] <= 3.0 * np.median(dist[:, -1])
+    return A[:, 2, :], fit_rms, ok_fit & near
+
+
+def check_by_neighbours(screen: np.ndarray, uv: np.ndarray, k: int = 8,
+                        max_px: float | None = None) -> np.ndarray:
+    """Which identified dots agree with their neighbours: each dot's image position must be
+    where its k nearest dots (on the screen) place it, within `max_px` (default a fifth of
+    the image spacing). A misdecoded id points to a screen position far away, so its dot
+    sits where its supposed neighbours say it cannot be. Mask (N,)."""
+    from scipy.spatial import cKDTree
+
+    n = len(uv)
+    if n < k + 2:
+        return np.ones(n, bool)  # too few to judge: keep
+    if max_px is None:
+        spacing, _ = cKDTree(uv).query(uv, k=2)
+        max_px = 0.2 * float(np.median(spacing[:, 1]))
+    # a wrong dot spoils its neighbours' fits too: peel off the worst offenders first,
+    # then judge every dot (the peeled ones too) against the clean set
+    keep = np.ones(n, bool)
+    for limit in (8.0 * max_px, 3.0 * max_px, max_px):
+        idx = np.nonzero(keep)[0]
+        if len(idx) < k + 2:
+            break
+        pred, _, _ = predict_from_neighbours(screen[idx], uv[idx], screen[idx], k, True)
+        keep[idx[np.linalg.norm(pred - uv[idx], axis=1) > limit]] = False
+    idx = np.nonzero(keep)[0]
+    out = keep.copy()
+    rest = np.nonzero(~keep)[0]
+    if len(idx) >= k + 1 and len(rest):
+        pred, _, trusted = predict_from_neighbours(screen[idx], uv[idx], screen[rest], k)
+        out[rest] = trusted & (np.linalg.norm(pred - uv[rest], axis=1) <= max_px)
+    return out
+
+
 def identify_by_neighbours(ref_screen: np.ndarray, ref_uv: np.ndarray, screen: np.ndarray,
                            uv: np.ndarray, k: int = 8, max_px: float | None = None,
                            max_fit_px: float = 1.0) -> np.ndarray:
@@ -265,24 +326,8 @@ def identify_by_neighbours(ref_screen: np.ndarray, ref_uv: np.ndarray, screen: n
     out = np.full(len(uv), -1, dtype=np.int64)
     if len(ref_uv) < max(k, 4) or len(uv) == 0 or len(screen) == 0:
         return out
-    k = min(k, len(ref_uv))
-    dist, nb = cKDTree(ref_screen).query(screen, k=k)
-    # batched affine least squares: [x y 1] A = uv, per shown position
-    S = np.concatenate([ref_screen[nb], np.ones((len(screen), k, 1))], axis=2)  # (P, k, 3)
-    U = ref_uv[nb]  # (P, k, 2)
-    centre = screen[:, None, :]
-    S[:, :, :2] -= centre  # centred for conditioning
-    StS = np.einsum("pki,pkj->pij", S, S)
-    StU = np.einsum("pki,pkj->pij", S, U)
-    ok_fit = np.abs(np.linalg.det(StS)) > 1e-9
-    StS[~ok_fit] = np.eye(3)
-    A = np.linalg.solve(StS, StU)  # (P, 3, 2)
-    fit_err = np.sqrt(np.mean(np.sum((np.einsum("pki,pij->pkj", S, A) - U) ** 2, axis=2),
-                              axis=1))
-    pred = A[:, 2, :]  # the affine map at the centre (offset 0): the prediction
-    # neighbours must surround the position: reject extrapolation far outside them
-    reach = dist[:, -1] <= 3.0 * np.median(dist[:, 0] + 1e-9) + np.median(dist[:, -1])
-    good = ok_fit & (fit_err <= max_fit_px) & reach
+    pred, fit_rms, trusted = predict_from_neighbours(ref_screen, ref_uv, screen, k)
+    good = trusted & (fit_rms <= max_fit_px)
     if max_px is None:
         spacing, _ = cKDTree(ref_uv).query(ref_uv, k=2)
         max_px = 0.25 * float(np.median(spacing[:, 1]))

@@ -192,25 +192,29 @@ def register(app: typer.Typer) -> None:
         else:
             from calibkit.sources import DeviceSource
             from projector.display import WindowDisplay
-            from projector.screens import pick_screen
+            from projector.screens import pick_screen, require_display
 
-            screen, pitch = pick_screen(monitor, pixel_pitch)
-            schedule = _schedule((screen.width_px, screen.height_px), step, shifts, radius,
-                                 raster)
-            source = DeviceSource(device, camera=camera)
-            with source, WindowDisplay(monitor) as window:
+            require_display()  # before anything else: the commonest mistake (ssh, CI)
+            with DeviceSource(device, camera=camera) as source:
+                screen, pitch = pick_screen(monitor, pixel_pitch)
+                schedule = _schedule((screen.width_px, screen.height_px), step, shifts,
+                                     radius, raster)
                 first = next(iter(source), None)
                 if first is None:
                     raise UserError(f"camera device {device} gives no frames")
                 img_size = (first.image.shape[1], first.image.shape[0])
+                window = WindowDisplay(monitor)
 
                 def next_view(v: int, done: list) -> None:
                     print(guidance(done, img_size, views), file=sys.stderr)
                     input(f"view {v + 1}/{views}: hold the monitor in view, tilted, then "
                           "press Enter ")
 
-                plane_views = _capture(_LiveDevice(window, source), schedule, views, pitch,
-                                       next_view, img_size, samples)
+                try:
+                    plane_views = _capture(_LiveDevice(window, source), schedule, views,
+                                           pitch, next_view, img_size, samples)
+                finally:
+                    window.close()
             dot_radius_m = radius * pitch / 1000.0
         result = calibrate(plane_views, img_size, camera, fix_skew=not estimate_skew,
                            fix_k3=fix_k3, dot_radius_m=dot_radius_m)
