@@ -273,13 +273,16 @@ def _with_pose(cam: Camera, R: np.ndarray, t: np.ndarray) -> Camera:
 
 
 def initial_poses(wand: WandObservations, intrinsics: Rig, spec: WandSpec,
-                  min_points: int = 12) -> tuple[Rig, list[str]]:
+                  min_points: int = 12, candidates: int = 4) -> tuple[Rig, list[str]]:
     """Poses for every camera that sees enough of the wand, from nothing.
 
-    The best-connected pair gives a relative pose from its essential matrix; the wand's
+    A well-connected pair gives a relative pose from its essential matrix; the wand's
     length scales it; the other cameras are added one by one by PnP on the markers already
-    triangulated, most-connected first. The frame is the first camera of the pair's. Returns
-    the rig of the cameras placed and the names of those that could not be.
+    triangulated, most-connected first. Some pairs give a poor essential matrix (little
+    parallax, a near-critical configuration), so the `candidates` best-connected pairs are
+    each grown into a whole rig and the one whose markers reproject best is kept. The
+    frame is the first camera of the pair's. Returns the rig of the cameras placed and the
+    names of those that could not be.
     """
     if spec.n_markers < 2:
         raise UserError("a 1-marker wand gives no scale: give --rig with initial poses")
@@ -289,24 +292,57 @@ def initial_poses(wand: WandObservations, intrinsics: Rig, spec: WandSpec,
     if counts.max() < min_points:
         raise UserError("no two cameras see the wand together often enough to start; "
                         "wave it where at least two cameras see it")
-    a, b = np.unravel_index(np.argmax(counts), counts.shape)
     norm = _normalised(intrinsics, wand)
     pidx, pinfo = point_index(wand, spec.n_markers)
+    iu = np.triu_indices(n_cams, 1)
+    order = np.argsort(-counts[iu], kind="stable")[:candidates]
+    best = None
+    for k in order:
+        a, b = int(iu[0][k]), int(iu[1][k])
+        if counts[a, b] < min_points:
+            continue
+        try:
+            placed, missing = _grow(wand, intrinsics, spec, a, b, norm, pidx, pinfo,
+                                    min_points)
+        except UserError:
+            continue
+        score = (len(missing), _median_reprojection(wand, placed, pidx, len(pinfo)))
+        if best is None or score < best[0]:
+            best = (score, placed, missing)
+    if best is None:
+        raise UserError("no camera pair gives a relative pose from the wand: wave it through "
+                        "more of the volume")
+    return best[1], best[2]
+
+
+def _median_reprojection(wand: WandObservations, placed: Rig, pidx: np.ndarray,
+                         n_points: int) -> float:
+    names = {n: i for i, n in enumerate(placed.names)}
+    local = np.array([names.get(n, -1) for n in wand.camera_names])
+    use = local[wand.camera] >= 0
+    tri = triangulate(placed, pidx[use], local[wand.camera[use]], wand.uv[use],
+                      n_points=n_points, ray_distance=False)
+    ok = np.isfinite(tri.reproj_px)
+    return float(np.median(tri.reproj_px[ok])) if ok.any() else float("inf")
+
+
+def _grow(wand, intrinsics, spec, a, b, norm, pidx, pinfo, min_points):
+    """A rig grown from the pair (a, b): essential matrix, scale, then PnP for the rest."""
+    n_cams = len(intrinsics)
     n_points = len(pinfo)
-    # shared points of the pair
     in_a = np.full(n_points, -1)
     in_b = np.full(n_points, -1)
     in_a[pidx[wand.camera == a]] = np.flatnonzero(wand.camera == a)
     in_b[pidx[wand.camera == b]] = np.flatnonzero(wand.camera == b)
     both = np.flatnonzero((in_a >= 0) & (in_b >= 0))
-    f = float(np.mean([intrinsics[int(a)].fx, intrinsics[int(b)].fx]))
+    f = float(np.mean([intrinsics[a].fx, intrinsics[b].fx]))
     R, t, inl = _relative_pose(norm[in_a[both]], norm[in_b[both]], threshold=1.0 / f)
-    cams: dict[int, Camera] = {int(a): _with_pose(intrinsics[int(a)], np.eye(3), np.zeros(3)),
-                               int(b): _with_pose(intrinsics[int(b)], R, t)}
+    cams: dict[int, Camera] = {a: _with_pose(intrinsics[a], np.eye(3), np.zeros(3)),
+                               b: _with_pose(intrinsics[b], R, t)}
     # scale from the wand's length
     xyz = _triangulate_placed(wand, cams, pidx, n_points)
     scale = _scale_from_length(xyz, pinfo, spec)
-    cams[int(b)] = _with_pose(intrinsics[int(b)], R, t * scale)
+    cams[b] = _with_pose(intrinsics[b], R, t * scale)
     missing: list[str] = []
     while len(cams) + len(missing) < n_cams:
         xyz = _triangulate_placed(wand, cams, pidx, n_points)

@@ -1,0 +1,138 @@
+"""`calibkit wand` and `calibkit floor` from the command line, against the simulator's truth."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from calibkit import sim
+from calibkit.camera import Rig
+from calibkit.recording import load_observations, save_observations
+
+
+def _one_line_error(result) -> None:
+    assert result.code == 2
+    assert "Traceback" not in result.err
+    assert len(result.err.strip().splitlines()) == 1 and "error:" in result.err
+
+
+def test_wand_sim_end_to_end(calibkit_cli, tmp_path):
+    out = tmp_path / "rig.toml"
+    r = calibkit_cli("wand", "--sim", "--out", out, "--cameras", "4", "--frames", "400",
+                     "--noise-px", "0.1", "--min-samples", "150", "--min-coverage", "0.1",
+                     "--json", tmp_path / "w.json", "--seed", "3")
+    assert r.code == 0, r.err
+    for name in ("rig.toml", "rig.truth.toml", "rig.capture.mcrec", "rig.layout.png",
+                 "rig.residuals.png", "w.json"):
+        assert (tmp_path / name).stat().st_size > 0, name
+    report = json.loads((tmp_path / "w.json").read_text())
+    # the capture stopped by itself once every camera had 150 sightings
+    captured, _ = load_observations(tmp_path / "rig.capture.mcrec")
+    assert len(captured.frames()) < 400
+    assert report["held_out"]["frames"] + report["solve"]["frames"] <= len(captured.frames())
+    # 0.1 px noise: ~0.14 px per 2D residual, less what triangulation absorbs
+    assert 0.08 < report["held_out"]["reprojection_rms_px"] < 0.16
+    assert report["grade"] in ("excellent", "good") and report["checks"]["ok"]
+    assert report["world_frame"] == "floor"
+    # the simulated L-frame lies at the true origin: no alignment needed to compare
+    est, true = Rig.load(out), Rig.load(tmp_path / "rig.truth.toml")
+    err = np.linalg.norm(est.centres() - true.centres(), axis=1)
+    assert err.max() < 6e-3  # ~1 mm from the wand solve, a few from the L-frame's tilt
+    assert f"grade: {report['grade']}" in r.out
+
+
+def test_wand_from_csv_with_intrinsics(calibkit_cli, tmp_path):
+    rig_file, csv = tmp_path / "true.toml", tmp_path / "wand.csv"
+    assert calibkit_cli("sim", "rig", "--out", rig_file, "--cameras", "4", "--seed",
+                        "4").code == 0
+    assert calibkit_cli("sim", "wand", "--rig", rig_file, "--out", csv, "--frames", "300",
+                        "--noise-px", "0.2", "--ghosts", "0.3", "--seed", "4").code == 0
+    r = calibkit_cli("wand", "--from", csv, "--intrinsics", rig_file, "--out",
+                     tmp_path / "out.toml", "--json", tmp_path / "w.json", "--no-plots")
+    assert r.code == 0, r.err
+    report = json.loads((tmp_path / "w.json").read_text())
+    assert report["world_frame"].startswith("cameras")  # no floor given: provisional
+    assert report["held_out"]["reprojection_rms_px"] < 0.3
+    est, true = Rig.load(tmp_path / "out.toml"), Rig.load(rig_file)
+    from calibkit.geometry import rigid_fit
+
+    R, t, s = rigid_fit(est.centres(), true.centres(), scale=True)
+    assert abs(s - 1) < 2e-3  # the wand's length sets the scale
+    assert np.max(np.linalg.norm(est.centres() @ R.T + t - true.centres(), axis=1)) < 5e-3
+    assert not (tmp_path / "out.layout.png").exists()
+
+
+def test_a_camera_that_never_sees_the_wand(calibkit_cli, tmp_path):
+    rig = sim.make_rig(5, 4.0, seed=5)
+    rig.save(tmp_path / "rig.toml")
+    truth = sim.wand_motion(300, 100.0, 4.0, (0.0, 0.2, 0.5), seed=5)
+    obs = sim.observe(rig, truth, noise_px=0.2, seed=5)
+    save_observations(tmp_path / "w.mcrec", obs.select(obs.camera != 2))
+    r = calibkit_cli("wand", "--from", tmp_path / "w.mcrec", "--intrinsics",
+                     tmp_path / "rig.toml", "--out", tmp_path / "out.toml", "--json",
+                     tmp_path / "w.json", "--no-plots")
+    assert r.code == 0, r.err
+    assert "warning: camera cam2 saw the wand in 0 frames" in r.out
+    report = json.loads((tmp_path / "w.json").read_text())
+    assert report["left_out_cameras"] == ["cam2"]
+    assert Rig.load(tmp_path / "out.toml").names == ["cam0", "cam1", "cam3", "cam4"]
+    assert report["held_out"]["reprojection_rms_px"] < 0.35
+
+
+def test_wand_with_initial_poses_and_intrinsics_refined(calibkit_cli, tmp_path):
+    rig = sim.make_rig(4, 4.0, seed=6)
+    rig.save(tmp_path / "rig.toml")
+    truth = sim.wand_motion(300, 100.0, 4.0, (0.0, 0.2, 0.5), seed=6)
+    save_observations(tmp_path / "w.mcrec", sim.observe(rig, truth, noise_px=0.2, seed=6))
+    r = calibkit_cli("wand", "--from", tmp_path / "w.mcrec", "--rig", tmp_path / "rig.toml",
+                     "--refine-intrinsics", "--out", tmp_path / "out.toml", "--json",
+                     tmp_path / "w.json", "--no-plots")
+    assert r.code == 0, r.err
+    report = json.loads((tmp_path / "w.json").read_text())
+    assert report["solve"]["refine_intrinsics"] is True
+    assert report["held_out"]["reprojection_rms_px"] < 0.3
+    out = Rig.load(tmp_path / "out.toml")
+    assert all(abs(a.fx / b.fx - 1) < 0.005 for a, b in zip(out, rig, strict=True))
+
+
+@pytest.mark.parametrize("args", [
+    [],  # no source
+    ["--sim", "--from", "x.mcrec"],
+    ["--from", "missing.mcrec", "--intrinsics", "rig.toml"],
+    ["--from", "w.mcrec"],  # no intrinsics
+    ["--sim", "--spacing", "0,0.25,0.5"],  # equal spacings
+    ["--sim", "--spacing", "0,a"],
+    ["--sim", "--holdout", "1.5"],
+    ["--from", "w.mcrec", "--intrinsics", "other.toml"],  # a camera with no intrinsics
+])
+def test_wand_bad_input_is_one_clear_line(calibkit_cli, tmp_path, monkeypatch, args):
+    monkeypatch.chdir(tmp_path)
+    rig = sim.make_rig(3, 4.0, seed=1)
+    rig.save(tmp_path / "rig.toml")
+    Rig(rig.cameras[:2]).save(tmp_path / "other.toml")
+    truth = sim.wand_motion(20, 100.0, 4.0, (0.0, 0.2, 0.5), seed=1)
+    save_observations(tmp_path / "w.mcrec", sim.observe(rig, truth, seed=1))
+    _one_line_error(calibkit_cli("wand", "--out", "out.toml", *args))
+    assert not (tmp_path / "out.toml").exists()
+
+
+def test_floor_sim_and_errors(calibkit_cli, tmp_path):
+    r = calibkit_cli("floor", "--sim", "--out", tmp_path / "f.toml", "--json",
+                     tmp_path / "f.json")
+    assert r.code == 0, r.err
+    figures = json.loads((tmp_path / "f.json").read_text())
+    # 0.1 px on 30 frames of an L-frame: the frame tilts well under a milliradian
+    assert max(figures["centre_error_mm"]) < 5.0
+    _one_line_error(calibkit_cli("floor", "--out", tmp_path / "g.toml"))
+    _one_line_error(calibkit_cli("floor", "--sim", "--out", tmp_path / "g.toml", "--long",
+                                 "0.3", "--short", "0.3"))
+    # a recording with no L-frame in it
+    rig = Rig.load(tmp_path / "f.truth.toml")
+    truth = sim.static_markers(2, 10, 4.0, seed=2)
+    save_observations(tmp_path / "s.mcrec", sim.observe(rig, truth, noise_px=0.1, seed=2))
+    bad = calibkit_cli("floor", "--rig", tmp_path / "f.truth.toml", "--from",
+                       tmp_path / "s.mcrec", "--out", tmp_path / "g.toml")
+    _one_line_error(bad)
+    assert "no L-frame" in bad.err
