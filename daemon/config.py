@@ -52,6 +52,7 @@ class SimConfig:
     drop_camera: str = ""  # a camera that disconnects (fault injection)
     drop_from_s: float = 0.5
     drop_for_s: float = 0.5
+    define_bodies: bool = True  # track the scene's bodies when the configuration has none
 
 
 @dataclass(frozen=True)

@@ -233,7 +233,7 @@ class Daemon:
                             "calibrated rig), or replay a recording")
         self.scene = SimScene(cfg.sim, self.rig, self._truth_rig, n_frames)
         self.rig = self.scene.rig
-        bodies = list(cfg.bodies) or self.scene.body_defs()
+        bodies = self._bodies(cfg)
         self._warn_alike(bodies)
         self.evaluator = Evaluator(self.scene)
         self.pipeline = Pipeline(self.rig, cfg.tracker, cfg.rigid, bodies, make_publishers(cfg),
@@ -243,6 +243,11 @@ class Daemon:
         self.control.open()
         for p in self.pipeline.publishers:
             p.start()
+
+    def _bodies(self, cfg: Config) -> list:
+        if cfg.bodies or cfg.sim is None or not cfg.sim.define_bodies:
+            return list(cfg.bodies)
+        return self.scene.body_defs()
 
     def _warn_alike(self, bodies) -> None:
         for a, b in alike_bodies(bodies, self.config.rigid.distance_tol_m):
@@ -345,7 +350,7 @@ class Daemon:
             log.error("reload failed, keeping the running configuration: %s", exc)
             sd_notify("READY=1")
             return False
-        bodies = list(new.bodies) or self.scene.body_defs()
+        bodies = self._bodies(new)
         self._warn_alike(bodies)
         self.pipeline.replace(bodies=bodies, publishers=make_publishers(new))
         self.config = new

@@ -1,0 +1,116 @@
+"""The multiplexer (triggered and greedy) and defining a rigid body from the live markers."""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from daemon.config import load_config
+from daemon.pipeline import Multiplexer
+from daemon.sources import CameraSample
+
+
+def _sample(cam, index, t_ns, uv):
+    uv = np.asarray(uv, float).reshape(-1, 2)
+    return CameraSample(cam, index, t_ns, time.monotonic_ns(), uv, np.ones(len(uv)),
+                        np.ones(len(uv)))
+
+
+def test_triggered_waits_for_all_then_times_out_without_a_camera():
+    mux = Multiplexer(3, "triggered", fps=100.0, timeout_frames=2.0)
+    for c in range(3):
+        mux.push(_sample(c, 0, 0, [[c, c]]))
+    fs = mux.next(0.1)
+    assert fs.index == 0 and [s.camera for s in fs.samples] == [0, 1, 2]
+    mux.push(_sample(0, 1, 10_000_000, [[1, 1]]))
+    mux.push(_sample(2, 1, 10_000_000, [[1, 1]]))
+    t0 = time.monotonic()
+    fs = mux.next(1.0)  # camera 1 never comes: emitted after two frame periods
+    waited = time.monotonic() - t0
+    assert fs.index == 1 and [s.camera for s in fs.samples] == [0, 2]
+    assert 0.015 < waited < 0.5
+    assert mux.incomplete == 1 and mux.missing.tolist() == [0, 1, 0]
+    mux.push(_sample(1, 1, 10_000_000, [[1, 1]]))  # too late
+    assert mux.late == 1 and mux.next(0.02) is None
+
+
+def test_triggered_does_not_wait_for_a_disconnected_camera():
+    connected = np.array([True, False, True])
+    mux = Multiplexer(3, "triggered", fps=100.0, connected=lambda: connected)
+    mux.push(_sample(0, 5, 0, [[0, 0]]))
+    mux.push(_sample(2, 5, 0, [[0, 0]]))
+    assert mux.next(0.0).index == 5
+
+
+def test_greedy_extrapolates_other_cameras_to_the_newest_time():
+    """Blobs move at (200, -100) px/s; camera 1 reports 3 ms after camera 0: camera 0's
+    blob must be moved to where it is at camera 1's time."""
+    v = np.array([200.0, -100.0])
+    mux = Multiplexer(2, "greedy")
+    starts = np.array([[100.0, 200.0], [300.0, 50.0]])
+    for k in range(3):
+        t0 = k * 10_000_000
+        mux.push(_sample(0, k, t0, starts + v * t0 * 1e-9))
+        t1 = t0 + 3_000_000
+        mux.push(_sample(1, k, t1, [[10.0, 10.0]]))
+    sets = []
+    while (fs := mux.next(0.0)) is not None:
+        sets.append(fs)
+    last = sets[-1]
+    assert last.t_ns == 23_000_000
+    cam0 = [s for s in last.samples if s.camera == 0][0]
+    np.testing.assert_allclose(cam0.uv, starts + v * 23e-3, atol=1e-9)
+
+
+def test_rigid_body_from_live_markers(tmp_path, mocapd_cli):
+    """A daemon sees one unknown body; `rigid-body add --from-live` defines it, the daemon
+    reloads and tracks it."""
+    from daemon.service import Daemon
+
+    cfg_path = tmp_path / "mocapd.toml"
+    cfg_path.write_text("# my rig\n[sim]\ncameras = 6\nbodies = 1\nfps = 100.0\n"
+                        "define_bodies = false\nseed = 4\n")
+    rt = tmp_path / "rt"
+    cfg = replace(load_config(cfg_path), runtime_dir=rt)
+    daemon = Daemon(cfg, extend=lambda c: replace(c, runtime_dir=rt))
+    thread = threading.Thread(target=daemon.run, kwargs={"duration_s": 8.0}, daemon=True)
+    thread.start()
+    try:
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            if (rt / "mocapd.sock").exists() and getattr(daemon, "pipeline", None) and \
+                    daemon.pipeline.stats.frames > 20:
+                break
+            time.sleep(0.05)
+        assert daemon.pipeline.rigid.bodies == []
+        r = mocapd_cli("rigid-body", "add", "probe", "--config", cfg_path, "--from-live",
+                       "--runtime-dir", rt)
+        assert r.code == 0, r.err
+        text = cfg_path.read_text()
+        assert text.startswith("# my rig") and "[[rigid_body]]" in text  # comments kept
+        (body,) = load_config(cfg_path).bodies
+        assert body.name == "probe" and body.id == 1 and len(body.markers) == 4
+        np.testing.assert_allclose(body.markers.mean(axis=0), 0, atol=1e-6)
+        truth = daemon.scene.bodies_truth[0].markers_body
+        d_true = np.sort(np.linalg.norm(truth[:, None] - truth[None], axis=2).ravel())
+        d_new = np.sort(np.linalg.norm(body.markers[:, None] - body.markers[None],
+                                       axis=2).ravel())
+        np.testing.assert_allclose(d_new, d_true, atol=0.003)
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and not (
+                daemon.pipeline.last_result is not None
+                and daemon.pipeline.last_result.poses.valid.tolist() == [True]):
+            time.sleep(0.05)
+        assert daemon.pipeline.last_result.poses.valid.tolist() == [True]
+        r = mocapd_cli("rigid-body", "list", "--config", cfg_path)
+        assert r.code == 0 and "probe" in r.out
+        r = mocapd_cli("rigid-body", "add", "probe", "--config", cfg_path, "--from-live",
+                       "--runtime-dir", rt)
+        assert r.code == 2 and "exists already" in r.err
+    finally:
+        mocapd_cli("stop", "--runtime-dir", rt)
+        thread.join(10)
+    assert not thread.is_alive()
