@@ -1,0 +1,260 @@
+"""Monitor intrinsic calibration against the simulator's truth: settling, capture, solve,
+bias correction, and the command line with its errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from calibkit.camera import Camera, Rig, rvec_from_rotation
+from calibkit.dotcapture import DotCapture
+from calibkit.errors import UserError
+from calibkit.intrinsic import (
+    PlaneView,
+    calibrate,
+    disc_bias_px,
+    guidance,
+    monitor_plane_view,
+)
+from calibkit.settle import SettleDetector, signature_noise
+from calibkit.sim import MonitorView, monitor_points, monitor_views
+from calibkit.sim_monitor import MonitorSimConfig, default_sim_camera, make_monitor_sim
+from projector.display import Dots
+from projector.patterns import coded_schedule, grid_positions
+
+SMALL = dict(screen_px=(960, 540), pixel_pitch_mm=0.543)  # a 52 cm monitor, fewer pixels
+
+
+def _small_sim(n_views=1, seed=0, **cfg):
+    config = MonitorSimConfig(**SMALL, seed=seed, **cfg)
+    return make_monitor_sim(n_views, (320, 240), seed, config)
+
+
+# ---- settling ---------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("latency_s", [0.05, 0.15])
+def test_settle_detects_display_latency(latency_s):
+    sim = _small_sim(latency_s=latency_s)
+    fps, exposure = sim.config.fps, sim.config.exposure_s
+    with sim:
+        sim.set_view(0)
+        a = Dots.make(grid_positions((960, 540), 80.0), 6.0)
+        b = Dots.make(grid_positions((960, 540), 80.0, (40.0, 40.0)), 6.0)
+        sim.show(a)
+        still = [sim.grab() for _ in range(10)]
+        det = SettleDetector(noise=signature_noise(still[-5:]), hold=1)
+        for pattern, other in ((b, a), (a, b)):
+            det.start(still[-1])
+            sim.show(pattern)
+            for k in range(1, 40):  # noqa: B007 - k is used after the loop
+                img = sim.grab()
+                if det.feed(img):
+                    break
+            # the first frame with any of the new pattern, from the latency and the exposure
+            first_changed = int(np.floor(latency_s * fps - exposure * fps)) + 2
+            assert det.latencies[-1] == first_changed
+            # the settled frame shows the new pattern only: compare with both noise-free images
+            clean = sim.warp(sim.display.render(pattern))
+            wrong = sim.warp(sim.display.render(other))
+            assert np.abs(img - clean).mean() < 2.0 < np.abs(img - wrong).mean()
+            assert (k - 1) / fps >= latency_s  # its exposure began after the switch
+            still = [img]
+        assert det.latency_frames == first_changed
+
+
+# ---- capture -------------------------------------------------------------------------------
+
+def test_capture_identifies_dots_against_truth():
+    sim = _small_sim(drop_rate=0.1, seed=1)  # a tenth of the camera frames are lost
+    schedule = coded_schedule(sim.config.screen_px, 80.0, 2, 6.0)
+    with sim:
+        sim.set_view(0)
+        dots = DotCapture(sim, schedule).run()
+        truth, _ = sim.truth_uv(schedule.points_xy[dots.ids])
+        visible_uv, front = sim.truth_uv(schedule.points_xy)
+        visible = front & sim.camera.in_image(visible_uv, margin_px=3)
+    err = np.linalg.norm(dots.uv - truth, axis=1)
+    # 2 DN noise averaged over 3 frames on ~1.6 px dots: a few hundredths of a pixel
+    assert err.max() < 0.3  # no dot misidentified
+    assert np.sqrt(np.mean(err ** 2)) < 0.1
+    assert len(dots) >= 0.9 * visible.sum()
+    assert dots.frames <= 10 * 30  # <= 10 s at 30 fps
+    assert np.median(dots.scatter_px) < 0.1
+
+
+def test_monitor_out_of_view_is_a_clear_error():
+    cam = default_sim_camera((320, 240))
+    away = MonitorView(np.eye(3), np.array([5.0, 5.0, 1.0]))  # far off to the side
+    config = MonitorSimConfig(**SMALL)
+    from calibkit.sim_monitor import MonitorSim
+
+    schedule = coded_schedule(config.screen_px, 80.0, 2, 6.0)
+    with MonitorSim(cam, [away], config) as sim:
+        sim.set_view(0)
+        dots = DotCapture(sim, schedule).run()
+    with pytest.raises(UserError, match="monitor is not in view"):
+        monitor_plane_view(dots, schedule, config.pixel_pitch_mm)
+
+
+# ---- the solve ---------------------------------------------------------------------------------
+
+def _synthetic_views(camera: Camera, n_views=6, noise_px=0.1, seed=0, outliers=0.0):
+    rng = np.random.default_rng(seed)
+    screen, pitch = (1920, 1080), 0.2715
+    xy = grid_positions(screen, 60.0)
+    views = []
+    for view in monitor_views(camera, n_views, screen, pitch, seed=seed):
+        pts = monitor_points(view, xy, pitch)
+        uv, front = camera.project(pts)
+        keep = front & camera.in_image(uv, 2)
+        uv = uv[keep] + rng.normal(0, noise_px, (keep.sum(), 2))
+        bad = rng.random(len(uv)) < outliers
+        uv[bad] += rng.uniform(-8, 8, (bad.sum(), 2))
+        obj = np.column_stack([xy[keep] * pitch / 1000, np.zeros(keep.sum())])
+        views.append(PlaneView(obj, uv))
+    return views
+
+
+@pytest.mark.parametrize("outliers", [0.0, 0.03])
+def test_solve_against_truth(outliers):
+    truth = default_sim_camera()
+    noise = 0.1
+    views = _synthetic_views(truth, noise_px=noise, outliers=outliers)
+    r = calibrate(views, truth.size)
+    c = r.camera
+    for name, err in (("fx", c.fx - truth.fx), ("fy", c.fy - truth.fy),
+                      ("cx", c.cx - truth.cx), ("cy", c.cy - truth.cy)):
+        assert abs(err) < 4 * r.std[name] + 1e-9, (name, err, r.std[name])
+    assert abs(c.fx / truth.fx - 1) < 5e-4
+    assert abs(c.cx - truth.cx) < 0.5 and abs(c.cy - truth.cy) < 0.5
+    # 2D RMS of Gaussian noise sigma per axis is sigma * sqrt(2)
+    assert r.rms_px == pytest.approx(noise * np.sqrt(2), rel=0.1)
+    assert r.inliers.mean() == pytest.approx(1 - outliers, abs=0.01)
+    np.testing.assert_allclose(c.dist[:2], truth.dist[:2], atol=0.01)
+    assert 0 < r.coverage <= 1
+
+
+def test_disc_bias_matches_integrated_disc_image():
+    """The ellipse-centre formula against a brute-force centroid of the disc's image."""
+    cam = default_sim_camera().replace(dist=np.zeros(5))
+    view = monitor_views(cam, 1, max_tilt_deg=45, seed=3)[0]
+    rvec = rvec_from_rotation(view.R)
+    centres = np.array([[0.05, 0.05], [0.4, 0.2], [0.1, 0.25]])
+    radius = 0.01
+    obj = np.column_stack([centres, np.zeros(3)])
+    bias = disc_bias_px(cam, rvec[None], view.t[None], [PlaneView(obj, obj[:, :2])], radius)[0]
+    # integrate: sample the disc densely, project, weight by the image area each sample
+    # covers (the homography's Jacobian), and take the centroid
+    g = np.linspace(-radius, radius, 401)
+    gx, gy = np.meshgrid(g, g)
+    inside = gx ** 2 + gy ** 2 <= radius ** 2
+    d = np.column_stack([gx[inside], gy[inside]])
+    for i, c in enumerate(centres):
+        pts = np.column_stack([c + d, np.zeros(len(d))]) @ view.R.T + view.t
+        z = pts[:, 2]
+        uv = cam.fx * pts[:, 0] / z + cam.cx, cam.fy * pts[:, 1] / z + cam.cy
+        w = 1.0 / z ** 3
+        centroid = np.array([np.sum(uv[0] * w), np.sum(uv[1] * w)]) / w.sum()
+        centre_img, _ = cam.project(np.array([[*c, 0.0]]) @ view.R.T + view.t)
+        np.testing.assert_allclose(centroid - centre_img[0], bias[i], atol=2e-3)
+    assert np.abs(bias).max() > 0.05  # large dots, steep tilt: a real bias
+
+
+def test_bias_correction_removes_large_dot_error():
+    truth = default_sim_camera()
+    radius = 0.006  # 12 mm dots: a few pixels in the image
+    clean = _synthetic_views(truth, noise_px=0.02)
+    poses = monitor_views(truth, 6, seed=0)
+    rv = np.array([rvec_from_rotation(v.R) for v in poses])
+    tv = np.array([v.t for v in poses])
+    bias = disc_bias_px(truth, rv, tv, clean, radius)
+    biased = [PlaneView(v.obj, v.uv + b) for v, b in zip(clean, bias, strict=True)]
+    plain = calibrate(biased, truth.size)
+    fixed = calibrate(biased, truth.size, dot_radius_m=radius)
+    err_plain = abs(plain.camera.fx / truth.fx - 1)
+    err_fixed = abs(fixed.camera.fx / truth.fx - 1)
+    assert fixed.bias_corrected
+    assert err_fixed < 2e-4 and err_fixed < 0.5 * err_plain
+
+
+def test_too_few_and_parallel_views_are_clear_errors():
+    truth = default_sim_camera()
+    views = _synthetic_views(truth, n_views=2)
+    with pytest.raises(UserError, match="too few usable views"):
+        calibrate(views, truth.size)
+    # the same tilt three times, only moved: the focal length is undetermined
+    base = monitor_views(truth, 1, seed=0)[0]
+    xy = grid_positions((1920, 1080), 60.0)
+    parallel = []
+    for shift in (-0.03, 0.0, 0.03):
+        pts = monitor_points(MonitorView(np.eye(3), base.t + [shift, 0, 0]), xy, 0.2715)
+        uv, _ = truth.project(pts)
+        keep = truth.in_image(uv, 2)
+        obj = np.column_stack([xy[keep] * 0.2715e-3, np.zeros(keep.sum())])
+        parallel.append(PlaneView(obj, uv[keep]))
+    with pytest.raises(UserError, match="parallel"):
+        calibrate(parallel, truth.size)
+
+
+def test_guidance_names_the_missing_tilt():
+    truth = default_sim_camera()
+    views = _synthetic_views(truth, n_views=1)
+    line = guidance(views, truth.size, 6)
+    assert line.startswith("1/6 views") and "coverage" in line and "next: tilt" in line
+
+
+# ---- the command line ------------------------------------------------------------------------
+
+def test_intrinsic_sim_command(calibkit_cli, tmp_path):
+    rig_path = tmp_path / "rig.toml"
+    other = Camera("cam1", (640, 480), 500, 500, 320, 240)
+    posed = Camera("cam0", (320, 240), 100, 100, 160, 120, 0.0, np.zeros(5), [0.1, 0.2, 0.3],
+                   [1.0, 2.0, 3.0])
+    Rig((other, posed)).save(rig_path)
+    out = tmp_path / "intr.json"
+    plot = tmp_path / "dist.png"
+    r = calibkit_cli("intrinsic", "--sim", "--views", 3, "--size", "320x240", "--step", 160,
+                     "--radius", 12, "--json", out, "--plot", plot, "--rig", rig_path)
+    assert r.code == 0, r.err
+    data = json.loads(out.read_text())
+    for key in ("fx", "fy", "cx", "cy", "skew", "dist", "rms_px", "views", "points", "std",
+                "truth"):
+        assert key in data
+    assert set(data["std"]) >= {"fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"}
+    t = data["truth"]
+    assert abs(data["fx"] / t["fx"] - 1) < 1e-3
+    assert abs(data["cx"] - t["cx"]) < 0.5 and abs(data["cy"] - t["cy"]) < 0.5
+    assert abs(data["fx"] - t["fx"]) < 5 * data["std"]["fx"]
+    assert data["rms_px"] < 0.15 and data["views"] == 3
+    rig = Rig.load(rig_path)
+    cam = rig["cam0"]
+    assert cam.fx == pytest.approx(data["fx"]) and rig["cam1"].fx == 500
+    np.testing.assert_allclose(cam.rvec, [0.1, 0.2, 0.3])  # the pose is kept
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "views" in r.err  # guidance and progress on stderr
+
+
+@pytest.mark.parametrize("args, message", [
+    ((), "choose one of"),
+    (("--sim", "--views", 2), "--views must be at least 3"),
+    (("--images", "/nonexistent/folder", "--board", "chessboard:9x6:25"), "no such folder"),
+    (("--images", "."), "--images needs --board"),
+    (("--sim", "--step", 10, "--radius", 6), "dot pattern"),
+])
+def test_intrinsic_errors(calibkit_cli, args, message):
+    r = calibkit_cli("intrinsic", *args)
+    assert r.code == 2 and message in r.err
+    assert "Traceback" not in r.err and len(r.err.strip().splitlines()) == 1
+
+
+def test_display_mode_without_display_or_camera(calibkit_cli, monkeypatch):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    r = calibkit_cli("intrinsic", "--display")
+    assert r.code == 2 and "no display found" in r.err
+    assert len(r.err.strip().splitlines()) == 1
+    monkeypatch.setenv("DISPLAY", ":99")  # a display, but no such camera
+    r = calibkit_cli("intrinsic", "--display", "--device", 99)
+    assert r.code == 2 and "camera device 99 could not be opened" in r.err
