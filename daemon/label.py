@@ -35,9 +35,9 @@ class Labeller:
     """Frame-by-frame labeller; see the module docstring for the interface."""
 
     def __init__(self, markerset: MarkerSet, rate_hz: float = 120.0, gate_m: float = 0.04,
-                 reacquire_gate_m: float = 0.06, noise_m: float = 0.003,
+                 reacquire_gate_m: float = 0.12, noise_m: float = 0.003,
                  adapt: float = 0.02, smooth: float = 1.0, structure_limit: float = 2.0,
-                 candidate_limit: float = 1.0, ambiguity: float = 2.0) -> None:
+                 candidate_limit: float = 1.0, ambiguity: float = 4.0) -> None:
         self.ms = markerset
         n = markerset.n
         self.n = n
@@ -56,7 +56,8 @@ class Labeller:
         rows = np.arange(n)[:, None]
         self.nb_mean = markerset.mean_m[rows, self.nb].copy()
         self.nb_sd = markerset.sd_m[rows, self.nb]
-        self.nb_subject = markerset.subject_sd_m[rows, self.nb]
+        self.nb_subject = np.maximum(markerset.subject_sd_m, SUBJECT_REL * markerset.mean_m
+                                     )[rows, self.nb]
         # prediction weights: how steadily each marker keeps its distance to each other
         w = 1.0 / (markerset.sd_m ** 2 + 0.005 ** 2)
         np.fill_diagonal(w, 0.0)
@@ -70,8 +71,7 @@ class Labeller:
         self.swap_pairs = iu
         self.adapted = False
         self.known_frames = np.zeros(n, int)    # frames whose distances this take taught
-        self.adapt_tol = 3.0 * np.sqrt(markerset.sd_m ** 2 + markerset.subject_sd_m ** 2
-                                       + 2 * noise_m ** 2) + 0.004
+        self.adapt_tol = _tolerance(markerset, noise_m)
         self.pos = np.full((n, 3), np.nan)
         self.vel = np.zeros((n, 3))
         self.age = np.full(n, 10 ** 6)
@@ -190,30 +190,31 @@ class Labeller:
         free = np.nonzero(marker_of < 0)[0]
         if len(lost) and len(free):
             pred = self._predict_from_neighbours(lost, cur)
-            if len(lost):
-                cost = np.linalg.norm(pred[:, None] - P[free][None], axis=2)
-                cost[~np.isfinite(cost)] = BIG
-                gate = self.reacquire_gate_m + 0.002 * np.minimum(self.age[lost], 120)
-                cost[cost > gate[:, None]] = BIG
-                # distances to labelled neighbours must also fit
-                cerr, cnum = self._candidate_error(lost, P[free], cur)
-                cost += BIG * (cerr > self.candidate_limit)
-                # never seen since the start: found by distances alone, from >= 3 neighbours
-                fresh = ~np.isfinite(self.snap[lost, lost]).all(1)
-                if fresh.any():
-                    cost[fresh] = np.where((cnum[fresh] >= 3) & (cerr[fresh] <= 0.5),
-                                           cerr[fresh] * 0.01, BIG)
-                r, c = linear_sum_assignment(cost)
-                good = cost[r, c] < BIG
-                # ambiguous: another lost marker fits the same point almost as well
-                if len(lost) > 1:
-                    alt = cost[:, c].copy()
-                    alt[r, np.arange(len(c))] = np.inf
-                    second = alt.min(0)
-                    good &= ~(second < self.ambiguity * cost[r, c] + 0.003)
-                point_of[lost[r[good]]] = free[c[good]]
-                marker_of[free[c[good]]] = lost[r[good]]
-                cur[lost[r[good]]] = P[free[c[good]]]
+            dist = np.linalg.norm(pred[:, None] - P[free][None], axis=2)
+            dist[~np.isfinite(dist)] = BIG
+            age = np.minimum(self.age[lost], 120)
+            gate = self.reacquire_gate_m + 0.002 * age
+            sigma = 0.012 + 0.0005 * age
+            # distances to labelled neighbours must also fit
+            cerr, cnum = self._candidate_error(lost, P[free], cur)
+            cost = (dist / sigma[:, None]) ** 2 + 4.0 * cerr ** 2
+            cost[(dist > gate[:, None]) | (cerr > self.candidate_limit)] = BIG
+            # never seen since the start: found by distances alone, from >= 3 neighbours
+            fresh = ~np.isfinite(self.snap[lost, lost]).all(1)
+            if fresh.any():
+                cost[fresh] = np.where((cnum[fresh] >= 3) & (cerr[fresh] <= 0.5),
+                                       4.0 * cerr[fresh] ** 2 + 4.0, BIG)
+            r, c = linear_sum_assignment(cost)
+            good = cost[r, c] < BIG
+            # ambiguous: another lost marker fits the same point almost as well
+            if len(lost) > 1:
+                alt = cost[:, c].copy()
+                alt[r, np.arange(len(c))] = np.inf
+                second = alt.min(0)
+                good &= ~(second < cost[r, c] + self.ambiguity)
+            point_of[lost[r[good]]] = free[c[good]]
+            marker_of[free[c[good]]] = lost[r[good]]
+            cur[lost[r[good]]] = P[free[c[good]]]
 
         self._repair_swaps(cur, point_of, marker_of)
         has = point_of >= 0
@@ -317,10 +318,14 @@ class Labeller:
             nbv = self.vel[self.nb[re]]
             ok = has[self.nb[re]]
             self.vel[re] = (nbv * ok[:, :, None]).sum(1) / np.maximum(ok.sum(1), 1)[:, None]
+        # a marker's snapshot (where everything was when it was last seen) is only renewed
+        # once it has been seen twice in a row: a one-frame ghost must not move it
+        steady = seen_prev | (has & ~np.isfinite(self.snap[np.arange(self.n),
+                                                              np.arange(self.n)]).all(1))
         self.pos = np.where(has[:, None], cur, self.pos)
         self.age = np.where(has, 0, self.age + 1)
-        if has.any():
-            self.snap[has] = cur[None]
+        if steady.any():
+            self.snap[steady] = cur[None]
         if self.adapt > 0 and has.sum() > 3:
             self._learn_distances(cur, self.adapt)
         self.frames += 1
@@ -329,8 +334,12 @@ class Labeller:
 # ---------------------------------------------------------------------- from scratch
 
 
+SUBJECT_REL = 0.06   # another body: distances differ by this fraction (1 SD) at least
+
+
 def _tolerance(ms: MarkerSet, noise_m: float = 0.003) -> np.ndarray:
-    return 3.0 * np.sqrt(ms.sd_m ** 2 + ms.subject_sd_m ** 2 + 2 * noise_m ** 2) + 0.006
+    subject = np.maximum(ms.subject_sd_m, SUBJECT_REL * ms.mean_m)
+    return 3.0 * np.sqrt(ms.sd_m ** 2 + subject ** 2 + 2 * noise_m ** 2) + 0.006
 
 
 def _match_segment(P: np.ndarray, D: np.ndarray, members: list[int], ms: MarkerSet,
@@ -366,7 +375,8 @@ def _match_segment(P: np.ndarray, D: np.ndarray, members: list[int], ms: MarkerS
     return out[:limit]
 
 
-def initial_labels(P: np.ndarray, ms: MarkerSet, n_hypotheses: int = 24) -> np.ndarray:
+def initial_labels(P: np.ndarray, ms: MarkerSet, n_hypotheses: int = 24,
+                   n_segments: int = 2) -> np.ndarray:
     """Label one frame from the marker set alone: the steadiest multi-marker segment is
     matched by its distances (every fitting assignment is a hypothesis), the others grow
     from it by their distances to labelled markers, and the handedness checks (signed
@@ -380,20 +390,20 @@ def initial_labels(P: np.ndarray, ms: MarkerSet, n_hypotheses: int = 24) -> np.n
     D = np.linalg.norm(P[:, None] - P[None], axis=2)
     tol = _tolerance(ms)
     order = sorted([s for s in ms.segments if len(s.markers) >= 3],
-                   key=lambda s: s.spread_m)
+                   key=lambda s: (-len(s.markers), s.spread_m))
     best = None
-    for seg in order[:2]:
+    for seg in order[:n_segments]:
         hyps = _match_segment(P, D, seg.markers, ms, tol, np.ones(k, bool),
                               limit=n_hypotheses)
-        for cost0, chosen in hyps:
+        for _, chosen in hyps:
             marker_point = np.full(ms.n, -1)
             marker_point[seg.markers] = chosen
-            cost = cost0 + _grow(P, D, ms, tol, marker_point)
-            chir = _chirality(P, ms, marker_point)
-            n_lab = int((marker_point >= 0).sum())
-            score = (chir, n_lab, -cost)
-            if best is None or score > best[0]:
-                best = (score, marker_point)
+            cost = _grow(P, D, ms, tol, marker_point)
+            votes = _chirality(P, ms, marker_point)
+            n_missing = int((marker_point < 0).sum())
+            total = cost + 9.0 * n_missing - 3.0 * votes
+            if best is None or total < best[0]:
+                best = (total, marker_point)
     if best is None:
         return lab
     mp = best[1]
@@ -403,37 +413,40 @@ def initial_labels(P: np.ndarray, ms: MarkerSet, n_hypotheses: int = 24) -> np.n
 
 
 def _grow(P: np.ndarray, D: np.ndarray, ms: MarkerSet, tol: np.ndarray,
-          marker_point: np.ndarray, rounds: int = 12) -> float:
-    """Label the rest by distances to already labelled markers, steadiest first."""
+          marker_point: np.ndarray) -> float:
+    """Label the rest one marker at a time: each step takes the unlabelled marker whose
+    best point (by its distances to every labelled marker, weighted by how steady each
+    distance is) stands out most clearly from its second best."""
     total = 0.0
     k = len(P)
-    for _ in range(rounds):
+    w_all = 1.0 / tol ** 2
+    while True:
         todo = np.nonzero(marker_point < 0)[0]
         done = np.nonzero(marker_point >= 0)[0]
+        if not len(todo) or not len(done):
+            break
         used = np.zeros(k, bool)
         used[marker_point[done]] = True
         free = np.nonzero(~used)[0]
-        if not len(todo) or not len(free) or not len(done):
+        if not len(free):
             break
-        # the K steadiest labelled anchors per unlabelled marker
-        t = tol[np.ix_(todo, done)]
-        a = np.argsort(t, axis=1)[:, :4]
-        anchors = done[a]                                          # (T, 4)
-        quality = np.take_along_axis(t, a, 1).mean(1)
-        pick = quality <= np.quantile(quality, 0.5) + 1e-12
-        todo, anchors = todo[pick], anchors[pick]
-        na = anchors.shape[1]
-        dist = D[np.ix_(free, marker_point[anchors].ravel())].reshape(len(free), len(todo), na)
-        e = (dist.transpose(1, 0, 2) - ms.mean_m[todo[:, None], anchors][:, None]) / \
-            tol[todo[:, None], anchors][:, None]
-        cost = (e ** 2).mean(2)
-        cost[cost > 1.0] = BIG
-        r, c = linear_sum_assignment(cost)
-        good = cost[r, c] < BIG
-        if not good.any():
+        d = D[np.ix_(free, marker_point[done])]                       # (F, L)
+        mu = ms.mean_m[np.ix_(todo, done)]                            # (T, L)
+        w = w_all[np.ix_(todo, done)]
+        e2 = np.minimum((d[None] - mu[:, None]) ** 2 * w[:, None] * 9.0, 16.0)  # (T, F, L)
+        cost = (e2 * w[:, None]).sum(2) / w.sum(1)[:, None]          # weighted mean chi2/9
+        if cost.shape[1] >= 2:
+            part = np.partition(cost, 1, axis=1)
+            best, second = part[:, 0], part[:, 1]
+        else:
+            best, second = cost[:, 0], np.full(len(todo), 16.0)
+        ok = best < 9.0
+        if not ok.any():
             break
-        marker_point[todo[r[good]]] = free[c[good]]
-        total += float(cost[r[good], c[good]].sum())
+        margin = np.where(ok, second - best, -np.inf)
+        t = int(np.argmax(margin))
+        marker_point[todo[t]] = free[int(np.argmin(cost[t]))]
+        total += float(best[t])
     return total
 
 
