@@ -14,8 +14,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.interpolate import CubicSpline
-from scipy.spatial.transform import Rotation, RotationSpline
 
 from calibkit.camera import WEBCAM_DIST, Camera, Rig, look_at, rvec_from_rotation
 from calibkit.errors import UserError
@@ -97,6 +95,8 @@ def _hand_path(n_frames: int, fps: float, lo: np.ndarray, hi: np.ndarray, speed_
                rng: np.random.Generator) -> np.ndarray:
     """A smooth path like a hand's: waypoints through the box joined by a spline, with
     pauses (a waypoint held) and turns. (F, 3)."""
+    from scipy.interpolate import CubicSpline  # scipy is imported when a scene needs it
+
     duration = n_frames / fps
     times, points = [0.0], [rng.uniform(lo, hi)]
     while times[-1] < duration + 1.0:
@@ -118,6 +118,8 @@ def wand_motion(n_frames: int, fps: float = 100.0, volume_m: float = 4.0,
     The rod's centre follows a hand-like path and its direction turns smoothly, so every
     camera sees it at many places and angles, as in a real wand dance.
     """
+    from scipy.interpolate import CubicSpline
+
     _check(n_frames >= 1, f"--frames must be at least 1, got {n_frames}")
     _check(fps > 0, f"--fps must be positive, got {fps}")
     spacing = np.asarray(spacing_m, dtype=np.float64)
@@ -182,6 +184,8 @@ def rigid_body_motion(n_bodies: int, n_frames: int, fps: float = 100.0, volume_m
                       seed: int = 0) -> tuple[Truth, list[SimBody]]:
     """Rigid bodies (3 to 8 markers, distinct inter-marker distances) moving smoothly through
     the volume, turning as they go; bodies may cross each other's paths."""
+    from scipy.spatial.transform import Rotation, RotationSpline
+
     _check(n_bodies >= 1, f"--bodies must be at least 1, got {n_bodies}")
     _check(n_frames >= 1, f"--frames must be at least 1, got {n_frames}")
     counts = ([int(markers_per_body)] * n_bodies if np.ndim(markers_per_body) == 0
@@ -398,6 +402,8 @@ def monitor_views(camera: Camera, n_views: int, screen_px: tuple[int, int] = (19
     """Poses a user would hold a monitor in front of a camera: the screen fills about `fill`
     of the image, tilted about both axes (alternating sides, so focal length is determined)
     and slightly rotated in-plane."""
+    from scipy.spatial.transform import Rotation
+
     rng = np.random.default_rng(seed)
     width_m = screen_px[0] * pixel_pitch_mm / 1000.0
     height_m = screen_px[1] * pixel_pitch_mm / 1000.0
