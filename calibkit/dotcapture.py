@@ -24,7 +24,6 @@ from calibkit.errors import UserError
 from calibkit.settle import SettleDetector, signature_noise
 from projector.display import Dots
 from projector.patterns import (
-    ROLE_DOT,
     ROLE_OFF,
     ROLE_ON,
     Schedule,
@@ -135,35 +134,61 @@ class DotCapture:
         start_frames = self.frames
         self._wait_still()
         sch = self.schedule
+        if sch.kind == "raster":
+            ids, uv, scatter, rejected = self._run_raster(progress)
+        else:
+            ids, uv, scatter, rejected = self._run_coded(progress)
+        ids_a = np.concatenate(ids) if ids else np.zeros(0, np.int64)
+        uv_a = np.concatenate(uv) if uv else np.zeros((0, 2))
+        sc_a = np.concatenate(scatter) if scatter else np.zeros(0)
+        # an id decoded twice is an error in one of them: drop both
+        uniq, counts = np.unique(ids_a, return_counts=True)
+        dup = np.isin(ids_a, uniq[counts > 1])
+        rejected += int(dup.sum())
+        return DotView(ids_a[~dup], uv_a[~dup], sc_a[~dup], self.frames - start_frames,
+                       rejected)
+
+    def _run_raster(self, progress) -> tuple[list, list, list, int]:
+        """One dot per frame: each frame's single dot is the one shown."""
+        sch = self.schedule
+        ids, uv, scatter, rejected = [], [], [], 0
+        off, _ = self._shoot(Dots.make(np.zeros((0, 2))))
+        for i, frame in enumerate(sch.frames):
+            mean, shots = self._shoot(Dots.make(frame.xy, sch.radius_px))
+            found, spread = self._find_dots(mean, off, shots)
+            if len(found) == 1:
+                ids.append(frame.ids)
+                uv.append(found)
+                scatter.append(spread)
+            else:
+                rejected += len(found)
+            if progress is not None:
+                progress(i + 1, len(sch.frames))
+        return ids, uv, scatter, rejected
+
+    def _run_coded(self, progress) -> tuple[list, list, list, int]:
+        """Coded layers: decode the first, name the later ones from their neighbours (or
+        decode each, when the schedule codes every layer)."""
+        sch = self.schedule
         step_images: dict[int, np.ndarray | None] = {}
         on_shots: dict[int, list[np.ndarray]] = {}
         for i, frame in enumerate(sch.frames):
             mean, shots = self._shoot(Dots.make(frame.xy, sch.radius_px))
             step_images[i] = mean
-            if frame.role in (ROLE_ON, ROLE_DOT):
+            if frame.role == ROLE_ON:
                 on_shots[i] = shots
             if progress is not None:
                 progress(i + 1, len(sch.frames))
         ids, uv, scatter, rejected = [], [], [], 0
-        if sch.kind == "raster":
-            off = np.median([step_images[i] for i in range(len(sch.frames))], axis=0)
         for layer in range(len(sch.layers)):
             idx = sch.layer_frames(layer)
             on_i = idx[0]
-            predicted = sch.kind == "coded" and len(idx) == 1
-            if sch.kind == "raster":
-                off_img = off
-            else:
-                off_i = sch.layer_frames(0)[1] if predicted else idx[1]
-                assert sch.frames[off_i].role == ROLE_OFF
-                off_img = step_images[off_i]
-            found, spread = self._find_dots(step_images[on_i], off_img, on_shots[on_i])
-            if sch.kind == "raster":
-                if len(found) != 1:
-                    rejected += len(found)
-                    continue
-                got = sch.layers[layer]
-            elif predicted:
+            predicted = len(idx) == 1
+            off_i = sch.layer_frames(0)[1] if predicted else idx[1]
+            assert sch.frames[off_i].role == ROLE_OFF
+            found, spread = self._find_dots(step_images[on_i], step_images[off_i],
+                                            on_shots[on_i])
+            if predicted:
                 known = np.concatenate(ids) if ids else np.zeros(0, np.int64)
                 ref_uv = np.concatenate(uv) if uv else np.zeros((0, 2))
                 layer_ids = sch.layers[layer]
@@ -181,15 +206,7 @@ class DotCapture:
             ids.append(got[keep])
             uv.append(found[keep])
             scatter.append(spread[keep])
-        ids_a = np.concatenate(ids) if ids else np.zeros(0, np.int64)
-        uv_a = np.concatenate(uv) if uv else np.zeros((0, 2))
-        sc_a = np.concatenate(scatter) if scatter else np.zeros(0)
-        # an id decoded twice is an error in one of them: drop both
-        uniq, counts = np.unique(ids_a, return_counts=True)
-        dup = np.isin(ids_a, uniq[counts > 1])
-        rejected += int(dup.sum())
-        return DotView(ids_a[~dup], uv_a[~dup], sc_a[~dup], self.frames - start_frames,
-                       rejected)
+        return ids, uv, scatter, rejected
 
     @staticmethod
     def _radius_img(uv: np.ndarray) -> float:

@@ -258,3 +258,16 @@ def test_display_mode_without_display_or_camera(calibkit_cli, monkeypatch):
     monkeypatch.setenv("DISPLAY", ":99")  # a display, but no such camera
     r = calibkit_cli("intrinsic", "--display", "--device", 99)
     assert r.code == 2 and "camera device 99 could not be opened" in r.err
+
+
+def test_raster_scan_capture():
+    sim = _small_sim(seed=2)
+    from projector.patterns import raster_schedule
+
+    schedule = raster_schedule(sim.config.screen_px, 160.0, 6.0)
+    with sim:
+        sim.set_view(0)
+        dots = DotCapture(sim, schedule).run()
+        truth, _ = sim.truth_uv(schedule.points_xy[dots.ids])
+    assert len(dots) >= 0.6 * len(schedule.points_xy)
+    assert np.linalg.norm(dots.uv - truth, axis=1).max() < 0.3
