@@ -1,0 +1,366 @@
+"""NatNet 4.1 server: what OptiTrack's Motive streams, so NatNet clients read mocapd unchanged.
+
+Why 4.1 and not the newest: clients written against 4.1 (libmotioncapture, the `natnet`
+package, lab scripts built on NatNet SDK 4.1's PacketClient) cannot parse 4.2's rigid-body
+descriptions (4.2 inserted a quaternion), while every newer client still reads 4.1.
+
+The protocol, as the SDK's packet parsers read it (all little-endian; every message starts
+with uint16 message id and uint16 payload size):
+
+- command port (UDP, default 1510): a client sends NAT_CONNECT and gets NAT_SERVERINFO
+  (application name, versions, the clock frequency of the frame's tick stamps, the data
+  port, whether data is multicast, the group); NAT_REQUEST_MODELDEF gets NAT_MODELDEF (the
+  rigid bodies: name, id, parent, offset, marker positions); NAT_KEEPALIVE subscribes the
+  sending address to unicast frames for `keepalive_timeout_s`; NAT_REQUEST_FRAMEOFDATA gets
+  the latest frame; NAT_DISCONNECT unsubscribes.
+- frames (NAT_FRAMEOFDATA) go to the multicast group on the data port (default
+  239.255.42.99:1511) and to every subscribed unicast address. Each carries the frame
+  number, rigid bodies (id, position, quaternion x y z w, mean marker error, tracking-valid
+  flag), labelled markers (a body's markers as (body id << 16 | member), the others flagged
+  unlabelled with their track id), a timestamp and three clock ticks (mid-exposure, data
+  received, transmit; nanoseconds of the monotonic clock, frequency 1e9) from which clients
+  compute camera-to-client latency.
+
+Bodies that are not tracked are sent with the valid flag cleared and a zero pose: clients
+(libmotioncapture, the NatNet SDK) then drop them rather than reuse a stale pose.
+
+Axes: our world is z-up. `up_axis="y"` gives Motive's default y-up frame: x stays, y is our
+z, z is our -y; body frames are rotated the same way, so a body at rest reads the identity
+rotation in both conventions.
+
+Sockets live on this publisher's own command thread (it answers clients even when no frame
+comes) and worker thread (frames); a client that goes away only stops receiving.
+"""
+
+from __future__ import annotations
+
+import logging
+import socket
+import struct
+import threading
+import time
+
+import numpy as np
+
+from daemon.publish.base import Publisher
+
+log = logging.getLogger("mocapd.publish")
+
+NAT_CONNECT = 0
+NAT_SERVERINFO = 1
+NAT_REQUEST = 2
+NAT_RESPONSE = 3
+NAT_REQUEST_MODELDEF = 4
+NAT_MODELDEF = 5
+NAT_REQUEST_FRAMEOFDATA = 6
+NAT_FRAMEOFDATA = 7
+NAT_MESSAGESTRING = 8
+NAT_DISCONNECT = 9
+NAT_KEEPALIVE = 10
+NAT_UNRECOGNIZED_REQUEST = 100
+
+NATNET_VERSION = (4, 1, 0, 0)
+SERVER_VERSION = (1, 0, 0, 0)
+APP_NAME = b"mocapd"
+CLOCK_HZ = 1_000_000_000  # the tick stamps are time.monotonic_ns()
+MAX_PAYLOAD = 65535  # the header's size field is a uint16
+
+# marker parameter bits (NatNet's sMarker.params)
+MARKER_OCCLUDED = 0x01
+MARKER_PC_SOLVED = 0x02
+MARKER_HAS_MODEL = 0x08
+MARKER_UNLABELED = 0x10
+
+RIGID_BODY = np.dtype([("id", "<i4"), ("pos", "<f4", 3), ("quat", "<f4", 4), ("error", "<f4"),
+                       ("params", "<i2")])  # 38 bytes, packed as on the wire
+LABELED_MARKER = np.dtype([("id", "<i4"), ("pos", "<f4", 3), ("size", "<f4"),
+                           ("params", "<i2"), ("residual", "<f4")])  # 26 bytes
+
+# z-up (ours) -> Motive's y-up: (x, y, z) -> (x, z, -y)
+Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+
+# commands Motive answers that mean nothing here (no timeline, no recording): acknowledged
+_NOOP_COMMANDS = ("timelineplay", "timelinestop", "setplaybackcurrentframe", "subscribetodata",
+                  "subscribebyid", "subscribeddataonly", "startrecording", "stoprecording",
+                  "livemode", "editmode", "setrecordtakename", "setcurrentsession")
+
+
+def message(msg_id: int, payload: bytes) -> bytes:
+    """One NatNet message: id, payload size, payload."""
+    if len(payload) > MAX_PAYLOAD:
+        raise ValueError(f"NatNet payload of {len(payload)} bytes exceeds {MAX_PAYLOAD}")
+    return struct.pack("<HH", msg_id, len(payload)) + payload
+
+
+def server_info(data_port: int, multicast: bool, group: str) -> bytes:
+    """NAT_SERVERINFO: sServerDescription as the SDK lays it out (279 bytes)."""
+    payload = (APP_NAME.ljust(256, b"\0") + bytes(SERVER_VERSION) + bytes(NATNET_VERSION)
+               + struct.pack("<QHB", CLOCK_HZ, data_port, 1 if multicast else 0)
+               + socket.inet_aton(group))
+    return message(NAT_SERVERINFO, payload)
+
+
+def axes(up_axis: str) -> np.ndarray:
+    if up_axis == "z":
+        return np.eye(3)
+    if up_axis == "y":
+        return Y_UP
+    raise ValueError(f"up_axis must be 'z' or 'y', got {up_axis!r}")
+
+
+def rotate_quaternion(q: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """Quaternions (x, y, z, w) of M R M^T: the rotation axis turns with M, angle unchanged."""
+    out = np.empty_like(q)
+    out[..., :3] = q[..., :3] @ M.T
+    out[..., 3] = q[..., 3]
+    return out
+
+
+def model_definitions(bodies, up_axis: str = "z") -> bytes:
+    """NAT_MODELDEF for the rigid bodies (BodyDef: name, id, markers in the body frame).
+
+    Offsets are zero and the markers are given relative to the body's pivot, because
+    clients (libmotioncapture) add the offset to every reported position."""
+    M = axes(up_axis)
+    parts = [struct.pack("<i", len(bodies))]
+    for b in bodies:
+        markers = (np.asarray(b.markers, float) - np.asarray(b.pivot, float)) @ M.T
+        k = len(markers)
+        desc = (b.name.encode("utf-8") + b"\0"
+                + struct.pack("<iifffi", int(b.id), -1, 0.0, 0.0, 0.0, k)
+                + markers.astype("<f4").tobytes()
+                + np.zeros(k, "<i4").tobytes()
+                + b"".join(f"Marker{j + 1}".encode() + b"\0" for j in range(k)))
+        parts.append(struct.pack("<ii", 1, len(desc)) + desc)  # type 1: rigid body
+    return message(NAT_MODELDEF, b"".join(parts))
+
+
+def _block(count: int, data: bytes) -> bytes:
+    """A 4.1 data block: element count, byte size, the elements."""
+    return struct.pack("<ii", count, len(data)) + data
+
+
+def frame_payload(result, up_axis: str = "z", legacy_unlabeled: bool = False,
+                  t0_ns: int = 0, transmit_ns: int | None = None,
+                  models_changed: bool = False) -> bytes:
+    """The NAT_FRAMEOFDATA payload for a FrameResult (daemon.pipeline)."""
+    M = axes(up_axis)
+    p = result.poses
+    valid = np.asarray(p.valid, bool)
+    rb = np.zeros(len(p.ids), RIGID_BODY)
+    rb["id"] = p.ids
+    rb["pos"] = np.where(valid[:, None], np.nan_to_num(p.position) @ M.T, 0.0)
+    q = rotate_quaternion(np.asarray(p.quaternion, float), M)
+    rb["quat"] = np.where(valid[:, None], q, [0.0, 0.0, 0.0, 1.0])
+    rb["error"] = np.where(valid, np.nan_to_num(p.error_m), 0.0)
+    rb["params"] = valid.astype(np.int16)  # bit 0: tracking valid
+
+    # markers: the seen tracks; those a body holds are labelled with the body's id
+    tr = result.tracks
+    seen = np.asarray(tr.seen, bool)
+    ids, xyz = np.asarray(tr.ids)[seen], np.asarray(tr.xyz)[seen] @ M.T
+    labels = np.full(len(ids), -1, np.int64)
+    held = np.asarray(p.tracks) >= 0
+    if len(ids) and held.any():
+        k = held.shape[1]
+        label = (np.asarray(p.ids, np.int64)[:, None] << 16) | np.arange(1, k + 1)
+        tid = p.tracks[held]
+        at = np.minimum(np.searchsorted(ids, tid), len(ids) - 1)  # track ids are sorted
+        hit = ids[at] == tid
+        labels[at[hit]] = label[held][hit]
+    is_label = labels >= 0
+    lm = np.zeros(len(ids), LABELED_MARKER)
+    lm["id"] = (np.where(is_label, labels, ids & 0xFFFF) & 0xFFFFFFFF).astype(np.uint32).view(
+        np.int32)
+    lm["pos"] = xyz
+    lm["params"] = np.where(is_label, MARKER_PC_SOLVED | MARKER_HAS_MODEL,
+                            MARKER_PC_SOLVED | MARKER_UNLABELED)
+    legacy = xyz[~is_label].astype("<f4") if legacy_unlabeled else np.zeros((0, 3), "<f4")
+
+    t_ns = int(result.t_ns)
+    suffix = struct.pack("<IIdQQQhi", 0, 0, (t_ns - t0_ns) * 1e-9, t_ns, int(result.arrival_ns),
+                         int(transmit_ns if transmit_ns is not None else time.monotonic_ns()),
+                         0x02 if models_changed else 0, 0)
+    head = struct.pack("<i", int(result.frame) & 0x7FFFFFFF)
+    body = (head
+            + _block(0, b"")  # marker sets
+            + _block(len(legacy), legacy.tobytes())  # legacy unlabelled markers
+            + _block(len(rb), rb.tobytes())
+            + _block(0, b"")  # skeletons
+            + _block(0, b"")  # assets (4.1)
+            + _block(len(lm), lm.tobytes())
+            + _block(0, b"")  # force plates
+            + _block(0, b"")  # devices
+            + suffix)
+    return body
+
+
+class NatNetPublisher(Publisher):
+    """Serves NatNet: answers the command port, sends frames by multicast and unicast."""
+
+    def __init__(self, bodies=(), interface: str = "0.0.0.0", command_port: int = 1510,
+                 data_port: int = 1511, multicast: bool = True,
+                 group: str = "239.255.42.99", up_axis: str = "z", ttl: int = 1,
+                 rate_hz: float = 0.0, legacy_unlabeled: bool = False,
+                 keepalive_timeout_s: float = 10.0, name: str = "natnet") -> None:
+        super().__init__(rate_hz=rate_hz)
+        axes(up_axis)
+        self.bodies = list(bodies)
+        self.interface, self.command_port, self.data_port = interface, command_port, data_port
+        self.multicast, self.group, self.ttl = multicast, group, ttl
+        self.up_axis = up_axis
+        self.legacy_unlabeled = legacy_unlabeled
+        self.keepalive_timeout_s = keepalive_timeout_s
+        self.name = name
+        self.cmd_sock: socket.socket | None = None
+        self.data_sock: socket.socket | None = None
+        self.subscribers: dict[tuple[str, int], float] = {}  # address -> last keep-alive
+        self.requests = 0
+        self.latest: bytes | None = None
+        self.t0_ns: int | None = None
+        self._lock = threading.Lock()
+        self._cmd_thread: threading.Thread | None = None
+        self._cmd_stop = threading.Event()
+        self._modeldef = model_definitions(self.bodies, up_axis)
+        self._info = server_info(data_port, multicast, group)
+
+    # ---- lifecycle: the command port is open from start, not from the first frame ---------
+
+    def start(self) -> None:
+        try:
+            self.open()
+            self.connected = True
+        except OSError as exc:  # e.g. the port still held by the publisher a reload replaces
+            self._failed(f"cannot open: {exc}")
+        super().start()
+
+    def open(self) -> None:
+        cmd = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            cmd.bind((self.interface, self.command_port))
+        except OSError:
+            cmd.close()
+            raise
+        data = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        data.setblocking(False)
+        if self.multicast:
+            data.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, self.ttl)
+            data.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+            if self.interface not in ("", "0.0.0.0"):
+                data.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF,
+                                socket.inet_aton(self.interface))
+        cmd.settimeout(0.2)
+        self.cmd_sock, self.data_sock = cmd, data
+        if self.command_port == 0:
+            self.command_port = cmd.getsockname()[1]
+        self._cmd_stop.clear()
+        self._cmd_thread = threading.Thread(target=self._serve, name=f"{self.name}-cmd",
+                                            daemon=True)
+        self._cmd_thread.start()
+        log.info("%s: NatNet %d.%d on %s:%d, data %s%s:%d", self.name, *NATNET_VERSION[:2],
+                 self.interface, self.command_port,
+                 "multicast " if self.multicast else "unicast ",
+                 self.group if self.multicast else "", self.data_port)
+
+    def close(self) -> None:
+        self._cmd_stop.set()
+        if self._cmd_thread is not None:
+            self._cmd_thread.join(1.0)
+            self._cmd_thread = None
+        for s in (self.cmd_sock, self.data_sock):
+            if s is not None:
+                s.close()
+        self.cmd_sock = self.data_sock = None
+
+    def status(self) -> dict:
+        st = super().status()
+        with self._lock:
+            st["unicast_clients"] = len(self.subscribers)
+        return st
+
+    # ---- frames ----------------------------------------------------------------------------
+
+    def send(self, result) -> None:
+        first = self.t0_ns is None
+        if first:
+            self.t0_ns = int(result.t_ns)
+        data = message(NAT_FRAMEOFDATA, frame_payload(
+            result, self.up_axis, self.legacy_unlabeled, self.t0_ns, models_changed=first))
+        self.latest = data
+        if self.multicast:
+            try:
+                self.data_sock.sendto(data, (self.group, self.data_port))
+            except (BlockingIOError, ConnectionRefusedError):
+                pass
+        now = time.monotonic()
+        with self._lock:
+            gone = [a for a, t in self.subscribers.items()
+                    if now - t > self.keepalive_timeout_s]
+            for a in gone:
+                del self.subscribers[a]
+            targets = list(self.subscribers)
+        for addr in targets:
+            try:
+                self.cmd_sock.sendto(data, addr)
+            except OSError:  # a client gone (ICMP refused): it expires with its keep-alives
+                pass
+
+    # ---- the command port ------------------------------------------------------------------
+
+    def _serve(self) -> None:
+        sock = self.cmd_sock
+        while not self._cmd_stop.is_set():
+            try:
+                data, addr = sock.recvfrom(65536)
+            except TimeoutError:
+                continue
+            except OSError:
+                if self._cmd_stop.is_set():
+                    return
+                continue
+            try:
+                reply = self.handle(data, addr)
+            except Exception as exc:  # noqa: BLE001 - a bad request must not end the server
+                log.warning("%s: bad request from %s:%d: %s", self.name, *addr, exc)
+                continue
+            if reply:
+                try:
+                    sock.sendto(reply, addr)
+                except OSError:
+                    pass
+
+    def handle(self, data: bytes, addr) -> bytes | None:
+        """The reply to one command-port datagram (None: no reply)."""
+        if len(data) < 4:
+            return None
+        msg_id, size = struct.unpack_from("<HH", data)
+        self.requests += 1
+        if msg_id == NAT_CONNECT:
+            return self._info
+        if msg_id == NAT_KEEPALIVE:
+            with self._lock:
+                self.subscribers[addr] = time.monotonic()
+            return None
+        if msg_id == NAT_REQUEST_MODELDEF:
+            return self._modeldef
+        if msg_id == NAT_REQUEST_FRAMEOFDATA:
+            return self.latest
+        if msg_id == NAT_DISCONNECT:
+            with self._lock:
+                self.subscribers.pop(addr, None)
+            return None
+        if msg_id == NAT_REQUEST:
+            text = data[4:4 + size].split(b"\0", 1)[0].decode("utf-8", "replace")
+            return self._command(text)
+        return message(NAT_UNRECOGNIZED_REQUEST, b"")
+
+    def _command(self, text: str) -> bytes:
+        """NAT_RESPONSE to a command string: 0 for what we support or ignore, -1 otherwise."""
+        word, _, arg = text.partition(",")
+        word = word.strip().lower()
+        if word == "bitstream":
+            ok = arg.strip() in ("4.1", "4.1.0", "4.1.0.0")
+            return message(NAT_RESPONSE, struct.pack("<i", 0 if ok else -1))
+        if word in _NOOP_COMMANDS:
+            return message(NAT_RESPONSE, struct.pack("<i", 0))
+        return message(NAT_UNRECOGNIZED_REQUEST, b"")
