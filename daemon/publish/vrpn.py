@@ -1,0 +1,387 @@
+"""VRPN tracker server: one tracker per rigid body, named by the body, for VRPN clients.
+
+Why our own wire code instead of the VRPN library: the protocol a tracker server speaks is
+small and stable (VRPN 07.xx), and a pure-Python server needs no C++ build on the robot
+computer. What it speaks, as vrpn_Connection.C lays it out (network byte order):
+
+- connection: the server listens on TCP and UDP port 3883. A client normally lobs a UDP
+  datagram "ADDRESS PORT\\0" and waits for the server to connect back to that TCP port
+  (VRPN's default); `tcp://host:port` clients connect directly. Both sides then send a
+  24-byte cookie, "vrpn: ver. 07.35  0" (the last digit is the remote log mode).
+- messages: a 24-byte header (five int32: length = 24 + payload length, time seconds and
+  microseconds, sender id, type id; then a sequence number as padding), then the payload
+  padded to 8 bytes. Negative types are system messages: -1 describes a sender (its id is
+  the header's sender field, the payload an int32 length and the name), -2 a type, -3 the
+  client's UDP port for low-latency messages (port in the sender field, address as text).
+- after the cookies the server describes its senders (one per rigid body, by name) and its
+  types ("vrpn_Tracker Pos_Quat", "vrpn_Base pong_message"). Each frame, every tracked body
+  gets a Pos_Quat message (int32 sensor 0, int32 padding, position as three doubles,
+  quaternion x y z w as four doubles), sent over the client's UDP port when it gave one
+  (as VRPN sends its low-latency class), else over TCP. A body that is not tracked is not
+  sent: VRPN clients (libmotioncapture) then report it missing, not at a stale pose.
+- clients ping each tracker once a second ("vrpn_Base ping_message", no payload); the
+  server answers with a pong from the same sender, or the client warns that the server
+  is not responding.
+
+A client that stops reading has its output buffered up to `max_backlog_bytes` and is then
+dropped; others are not held up (sockets are non-blocking; one server thread accepts,
+reads and flushes, the publisher thread packs frames).
+"""
+
+from __future__ import annotations
+
+import logging
+import select
+import socket
+import struct
+import threading
+import time
+
+import numpy as np
+
+from daemon.publish.base import Publisher
+
+log = logging.getLogger("mocapd.publish")
+
+MAGIC = b"vrpn: ver. 07.35"
+MAGIC_MAJOR = b"vrpn: ver. 07."  # minor versions interoperate
+COOKIE_SIZE = 24
+HEADER_SIZE = 24
+ALIGN = 8
+
+SENDER_DESCRIPTION = -1
+TYPE_DESCRIPTION = -2
+UDP_DESCRIPTION = -3
+LOG_DESCRIPTION = -4
+
+POS_QUAT = "vrpn_Tracker Pos_Quat"
+PING = "vrpn_Base ping_message"
+PONG = "vrpn_Base pong_message"
+OUR_TYPES = (POS_QUAT, PONG)  # our type ids are the indices
+UDP_MAX = 1472  # VRPN's UDP buffer: one Ethernet MTU
+
+POSE_MESSAGE = np.dtype([("len", ">i4"), ("sec", ">i4"), ("usec", ">i4"), ("sender", ">i4"),
+                         ("type", ">i4"), ("seq", ">i4"), ("sensor", ">i4"), ("pad", ">i4"),
+                         ("pos", ">f8", 3), ("quat", ">f8", 4)])  # 88 bytes
+
+
+def cookie(log_mode: int = 0) -> bytes:
+    return (MAGIC + b"  " + bytes([48 + log_mode])).ljust(COOKIE_SIZE, b"\0")
+
+
+def check_cookie(data: bytes) -> bool:
+    return data.startswith(MAGIC_MAJOR)
+
+
+def _pad(n: int) -> int:
+    return (n + ALIGN - 1) // ALIGN * ALIGN
+
+
+def pack(sender: int, type_id: int, payload: bytes = b"", t_s: float | None = None,
+         seq: int = 0) -> bytes:
+    """One VRPN message: header, payload, padding."""
+    t = time.time() if t_s is None else t_s
+    sec = int(t)
+    head = struct.pack(">iiiiii", HEADER_SIZE + len(payload), sec, int((t - sec) * 1e6),
+                       sender, type_id, seq)
+    return head + payload + b"\0" * (_pad(len(payload)) - len(payload))
+
+
+def describe(kind: int, which: int, name: str) -> bytes:
+    """A sender (kind -1) or type (kind -2) description: which id means which name."""
+    raw = name.encode() + b"\0"
+    return pack(which, kind, struct.pack(">i", len(raw)) + raw)
+
+
+def unpack_messages(buf: bytearray):
+    """Complete messages at the start of buf -> [(sender, type, payload, time_s)]; the
+    bytes they used are removed from buf."""
+    out = []
+    while len(buf) >= HEADER_SIZE:
+        length, sec, usec, sender, type_id = struct.unpack_from(">iiiii", buf)
+        if length < HEADER_SIZE or length > 1 << 20:
+            raise ValueError(f"bad VRPN message length {length}")
+        total = HEADER_SIZE + _pad(length - HEADER_SIZE)
+        if len(buf) < total:
+            break
+        out.append((sender, type_id, bytes(buf[HEADER_SIZE:length]), sec + usec * 1e-6))
+        del buf[:total]
+    return out
+
+
+def pose_messages(result, senders: np.ndarray, t_s: float) -> np.ndarray:
+    """Pos_Quat messages (POSE_MESSAGE records) of the frame's tracked bodies; `senders`
+    gives our sender id of each body in result.poses order."""
+    p = result.poses
+    valid = np.asarray(p.valid, bool) & (senders >= 0)
+    n = int(valid.sum())
+    m = np.zeros(n, POSE_MESSAGE)
+    sec = int(t_s)
+    m["len"] = HEADER_SIZE + 64
+    m["sec"], m["usec"] = sec, int((t_s - sec) * 1e6)
+    m["sender"] = senders[valid]
+    m["type"] = OUR_TYPES.index(POS_QUAT)
+    m["pos"] = np.asarray(p.position)[valid]
+    m["quat"] = np.asarray(p.quaternion)[valid]
+    return m
+
+
+class _Client:
+    """One connected VRPN client (a vrpn_Endpoint on the other side)."""
+
+    def __init__(self, sock: socket.socket, peer) -> None:
+        self.sock = sock
+        self.peer = peer
+        self.inbuf = bytearray()
+        self.outbuf = bytearray()
+        self.connected = False  # cookies exchanged, descriptions sent
+        self.senders: dict[int, str] = {}  # the client's ids -> names
+        self.types: dict[int, str] = {}
+        self.udp: tuple[str, int] | None = None
+        self.lock = threading.Lock()
+        self.seq = 0
+        self.pings = 0
+
+    def write(self, data: bytes, limit: int) -> None:
+        """Queue and try to send now; raise OSError when the client has too much unread."""
+        with self.lock:
+            self.outbuf += data
+            self._flush()
+            if len(self.outbuf) > limit:
+                raise OSError(f"client {self.peer[0]}:{self.peer[1]} is not reading "
+                              f"({len(self.outbuf)} bytes waiting)")
+
+    def flush(self) -> None:
+        with self.lock:
+            self._flush()
+
+    def _flush(self) -> None:
+        while self.outbuf:
+            try:
+                n = self.sock.send(self.outbuf)
+            except BlockingIOError:
+                return
+            del self.outbuf[:n]
+
+
+class VrpnPublisher(Publisher):
+    """A VRPN server with one tracker per rigid body."""
+
+    def __init__(self, bodies=(), host: str = "0.0.0.0", port: int = 3883,
+                 rate_hz: float = 0.0, udp: bool = True, max_backlog_bytes: int = 1 << 20,
+                 name: str = "vrpn") -> None:
+        super().__init__(rate_hz=rate_hz)
+        self.bodies = list(bodies)
+        self.host, self.port = host, port
+        self.use_udp = udp
+        self.max_backlog = max_backlog_bytes
+        self.name = name
+        self.body_names = [b.name for b in self.bodies]
+        self._sender_of = {int(b.id): i for i, b in enumerate(self.bodies)}
+        self.listen_sock: socket.socket | None = None
+        self.udp_sock: socket.socket | None = None
+        self.clients: list[_Client] = []
+        self.pongs = 0
+        self._lock = threading.Lock()
+        self._srv_thread: threading.Thread | None = None
+        self._srv_stop = threading.Event()
+        self._senders_ids: tuple | None = None
+        self._senders = np.zeros(0, np.int64)
+        self._wall_offset_ns = time.time_ns() - time.monotonic_ns()
+
+    # ---- lifecycle ---------------------------------------------------------------------------
+
+    def start(self) -> None:
+        try:
+            self.open()
+            self.connected = True
+        except OSError as exc:
+            self._failed(f"cannot open: {exc}")
+        super().start()
+
+    def open(self) -> None:
+        tcp = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        tcp.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            tcp.bind((self.host, self.port))
+            self.port = tcp.getsockname()[1]
+            udp.bind((self.host, self.port))
+            tcp.listen(8)
+        except OSError:
+            tcp.close()
+            udp.close()
+            raise
+        tcp.setblocking(False)
+        udp.setblocking(False)
+        self.listen_sock, self.udp_sock = tcp, udp
+        self._wall_offset_ns = time.time_ns() - time.monotonic_ns()
+        self._srv_stop.clear()
+        self._srv_thread = threading.Thread(target=self._serve, name=f"{self.name}-srv",
+                                            daemon=True)
+        self._srv_thread.start()
+        log.info("%s: VRPN trackers %s on %s:%d", self.name, ", ".join(self.body_names) or "-",
+                 self.host, self.port)
+
+    def close(self) -> None:
+        self._srv_stop.set()
+        if self._srv_thread is not None:
+            self._srv_thread.join(1.0)
+            self._srv_thread = None
+        with self._lock:
+            clients, self.clients = self.clients, []
+        for c in clients:
+            c.sock.close()
+        for s in (self.listen_sock, self.udp_sock):
+            if s is not None:
+                s.close()
+        self.listen_sock = self.udp_sock = None
+
+    def status(self) -> dict:
+        st = super().status()
+        with self._lock:
+            st["clients"] = sum(c.connected for c in self.clients)
+        return st
+
+    # ---- frames ------------------------------------------------------------------------------
+
+    def send(self, result) -> None:
+        ids = tuple(int(i) for i in result.poses.ids)
+        if ids != self._senders_ids:
+            self._senders_ids = ids
+            self._senders = np.array([self._sender_of.get(i, -1) for i in ids], np.int64)
+        t_s = (int(result.t_ns) + self._wall_offset_ns) * 1e-9
+        msgs = pose_messages(result, self._senders, t_s)
+        if not len(msgs):
+            return
+        with self._lock:
+            clients = [c for c in self.clients if c.connected]
+        per_datagram = max(1, UDP_MAX // POSE_MESSAGE.itemsize)
+        for c in clients:
+            msgs["seq"] = np.arange(c.seq, c.seq + len(msgs))
+            c.seq += len(msgs)
+            try:
+                if c.udp is not None and self.use_udp:
+                    for k in range(0, len(msgs), per_datagram):
+                        self.udp_sock.sendto(msgs[k:k + per_datagram].tobytes(), c.udp)
+                else:
+                    c.write(msgs.tobytes(), self.max_backlog)
+            except OSError as exc:
+                log.warning("%s: dropping %s:%d: %s", self.name, *c.peer[:2], exc)
+                self._drop(c)
+
+    # ---- the server thread: accept, connect back, read, flush ------------------------------
+
+    def _serve(self) -> None:
+        while not self._srv_stop.is_set():
+            with self._lock:
+                clients = list(self.clients)
+            reads = [self.listen_sock, self.udp_sock] + [c.sock for c in clients]
+            writes = [c.sock for c in clients if c.outbuf]
+            try:
+                r, w, _ = select.select(reads, writes, [], 0.05)
+            except (OSError, ValueError):  # a socket closed under us: look again
+                continue
+            if self.listen_sock in r:
+                self._accept()
+            if self.udp_sock in r:
+                self._lob()
+            for c in clients:
+                try:
+                    if c.sock in w:
+                        c.flush()
+                    if c.sock in r:
+                        self._read(c)
+                except (OSError, ValueError) as exc:
+                    if not isinstance(exc, ConnectionError):
+                        log.info("%s: %s:%d: %s", self.name, *c.peer[:2], exc)
+                    self._drop(c)
+
+    def _accept(self) -> None:
+        try:
+            sock, peer = self.listen_sock.accept()
+        except OSError:
+            return
+        self._new_client(sock, peer)
+
+    def _lob(self) -> None:
+        """A client's UDP request: connect back to the TCP port it names."""
+        try:
+            data, src = self.udp_sock.recvfrom(1024)
+        except OSError:
+            return
+        try:
+            host, port = data.split(b"\0", 1)[0].decode().split()
+            target = (host, int(port))
+        except ValueError:
+            log.info("%s: ignoring a UDP datagram from %s:%d", self.name, *src)
+            return
+        with self._lock:
+            if any(c.peer == target for c in self.clients):
+                return  # already connected (the client lobs again every 2 s until it hears)
+        try:
+            sock = socket.create_connection(target, timeout=1.0)
+        except OSError as exc:
+            log.info("%s: cannot call back %s:%d: %s", self.name, *target, exc)
+            return
+        self._new_client(sock, target)
+
+    def _new_client(self, sock: socket.socket, peer) -> None:
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        sock.setblocking(False)
+        c = _Client(sock, peer)
+        with self._lock:
+            self.clients.append(c)
+        try:
+            c.write(cookie(), self.max_backlog)
+        except OSError:
+            self._drop(c)
+            return
+        log.info("%s: client %s:%d connected", self.name, *peer[:2])
+
+    def _drop(self, c: _Client) -> None:
+        with self._lock:
+            if c not in self.clients:
+                return
+            self.clients.remove(c)
+        try:
+            c.sock.close()
+        except OSError:
+            pass
+        log.info("%s: client %s:%d left", self.name, *c.peer[:2])
+
+    def _read(self, c: _Client) -> None:
+        data = c.sock.recv(65536)
+        if not data:
+            raise ConnectionResetError("closed")
+        c.inbuf += data
+        if not c.connected:
+            if len(c.inbuf) < COOKIE_SIZE:
+                return
+            if not check_cookie(bytes(c.inbuf[:COOKIE_SIZE])):
+                raise ValueError(f"not a VRPN {MAGIC_MAJOR.decode()}xx client "
+                                 f"(cookie {bytes(c.inbuf[:16])!r})")
+            del c.inbuf[:COOKIE_SIZE]
+            hello = b"".join(describe(SENDER_DESCRIPTION, i, n)
+                             for i, n in enumerate(self.body_names))
+            hello += b"".join(describe(TYPE_DESCRIPTION, i, n) for i, n in enumerate(OUR_TYPES))
+            c.write(hello, self.max_backlog)
+            c.connected = True
+        for sender, type_id, payload, _t in unpack_messages(c.inbuf):
+            self._message(c, sender, type_id, payload)
+
+    def _message(self, c: _Client, sender: int, type_id: int, payload: bytes) -> None:
+        if type_id in (SENDER_DESCRIPTION, TYPE_DESCRIPTION):
+            n = struct.unpack_from(">i", payload)[0]
+            name = payload[4:4 + n].split(b"\0", 1)[0].decode("utf-8", "replace")
+            (c.senders if type_id == SENDER_DESCRIPTION else c.types)[sender] = name
+        elif type_id == UDP_DESCRIPTION:
+            host = payload.split(b"\0", 1)[0].decode()
+            c.udp = (host, sender)
+        elif type_id >= 0 and c.types.get(type_id) == PING:
+            name = c.senders.get(sender)
+            if name in self.body_names:
+                c.pings += 1
+                c.write(pack(self.body_names.index(name), OUR_TYPES.index(PONG)),
+                        self.max_backlog)
+                self.pongs += 1
