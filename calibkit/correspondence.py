@@ -93,7 +93,37 @@ def _bases_cached(arrays: RigArrays) -> np.ndarray:
 
 
 def _pairs(arrays: RigArrays, group: np.ndarray, camera: np.ndarray, n: np.ndarray,
-           origins: np.ndarray, dirs: np.ndarray, tol_px: float):
+           origins: np.ndarray, dirs: np.ndarray, tol_px: float, compiled: bool = True):
+    """Candidate blob pairs (a, b) in different cameras of the same group (frame) whose
+    epipolar distance is below tol_px both ways, and the depths along each ray where the
+    two rays pass closest. The compiled kernel tests every pair of a frame's blobs (a few
+    flops each); the numpy path narrows them down by sorting first (see _pairs_numpy)."""
+    if not compiled:
+        return _pairs_numpy(arrays, group, camera, n, origins, dirs, tol_px)
+    from calibkit.geometry_kernels import epipolar_pairs
+
+    if len(camera) < 2:
+        empty = np.zeros(0, dtype=np.int64)
+        return empty, empty, np.zeros(0), np.zeros(0)
+    E = _essentials_cached(arrays)
+    order = np.argsort(group * 1024 + camera, kind="stable")
+    g, c = group[order], camera[order]
+    homog = np.concatenate([n[order], np.ones((len(n), 1))], axis=1)
+    lines = np.einsum("mcab,mb->mca", E[c], homog)  # (M, C, 3): line in each camera
+    lines *= (arrays.fx[None, :] / np.maximum(np.hypot(lines[..., 0], lines[..., 1]),
+                                               1e-15))[..., None]
+    new = np.r_[True, (g[1:] != g[:-1]) | (c[1:] != c[:-1])]
+    block_start = np.r_[np.flatnonzero(new), len(g)].astype(np.int64)
+    args = (block_start, c[new], g[new], lines, homog, np.ascontiguousarray(origins[order]),
+            np.ascontiguousarray(dirs[order]), float(tol_px))
+    count, pa, pb, s, u = epipolar_pairs(*args, 16 * len(g) + 64)
+    if count > len(pa):
+        count, pa, pb, s, u = epipolar_pairs(*args, count)
+    return order[pa[:count]], order[pb[:count]], s[:count], u[:count]
+
+
+def _pairs_numpy(arrays: RigArrays, group: np.ndarray, camera: np.ndarray, n: np.ndarray,
+                 origins: np.ndarray, dirs: np.ndarray, tol_px: float):
     """Candidate blob pairs (a, b) in different cameras of the same group (frame) whose
     epipolar distance is below tol_px both ways, and the depths along each ray where the
     two rays pass closest.

@@ -212,7 +212,7 @@ def triangulate(rig: Rig, point: np.ndarray, camera: np.ndarray, uv: np.ndarray,
                 iterations: int = 3, n_points: int | None = None,
                 ray_distance: bool = True,
                 rays: tuple[np.ndarray, np.ndarray] | None = None,
-                start: np.ndarray | None = None) -> Triangulation:
+                start: np.ndarray | None = None, compiled: bool = True) -> Triangulation:
     """Triangulate P points from M observations (point index, camera index, distorted pixels).
 
     Linear least squares on the undistorted rays gives the start; `iterations` Gauss-Newton
@@ -222,6 +222,7 @@ def triangulate(rig: Rig, point: np.ndarray, camera: np.ndarray, uv: np.ndarray,
     skips the pairwise ray figure (NaN) where only positions are needed, as in tracking.
     `rays` (origins, directions) may be given when the caller has already computed them,
     and `start` (P, 3) positions to refine instead of the linear solution.
+    `compiled=False` runs the numpy implementation the compiled kernel is tested against.
     """
     arrays = RigArrays.from_rig(rig)
     point = np.asarray(point, dtype=np.int64).reshape(-1)
@@ -233,6 +234,9 @@ def triangulate(rig: Rig, point: np.ndarray, camera: np.ndarray, uv: np.ndarray,
         empty = np.zeros(n)
         return Triangulation(np.full((n, 3), np.nan), empty + np.nan, empty + np.nan, n_cams)
     origins, dirs = arrays.rays(camera, uv) if rays is None else rays
+    if compiled:
+        return _triangulate_compiled(arrays, point, camera, uv, origins, dirs, iterations, n,
+                                     n_cams, ray_distance, start)
     if start is None:
         xyz = closest_point_to_rays(point, origins, dirs, n)
     else:
@@ -258,6 +262,26 @@ def triangulate(rig: Rig, point: np.ndarray, camera: np.ndarray, uv: np.ndarray,
     bad = behind | (n_cams < 2) | ~np.isfinite(xyz[:, 0])
     xyz[bad] = np.nan
     reproj[bad] = np.nan
+    ray = mean_ray_distance(point, origins, dirs, n) if ray_distance else np.full(n, np.nan)
+    ray[bad] = np.nan
+    return Triangulation(xyz, reproj, ray, n_cams)
+
+
+def _triangulate_compiled(arrays: RigArrays, point, camera, uv, origins, dirs, iterations,
+                          n, n_cams, ray_distance, start) -> Triangulation:
+    from calibkit.geometry_kernels import triangulate_points
+
+    order = np.argsort(point, kind="stable")
+    starts = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(n_cams, out=starts[1:])
+    xyz0 = np.full((n, 3), np.nan) if start is None else np.asarray(
+        start, dtype=np.float64).reshape(n, 3)
+    xyz, reproj = triangulate_points(
+        starts, camera[order], np.ascontiguousarray(uv[order]),
+        np.ascontiguousarray(origins[order]), np.ascontiguousarray(dirs[order]),
+        np.ascontiguousarray(xyz0), int(iterations), arrays.R, arrays.t, arrays.fx,
+        arrays.fy, arrays.cx, arrays.cy, arrays.skew, arrays.dist)
+    bad = ~np.isfinite(xyz[:, 0])
     ray = mean_ray_distance(point, origins, dirs, n) if ray_distance else np.full(n, np.nan)
     ray[bad] = np.nan
     return Triangulation(xyz, reproj, ray, n_cams)

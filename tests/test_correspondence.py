@@ -133,3 +133,22 @@ def test_a_two_camera_match_that_a_third_camera_should_see_is_rejected(rig8) -> 
 def test_too_few_blobs_give_nothing(rig8) -> None:
     assert len(match_frame(rig8, np.zeros(0), np.zeros((0, 2)))) == 0
     assert len(match_frame(rig8, [0], [[100.0, 100.0]])) == 0
+
+
+def test_compiled_pair_search_finds_exactly_the_numpy_candidates(rig8) -> None:
+    from calibkit.correspondence import _pairs
+    from calibkit.geometry import RigArrays
+
+    truth = _random_scene(8, 50, seed=6)
+    obs = sim.observe(rig8, truth, noise_px=0.3, dropout=0.2, ghosts_per_camera=2, seed=7)
+    arrays = RigArrays.from_rig(rig8)
+    cam = obs.camera.astype(np.int64)
+    origins, dirs = arrays.rays(cam, obs.uv)
+    n = arrays.undistort(cam, obs.uv)
+    a = _pairs(arrays, obs.frame, cam, n, origins, dirs, 2.0, compiled=False)
+    b = _pairs(arrays, obs.frame, cam, n, origins, dirs, 2.0, compiled=True)
+    key_a = {(int(x), int(y)): (s, u) for x, y, s, u in zip(*a, strict=True)}
+    key_b = {(int(x), int(y)): (s, u) for x, y, s, u in zip(*b, strict=True)}
+    assert len(key_a) > 1000 and key_a.keys() == key_b.keys()
+    assert all(np.allclose(key_a[k], key_b[k], atol=1e-9) for k in key_a)
+    assert all(obs.frame[x] == obs.frame[y] for x, y in key_a)

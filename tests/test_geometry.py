@@ -128,3 +128,22 @@ def test_rigid_fit_never_returns_a_mirror() -> None:
     R, _, _ = rigid_fit(src, dst)
     assert np.isclose(np.linalg.det(R), 1.0)
     assert np.allclose(R @ R.T, np.eye(3), atol=1e-12)
+
+
+@pytest.mark.parametrize("iterations", [0, 1, 3])
+def test_compiled_triangulation_equals_the_numpy_reference(rig, iterations) -> None:
+    truth = sim.static_markers(300, 1, 4.0, seed=11)
+    point, camera, uv = _labelled(rig, truth, 0.5, seed=12)
+    point = point.copy()
+    point[:3] = 299  # three mislabelled blobs: a point whose rays do not meet
+    keep = np.ones(len(point), dtype=bool)
+    keep[np.flatnonzero(point == 5)[1:]] = False  # a point seen by one camera only
+    start = np.where(np.arange(300)[:, None] % 2 == 0, truth.xyz + 0.02, np.nan)
+    for s in (None, start):
+        a = triangulate(rig, point[keep], camera[keep], uv[keep], iterations=iterations,
+                        n_points=300, start=s, compiled=False)
+        b = triangulate(rig, point[keep], camera[keep], uv[keep], iterations=iterations,
+                        n_points=300, start=s, compiled=True)
+        assert np.array_equal(a.ok, b.ok) and not a.ok[5]
+        assert np.allclose(a.xyz[a.ok], b.xyz[b.ok], atol=1e-10, rtol=0)
+        assert np.allclose(a.reproj_px[a.ok], b.reproj_px[b.ok], atol=1e-9, rtol=0)
