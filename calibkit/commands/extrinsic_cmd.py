@@ -1,0 +1,308 @@
+"""`calibkit extrinsic --projector`: every camera's pose from projected floor and table dots."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+
+from calibkit import extrinsic as ex
+from calibkit.camera import Rig
+from calibkit.clitools import Progress, print_table, write_json
+from calibkit.commands.common import parse_size, truth_rig_path
+from calibkit.errors import UserError
+from calibkit.fileio import write_text_atomic
+from projector.patterns import Schedule, coded_schedule
+
+# a plane map whose reference points disagree by more than this is suspect
+MAP_WARN_MM = 15.0
+
+
+def _schedule(projector_px, step: float, shifts: int, radius: float) -> Schedule:
+    try:
+        return coded_schedule(projector_px, step, shifts, radius)
+    except ValueError as exc:
+        raise UserError(f"dot pattern: {exc}") from None
+
+
+def _sessions(refs: ex.References, table: bool | None) -> bool:
+    """Whether to run the table session: as asked, else when the references have a table."""
+    if table is None:
+        return refs.has_table
+    if table and not refs.has_table:
+        raise UserError("--table needs the table in the reference-points file: add [table] "
+                        "with height_m and at least 4 [[table.point]] entries")
+    return table
+
+
+def _capture_live(intr: Rig, specs: list[str], monitor: int, schedule: Schedule,
+                  with_table: bool, samples: int) -> tuple[list, list | None, int]:
+    """The projector on monitor `monitor`, the cameras from their device numbers or files."""
+    from calibkit.sources import open_source
+    from projector.display import WindowDisplay
+    from projector.screens import require_display
+
+    if len(specs) != len(intr):
+        raise UserError(f"give one --camera per camera of the rig ({len(intr)}: "
+                        f"{', '.join(intr.names)}), got {len(specs)}")
+    require_display()
+    sources = [open_source(s) for s in specs]
+    iters = [iter(s) for s in sources]
+    window = WindowDisplay(monitor)
+
+    class LiveRig:
+        def show(self, dots) -> None:
+            window.show(dots)
+
+        def grab(self) -> list[np.ndarray]:
+            out = []
+            for name, it in zip(intr.names, iters, strict=True):
+                frame = next(it, None)
+                if frame is None:
+                    raise UserError(f"camera {name} stopped delivering frames")
+                out.append(frame.image)
+            return out
+
+    try:
+        floor = _run_session(LiveRig(), schedule, len(intr), "floor", samples)
+        table = None
+        if with_table:
+            input("put the table in place under the projector, then press Enter ")
+            table = _run_session(LiveRig(), schedule, len(intr), "table", samples)
+    finally:
+        window.close()
+        for s in sources:
+            s.close()
+    frames = floor.frames + (table.frames if table is not None else 0)
+    return floor.cameras, None if table is None else table.cameras, frames
+
+
+def _show_references(refs: ex.References, monitor: int, radius: float) -> None:
+    """Light the reference dots so the user can mark and measure where they land."""
+    from projector.display import Dots, WindowDisplay
+    from projector.screens import require_display
+
+    require_display()
+    pts = np.concatenate([refs.floor_px, refs.table_px])
+    window = WindowDisplay(monitor)
+    try:
+        window.show(Dots.make(pts, radius))
+        input(f"{len(pts)} reference dots shown: mark and measure them, then press Enter ")
+    finally:
+        window.close()
+
+
+def _run_session(device, schedule: Schedule, n_cameras: int, label: str, samples: int):
+    progress = Progress(f"{label} dots", len(schedule.frames))
+    cap = ex.capture_session(device, schedule, n_cameras, samples=samples,
+                             progress=lambda done, total: progress.update(done))
+    progress.finish(f"{cap.frames} camera frames ({cap.frames / 30.0:.1f} s at 30 fps)")
+    return cap
+
+
+def _print(result: ex.ExtrinsicResult) -> None:
+    rows = [[c["name"], "yes" if c["calibrated"] else "NO", c["floor_dots"], c["table_dots"],
+             c["reprojection_rms_px"], c["mean_ray_distance_mm"],
+             c["mean_ray_distance_table_mm"]] for c in result.report["cameras"]]
+    print_table(rows, ["camera", "calibrated", "floor dots", "table dots", "rms_px",
+                       "ray_mm", "ray_table_mm"])
+    r = result.report
+    typer.echo(f"\nall cameras: reprojection RMS {r['reprojection_rms_px']:.3f} px, mean ray "
+               f"distance {r['mean_ray_distance_mm']:.2f} mm over {r['dots']} dots, "
+               f"{r['mean_ray_distance_table_mm']:.2f} mm over the {r['table_dot_points']} "
+               "table dots")
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("extrinsic")
+    def extrinsic(
+        projector: Annotated[bool, typer.Option(
+            "--projector", help="Calibrate from dots a ceiling projector casts on the floor "
+                                "and a table (the method there is).")] = False,
+        out: Annotated[Path | None, typer.Option(
+            "--out", help="The rig file to write (cameras with their poses).")] = None,
+        refs_path: Annotated[Path | None, typer.Option(
+            "--refs", help="Reference points measured with a tape (TOML, see "
+                           "docs/extrinsic.md).")] = None,
+        template: Annotated[Path | None, typer.Option(
+            "--template", help="Write a reference-points file to fill in (the projector "
+                               "pixels of the reference dots) and stop.")] = None,
+        show_refs: Annotated[bool, typer.Option(
+            "--show-refs", help="Live: show the reference dots of --refs (or the template "
+                                "layout) until Enter, to measure them.")] = False,
+        intrinsics: Annotated[Path | None, typer.Option(
+            "--intrinsics", help="Rig file with every camera's intrinsics (poses are "
+                                 "ignored).")] = None,
+        camera: Annotated[list[str] | None, typer.Option(
+            "--camera", help="Live: a camera device number or video, once per camera of "
+                             "--intrinsics, in its order.")] = None,
+        monitor: Annotated[int, typer.Option(
+            "--monitor", help="Live: the projector's display index.")] = 1,
+        projector_size: Annotated[str, typer.Option(
+            "--projector-size", help="The projector's resolution (for --template).")]
+        = "1280x800",
+        table: Annotated[bool | None, typer.Option(
+            "--table/--no-table", help="Run the table session (default: when the "
+                                       "references have a table).")] = None,
+        step: Annotated[float, typer.Option(help="Dot grid step, projector pixels.")] = 64.0,
+        shifts: Annotated[int, typer.Option(
+            help="The grid is shown SHIFTS x SHIFTS times, offset by step/SHIFTS.")] = 2,
+        radius: Annotated[float, typer.Option(help="Dot radius, projector pixels.")] = 8.0,
+        samples: Annotated[int, typer.Option(help="Frames averaged per pattern.")] = 3,
+        joint: Annotated[bool, typer.Option(
+            "--joint/--no-joint", help="Refine all cameras together on the shared dots.")]
+        = True,
+        ref_sigma_mm: Annotated[float, typer.Option(
+            "--ref-sigma-mm", help="How well the reference points were measured.")] = 5.0,
+        json_path: Annotated[Path | None, typer.Option(
+            "--json", help="Write the figures as JSON.")] = None,
+        sim: Annotated[bool, typer.Option(
+            "--sim", help="A simulated projector, table and rig; the true rig goes to "
+                          "NAME.truth.toml, the simulated tape measurements to "
+                          "NAME.refs.toml.")] = False,
+        render: Annotated[bool, typer.Option(
+            "--render/--no-render", help="--sim: render every camera frame and detect the "
+                                         "dots (slow) instead of projecting them.")] = False,
+        cameras: Annotated[int, typer.Option("--cameras", help="--sim: cameras.")] = 6,
+        volume: Annotated[float, typer.Option("--volume", help="--sim: metres across.")] = 4.0,
+        table_height: Annotated[float, typer.Option(
+            "--table-height", help="--sim: table height, metres (0: no table).")] = 0.75,
+        size: Annotated[str, typer.Option(help="--sim: camera size.")] = "640x480",
+        noise_px: Annotated[float, typer.Option(
+            "--noise-px", help="--sim (projected dots): centroid noise.")] = 0.2,
+        ref_error_mm: Annotated[float, typer.Option(
+            "--ref-error-mm", help="--sim: error of the tape measurements.")] = 5.0,
+        seed: Annotated[int, typer.Option("--seed", help="--sim: random seed.")] = 0,
+    ) -> None:
+        """Every camera's pose from projected dots on the floor and a table top."""
+        if not projector:
+            raise UserError("say which method: --projector (dots cast by a ceiling "
+                            "projector) is the one there is")
+        proj_px = parse_size(projector_size)
+        if template is not None:
+            layout = ex.reference_layout_px(proj_px)
+            refs_t = ex.References(layout, np.full((len(layout), 2), np.nan),
+                                   projector_size=proj_px)
+            write_text_atomic(template, ex.references_toml(
+                refs_t, "Reference dots: replace each nan with where the dot lands on the\n"
+                        "floor, x and y in metres from your chosen origin (docs/extrinsic.md)."
+                        "\nFor the table add [table] height_m and [[table.point]] entries."))
+            typer.echo(f"wrote {template}: {len(layout)} floor reference dots to measure")
+            return
+        if out is None:
+            raise UserError("--out RIG.toml is required")
+        if samples < 1 or shifts < 1 or step <= 0 or radius <= 0:
+            raise UserError("--samples and --shifts must be >= 1, --step and --radius > 0")
+        if ref_sigma_mm <= 0:
+            raise UserError(f"--ref-sigma-mm must be positive, got {ref_sigma_mm}")
+        truth = None
+        if sim:
+            from calibkit import sim_projector as sp
+
+            if not 0 <= table_height < 2.0:
+                raise UserError(f"--table-height must be in [0, 2) m, got {table_height}")
+            scene = sp.make_scene(cameras, volume, table_height or None, parse_size(size),
+                                  seed)
+            truth = scene.rig
+            intr = scene.rig if intrinsics is None else Rig.load(intrinsics)
+            tpx = sp.table_reference_px(scene) if scene.table is not None else np.zeros((0, 2))
+            m = sp.measured_references(scene, ex.reference_layout_px(proj_px), tpx,
+                                       ref_error_mm / 1000.0, seed=seed)
+            refs = ex.References(m["floor_px"], m["floor_xy_m"],
+                                 m.get("table_px", np.zeros((0, 2))),
+                                 m.get("table_xy_m", np.zeros((0, 2))),
+                                 m.get("table_height_m"), projector_size=proj_px)
+            write_text_atomic(out.with_name(out.stem + ".refs.toml"), ex.references_toml(
+                refs, "simulated tape measurements (calibkit extrinsic --sim)"))
+        else:
+            if refs_path is None:
+                raise UserError("--refs REFS.toml is required (make one with --template "
+                                "and a tape; see docs/extrinsic.md)")
+            refs = ex.load_references(refs_path)
+            proj_px = refs.projector_size
+            if intrinsics is None:
+                raise UserError("--intrinsics RIG.toml is required (from calibkit intrinsic)")
+            intr = Rig.load(intrinsics)
+        with_table = _sessions(refs, table)
+        floor_map, table_map = ex.plane_maps(refs)
+        if not with_table:
+            table_map = None
+        for what, pm in (("floor", floor_map), ("table", table_map)):
+            if pm is None:
+                continue
+            fit = ("exact with 4 points: add more to check it" if pm.n_points == 4 else
+                   f"residual RMS {pm.residual_rms_mm:.1f} mm, max {pm.residual_max_mm:.1f} mm")
+            typer.echo(f"{what} map from {pm.n_points} reference points: {fit}")
+            if pm.residual_max_mm > MAP_WARN_MM:
+                typer.echo(f"warning: a {what} reference point is {pm.residual_max_mm:.0f} mm "
+                           "off the others' fit: re-measure it", err=True)
+        schedule = _schedule(proj_px, step, shifts, radius)
+        if show_refs and not sim:
+            _show_references(refs, monitor, radius)
+        if sim and render:
+            from calibkit import sim_projector as sp
+
+            cfg = sp.ProjectorSimConfig(projector_px=proj_px, seed=seed)
+            with sp.ProjectorRigSim(scene, cfg) as dev:
+                fcap = _run_session(dev, schedule, len(intr), "floor", samples)
+                tcap = None
+                if with_table:
+                    dev.set_table(True)
+                    tcap = _run_session(dev, schedule, len(intr), "table", samples)
+            floor_dots, table_dots = fcap.cameras, None if tcap is None else tcap.cameras
+            frames = fcap.frames + (tcap.frames if tcap is not None else 0)
+        elif sim:
+            from calibkit import sim_projector as sp
+
+            floor_dots = sp.simulated_dots(scene, schedule.points_xy, False, noise_px,
+                                           seed=seed)
+            table_dots = sp.simulated_dots(scene, schedule.points_xy, True, noise_px,
+                                           seed=seed + 1) if with_table else None
+            cfg = sp.ProjectorSimConfig(projector_px=proj_px, seed=seed)
+            lat = sp.latency_frames(cfg, len(intr))
+            frames = (1 + with_table) * ex.capture_frames_estimate(schedule, lat, samples)
+        else:
+            if not camera:
+                raise UserError("live capture needs --camera once per camera (or --sim)")
+            floor_dots, table_dots, frames = _capture_live(intr, list(camera), monitor,
+                                                           schedule, with_table, samples)
+        dots = ex.assemble(intr.names, floor_dots, table_dots, schedule, floor_map, table_map)
+        opts = ex.SolveOptions(joint=joint, reference_sigma_m=ref_sigma_mm / 1000.0)
+        result = ex.calibrate(intr, dots, floor_map, table_map, opts)
+        result.report["capture"] = {"frames": frames, "seconds_at_30fps": frames / 30.0,
+                                    "sessions": 1 + int(with_table),
+                                    "simulated_frames": bool(sim and not render)}
+        _print(result)
+        typer.echo(f"capture: {frames} camera frames, {frames / 30.0:.1f} s at 30 fps"
+                   + (" (estimated from the latencies)" if sim and not render else ""))
+        result.rig.save(out)
+        ex.save_dots(out.with_name(out.stem + ".dots.npz"), result.dots, result.inlier)
+        rec = ex.floor_recording(result.rig, result.dots, result.inlier)
+        if rec is not None:
+            from calibkit.recording import save_observations
+
+            save_observations(out.with_name(out.stem + ".floor.mcrec"), rec)
+        if truth is not None:
+            from calibkit.compare import compare_rigs
+
+            truth.save(truth_rig_path(out))
+            cmp = compare_rigs(truth, result.rig, align=False)
+            result.report["truth"] = {
+                "cameras": cmp["cameras"],
+                "position_error_max_mm": max(c["position_mm"] for c in cmp["cameras"]),
+                "rotation_error_max_deg": max(c["rotation_deg"] for c in cmp["cameras"])}
+            t = result.report["truth"]
+            typer.echo(f"against the simulator's truth: position error up to "
+                       f"{t['position_error_max_mm']:.1f} mm, orientation up to "
+                       f"{t['rotation_error_max_deg']:.3f} deg")
+        for w in result.warnings:
+            typer.echo(f"warning: {w}", err=True)
+        if json_path is not None:
+            write_json(json_path, result.report)
+        typer.echo(f"wrote {out}" + (f" (true rig in {truth_rig_path(out)})" if sim else ""))
+        if result.report["not_calibrated"]:
+            print(f"not calibrated: {', '.join(result.report['not_calibrated'])}",
+                  file=sys.stderr)
