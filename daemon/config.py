@@ -18,10 +18,14 @@ opens. docs/daemon.md documents every key.
     [[udp]]     address = "HOST:PORT", rate_hz, ttl, bodies
     [[serial]]  device, baud, rate_hz, bodies
     [[mavlink]] device, baud, body, message, frame, rate_hz, system_id, component_id
+    [natnet]    interface, command_port, data_port, multicast, group, up_axis, ttl, rate_hz,
+                legacy_unlabeled                  (docs/natnet.md)
+    [[vrpn]]    address = "HOST:PORT", rate_hz, udp                           (docs/vrpn.md)
 """
 
 from __future__ import annotations
 
+import ipaddress
 import os
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -85,6 +89,27 @@ class MavlinkOut:
 
 
 @dataclass(frozen=True)
+class NatnetOut:
+    interface: str = "0.0.0.0"  # local address: command port, multicast interface
+    command_port: int = 1510
+    data_port: int = 1511
+    multicast: bool = True
+    group: str = "239.255.42.99"
+    up_axis: str = "z"
+    ttl: int = 1
+    rate_hz: float = 0.0
+    legacy_unlabeled: bool = False
+
+
+@dataclass(frozen=True)
+class VrpnOut:
+    host: str = "0.0.0.0"
+    port: int = 3883
+    rate_hz: float = 0.0
+    udp: bool = True
+
+
+@dataclass(frozen=True)
 class Config:
     path: Path | None = None
     rig: Path | None = None
@@ -99,6 +124,8 @@ class Config:
     udp: tuple[UdpOut, ...] = ()
     serial: tuple[SerialOut, ...] = ()
     mavlink: tuple[MavlinkOut, ...] = ()
+    natnet: NatnetOut | None = None
+    vrpn: tuple[VrpnOut, ...] = ()
 
 
 class _Where:
@@ -225,7 +252,7 @@ def parse_config(data: dict, path: Path | None = None, base: Path | None = None)
     """A Config from parsed TOML; relative paths are taken from `base` (the file's folder)."""
     w = _Where(path)
     top = {"rig", "runtime_dir", "pipeline", "tracker", "rigid", "sim", "rigid_body", "udp",
-           "serial", "mavlink"}
+           "serial", "mavlink", "natnet", "vrpn"}
     _check_keys(w, data, top, "")
     base = base or Path.cwd()
     cfg = Config(path=path)
@@ -254,6 +281,10 @@ def parse_config(data: dict, path: Path | None = None, base: Path | None = None)
                               for i, t in enumerate(_list(w, data, "serial")))
     changes["mavlink"] = tuple(_mavlink(w, t, f"mavlink[{i}].")
                                for i, t in enumerate(_list(w, data, "mavlink")))
+    if "natnet" in data:
+        changes["natnet"] = _natnet(w, _table(w, data, "natnet"), "natnet.")
+    changes["vrpn"] = tuple(_vrpn(w, t, f"vrpn[{i}].")
+                            for i, t in enumerate(_list(w, data, "vrpn")))
     return replace(cfg, **changes)
 
 
@@ -349,6 +380,44 @@ def _mavlink(w, t, p) -> MavlinkOut:
                       _number(w, t, "rate_hz", p, 50.0, lo=0),
                       _number(w, t, "system_id", p, 1, int, 1, 255),
                       _number(w, t, "component_id", p, 197, int, 0, 255))
+
+
+def _natnet(w, t, p) -> NatnetOut:
+    d = NatnetOut()
+    _check_keys(w, t, {f.name for f in fields(NatnetOut)}, p)
+    group = _string(w, t, "group", p, d.group)
+    if not _ipv4(group) or not ipaddress.ip_address(group).is_multicast:
+        w.fail(p + "group", f"expected an IPv4 multicast address (224.0.0.0/4), got {group!r}")
+    if not _ipv4(_string(w, t, "interface", p, d.interface)):
+        w.fail(p + "interface", f"expected the IPv4 address of a local interface (or "
+                                f"0.0.0.0), got {t['interface']!r}")
+    return NatnetOut(_string(w, t, "interface", p, d.interface),
+                     _number(w, t, "command_port", p, d.command_port, int, 1, 65535),
+                     _number(w, t, "data_port", p, d.data_port, int, 1, 65535),
+                     _bool(w, t, "multicast", p, d.multicast), group,
+                     _string(w, t, "up_axis", p, d.up_axis, ("z", "y")),
+                     _number(w, t, "ttl", p, d.ttl, int, 0, 255),
+                     _number(w, t, "rate_hz", p, d.rate_hz, lo=0),
+                     _bool(w, t, "legacy_unlabeled", p, d.legacy_unlabeled))
+
+
+def _ipv4(text: str) -> bool:
+    try:
+        return ipaddress.ip_address(text).version == 4
+    except ValueError:
+        return False
+
+
+def _vrpn(w, t, p) -> VrpnOut:
+    _check_keys(w, t, {"address", "rate_hz", "udp"}, p)
+    host, port = VrpnOut.host, VrpnOut.port
+    if "address" in t:
+        try:
+            host, port = parse_address(_string(w, t, "address", p))
+        except ValueError as exc:
+            w.fail(p + "address", str(exc))
+    return VrpnOut(host, port, _number(w, t, "rate_hz", p, 0.0, lo=0),
+                   _bool(w, t, "udp", p, True))
 
 
 def load_config(path: str | Path | None) -> Config:

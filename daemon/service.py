@@ -27,9 +27,11 @@ from calibkit.errors import UserError
 from daemon.config import Config, SimConfig, default_runtime_dir, load_config
 from daemon.pipeline import CaptureThread, FrameSet, Multiplexer, Pipeline, latency_figures
 from daemon.publish.mavlink import MavlinkPublisher
+from daemon.publish.natnet import NatNetPublisher
 from daemon.publish.recorder import RecorderPublisher
 from daemon.publish.serial import SerialPublisher
 from daemon.publish.udp import UdpPublisher
+from daemon.publish.vrpn import VrpnPublisher
 from daemon.rigid import alike_bodies
 from daemon.sources import Evaluator, SimCamera, SimScene
 
@@ -179,7 +181,8 @@ def _plain(value):
 
 # ---- the daemon ------------------------------------------------------------------------------
 
-def make_publishers(config: Config) -> list:
+def make_publishers(config: Config, bodies=()) -> list:
+    """The configured outputs; `bodies` (BodyDef) name the trackers NatNet and VRPN serve."""
     pubs = []
     for u in config.udp:
         pubs.append(UdpPublisher([(u.host, u.port)], ttl=u.ttl, rate_hz=u.rate_hz,
@@ -189,6 +192,14 @@ def make_publishers(config: Config) -> list:
     for m in config.mavlink:
         pubs.append(MavlinkPublisher(m.device, m.body, m.baud, m.rate_hz, m.message, m.frame,
                                      m.system_id, m.component_id))
+    if config.natnet is not None:
+        n = config.natnet
+        pubs.append(NatNetPublisher(bodies, n.interface, n.command_port, n.data_port,
+                                    n.multicast, n.group, n.up_axis, n.ttl, n.rate_hz,
+                                    n.legacy_unlabeled, name=f"natnet:{n.interface}"))
+    for v in config.vrpn:
+        pubs.append(VrpnPublisher(bodies, v.host, v.port, v.rate_hz, v.udp,
+                                  name=f"vrpn:{v.host}:{v.port}"))
     return pubs
 
 
@@ -236,7 +247,8 @@ class Daemon:
         bodies = self._bodies(cfg)
         self._warn_alike(bodies)
         self.evaluator = Evaluator(self.scene)
-        self.pipeline = Pipeline(self.rig, cfg.tracker, cfg.rigid, bodies, make_publishers(cfg),
+        self.pipeline = Pipeline(self.rig, cfg.tracker, cfg.rigid, bodies,
+                                 make_publishers(cfg, bodies),
                                  hooks=[self.evaluator])
         runtime = cfg.runtime_dir or default_runtime_dir()
         self.control = ControlServer(runtime, self.handle)
@@ -352,7 +364,7 @@ class Daemon:
             return False
         bodies = self._bodies(new)
         self._warn_alike(bodies)
-        self.pipeline.replace(bodies=bodies, publishers=make_publishers(new))
+        self.pipeline.replace(bodies=bodies, publishers=make_publishers(new, bodies))
         self.config = new
         log.info("configuration reloaded: %d rigid bodies, %d outputs", len(bodies),
                  len(new.udp) + len(new.serial) + len(new.mavlink))

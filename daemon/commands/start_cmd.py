@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ipaddress
 import logging
 import sys
 from dataclasses import replace
@@ -16,9 +17,11 @@ from calibkit.errors import UserError
 from daemon.config import (
     Config,
     MavlinkOut,
+    NatnetOut,
     SerialOut,
     SimConfig,
     UdpOut,
+    VrpnOut,
     load_config,
     parse_address,
     parse_serial,
@@ -36,9 +39,39 @@ def setup_logging(verbose: bool) -> None:
     root.propagate = False
 
 
+def protocol_outputs(natnet: str | None, natnet_up: str | None, vrpn: list[str]):
+    """--natnet IFACE[:COMMAND_PORT] (data port: the next one), --vrpn [HOST:]PORT."""
+    out_natnet = None
+    if natnet is not None:
+        iface, _, port = natnet.partition(":")
+        try:
+            ipaddress.IPv4Address(iface)
+            cmd = int(port) if port else 1510
+            if not 0 < cmd < 65535:
+                raise ValueError
+        except ValueError:
+            raise UserError(f"--natnet: expected the IPv4 address of a local interface "
+                            f"(0.0.0.0 for all), optionally :COMMAND_PORT; got {natnet!r}"
+                            ) from None
+        out_natnet = NatnetOut(iface, cmd, cmd + 1 if port else 1511)
+    if natnet_up is not None and natnet_up not in ("y", "z"):
+        raise UserError(f"--natnet-up must be y or z, got {natnet_up!r}")
+    outs_vrpn = []
+    for text in vrpn:
+        try:
+            host, port = parse_address(text if ":" in text else f"0.0.0.0:{text}")
+        except ValueError as exc:
+            raise UserError(f"--vrpn: {exc}") from None
+        outs_vrpn.append(VrpnOut(host, port))
+    return out_natnet, tuple(outs_vrpn)
+
+
 def command_line_additions(udp: list[str], serial: list[str], mavlink: list[str],
-                           mavlink_body: int | None, mavlink_message: str | None):
+                           mavlink_body: int | None, mavlink_message: str | None,
+                           natnet: str | None = None, natnet_up: str | None = None,
+                           vrpn: list[str] = ()):
     """A function that adds the flags' outputs to a Config (and again after a reload)."""
+    out_natnet, outs_vrpn = protocol_outputs(natnet, natnet_up, list(vrpn))
     outs_udp = []
     for text in udp:
         try:
@@ -62,8 +95,13 @@ def command_line_additions(udp: list[str], serial: list[str], mavlink: list[str]
             body = cfg.bodies[0].id if cfg.bodies else 1
         mav = tuple(MavlinkOut(d, body, b, mavlink_message or "vision_position_estimate")
                     for d, b in outs_mav)
-        return replace(cfg, udp=cfg.udp + tuple(outs_udp), serial=cfg.serial + tuple(outs_serial),
-                       mavlink=cfg.mavlink + mav)
+        cfg = replace(cfg, udp=cfg.udp + tuple(outs_udp), serial=cfg.serial + tuple(outs_serial),
+                      mavlink=cfg.mavlink + mav, vrpn=cfg.vrpn + outs_vrpn)
+        if out_natnet is not None:
+            cfg = replace(cfg, natnet=out_natnet)
+        if natnet_up is not None:
+            cfg = replace(cfg, natnet=replace(cfg.natnet or NatnetOut(), up_axis=natnet_up))
+        return cfg
 
     return extend
 
@@ -95,6 +133,16 @@ def register(app: typer.Typer) -> None:
         mavlink_message: Annotated[str | None, typer.Option(
             "--mavlink-message", help="vision_position_estimate, odometry or "
                                       "att_pos_mocap.")] = None,
+        natnet: Annotated[str | None, typer.Option(
+            "--natnet", help="Serve NatNet 4.1 (OptiTrack clients) on this local interface "
+                             "address, IFACE[:COMMAND_PORT] (default ports 1510/1511).")]
+        = None,
+        natnet_up: Annotated[str | None, typer.Option(
+            "--natnet-up", help="NatNet's up axis: z (ours, default) or y (Motive's).")]
+        = None,
+        vrpn: Annotated[list[str], typer.Option(
+            "--vrpn", help="Serve VRPN trackers (one per rigid body) on [HOST:]PORT, "
+                           "e.g. 3883 (repeatable).")] = [],  # noqa: B006
         mode: Annotated[str | None, typer.Option(
             "--mode", help="Multiplexer: triggered (synchronised cameras) or greedy.")] = None,
         frames: Annotated[int | None, typer.Option(
@@ -128,7 +176,8 @@ def register(app: typer.Typer) -> None:
                 raise UserError(f"{name} must be positive, got {value}")
         if mode is not None and mode not in ("triggered", "greedy"):
             raise UserError(f"--mode must be triggered or greedy, got {mode!r}")
-        extend = command_line_additions(udp, serial, mavlink, mavlink_body, mavlink_message)
+        extend = command_line_additions(udp, serial, mavlink, mavlink_body, mavlink_message,
+                                        natnet, natnet_up, vrpn)
         base = load_config(config)
 
         def full(cfg: Config) -> Config:
