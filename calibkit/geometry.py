@@ -269,7 +269,7 @@ def triangulate(rig: Rig, point: np.ndarray, camera: np.ndarray, uv: np.ndarray,
 
 def _triangulate_compiled(arrays: RigArrays, point, camera, uv, origins, dirs, iterations,
                           n, n_cams, ray_distance, start) -> Triangulation:
-    from calibkit.geometry_kernels import triangulate_points
+    from calibkit.geometry_kernels import mean_ray_distances, triangulate_points
 
     order = np.argsort(point, kind="stable")
     starts = np.zeros(n + 1, dtype=np.int64)
@@ -282,7 +282,11 @@ def _triangulate_compiled(arrays: RigArrays, point, camera, uv, origins, dirs, i
         np.ascontiguousarray(xyz0), int(iterations), arrays.R, arrays.t, arrays.fx,
         arrays.fy, arrays.cx, arrays.cy, arrays.skew, arrays.dist)
     bad = ~np.isfinite(xyz[:, 0])
-    ray = mean_ray_distance(point, origins, dirs, n) if ray_distance else np.full(n, np.nan)
+    if ray_distance:
+        ray = mean_ray_distances(starts, np.ascontiguousarray(origins[order]),
+                                 np.ascontiguousarray(dirs[order]))
+    else:
+        ray = np.full(n, np.nan)
     ray[bad] = np.nan
     return Triangulation(xyz, reproj, ray, n_cams)
 

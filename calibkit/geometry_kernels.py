@@ -191,3 +191,37 @@ def epipolar_pairs(block_start, block_camera, block_group, lines, homog, origins
                             uu[n] = u
                         n += 1
     return n, pa, pb, ss, uu
+
+
+@njit(cache=True)
+def mean_ray_distances(starts, origins, dirs):
+    """Mean distance between every pair of each point's rays (rows starts[p]:starts[p+1]);
+    NaN for points with fewer than two rays. Nearly parallel rays use the distance of one
+    origin from the other line."""
+    n_points = len(starts) - 1
+    out = np.full(n_points, np.nan)
+    for p in range(n_points):
+        s, e = starts[p], starts[p + 1]
+        total = 0.0
+        count = 0
+        for i in range(s, e):
+            for j in range(i + 1, e):
+                c0 = dirs[i, 1] * dirs[j, 2] - dirs[i, 2] * dirs[j, 1]
+                c1 = dirs[i, 2] * dirs[j, 0] - dirs[i, 0] * dirs[j, 2]
+                c2 = dirs[i, 0] * dirs[j, 1] - dirs[i, 1] * dirs[j, 0]
+                norm = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+                w0 = origins[j, 0] - origins[i, 0]
+                w1 = origins[j, 1] - origins[i, 1]
+                w2 = origins[j, 2] - origins[i, 2]
+                if norm > 1e-9:
+                    total += abs(w0 * c0 + w1 * c1 + w2 * c2) / norm
+                else:
+                    along = w0 * dirs[i, 0] + w1 * dirs[i, 1] + w2 * dirs[i, 2]
+                    a0 = w0 - along * dirs[i, 0]
+                    a1 = w1 - along * dirs[i, 1]
+                    a2 = w2 - along * dirs[i, 2]
+                    total += np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+                count += 1
+        if count:
+            out[p] = total / count
+    return out

@@ -147,3 +147,4 @@ def test_compiled_triangulation_equals_the_numpy_reference(rig, iterations) -> N
         assert np.array_equal(a.ok, b.ok) and not a.ok[5]
         assert np.allclose(a.xyz[a.ok], b.xyz[b.ok], atol=1e-10, rtol=0)
         assert np.allclose(a.reproj_px[a.ok], b.reproj_px[b.ok], atol=1e-9, rtol=0)
+        assert np.allclose(a.ray_dist_m[a.ok], b.ray_dist_m[b.ok], atol=1e-12, rtol=0)
