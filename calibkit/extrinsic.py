@@ -70,10 +70,12 @@ class References:
         return len(self.table_px) > 0 or self.table_height_m is not None
 
 
-def reference_layout_px(projector_size: tuple[int, int], n: int = 3,
+def reference_layout_px(projector_size: tuple[int, int], n: int = 4,
                         inset: float = 0.1) -> np.ndarray:
     """Where to put the reference dots: an n x n grid inset from the projector's edges
-    (spread wide: the homography is steadiest when the points surround the dots)."""
+    (spread wide: the homography is steadiest when the points surround the dots). The
+    world frame's yaw is only as good as these points: with 5 mm tape error, 9 points leave
+    up to ~0.09 degrees, 16 points ~0.06 (docs/extrinsic.md)."""
     w, h = projector_size
     xs = np.linspace(inset * (w - 1), (1 - inset) * (w - 1), n)
     ys = np.linspace(inset * (h - 1), (1 - inset) * (h - 1), n)
@@ -258,7 +260,7 @@ def _signed_distance(poly: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return np.min(np.einsum("pkj,kj->pk", xy[:, None, :] - a[None], n), axis=1)
 
 
-def dot_world_points(px: np.ndarray, floor: PlaneMap, table: PlaneMap | None,
+def dot_world_points(px: np.ndarray, floor: PlaneMap | None, table: PlaneMap | None,
                      table_session: bool, edge_margin_m: float = 0.03
                      ) -> tuple[np.ndarray, np.ndarray]:
     """World points (N, 3) and plane ids (N,) of projector pixels in a session: in the floor
@@ -267,12 +269,45 @@ def dot_world_points(px: np.ndarray, floor: PlaneMap, table: PlaneMap | None,
     dropped (-1): it lands on the floor, already measured, or on the table's edge."""
     px = np.asarray(px, float).reshape(-1, 2)
     if not table_session:
+        assert floor is not None
         return floor.apply(px), np.zeros(len(px), np.int64)
     if table is None:
         raise UserError("the table session needs the table's reference points and height")
     xyz = table.apply(px)
     on = _inside(table.outline_xy_m, xyz[:, :2], edge_margin_m)
     return xyz, np.where(on, TABLE, -1)
+
+
+def table_schedule(schedule: Schedule, table: PlaneMap, edge_margin_m: float = 0.03
+                   ) -> Schedule:
+    """The schedule's dots that land on the table top (by the table map, edge_margin_m
+    inside its outline), coded afresh. Showing only these keeps every camera's image of the
+    dots one smooth plane: dots on the floor beside the table would sit next to table dots
+    in the image but far from them in depth, and naming dots from their neighbours assumes
+    a smooth map from the projector to the image."""
+    from projector.patterns import ROLE_BIT, ROLE_ON, PatternFrame, code_bits
+
+    _, plane = dot_world_points(schedule.points_xy, None, table, True, edge_margin_m)
+    keep = plane == TABLE
+    layers = [ids[keep[ids]] for ids in schedule.layers]
+    layers = [ids for ids in layers if len(ids)]
+    if not layers:
+        raise UserError("no dot of the pattern lands on the table top: check the table's "
+                        "reference points (are they on the table?) or use a finer --step")
+    n_bits = max(1, int(np.ceil(np.log2(max(max(len(ids) for ids in layers), 2)))))
+    frames = []
+    for layer, ids in enumerate(layers):
+        xy = schedule.points_xy[ids]
+        frames.append(PatternFrame(xy, ids, layer, ROLE_ON))
+        if layer > 0:
+            continue
+        frames.append(PatternFrame(xy[:0], ids[:0], layer, ROLE_OFF))
+        bits = code_bits(np.arange(len(ids)), n_bits)
+        for b in range(n_bits + 1):
+            frames.append(PatternFrame(xy[bits[:, b]], ids[bits[:, b]], layer, ROLE_BIT, b))
+    return Schedule(schedule.screen_px, schedule.points_xy, layers, frames, n_bits,
+                    schedule.radius_px, schedule.step_px, "coded",
+                    {**schedule.meta, "table_only": True})
 
 
 # ---- capture ------------------------------------------------------------------------------------

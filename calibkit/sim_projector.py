@@ -355,16 +355,19 @@ def ray_distance_at_height(estimated: Rig, truth: Rig, z_m: float, volume_m: flo
 
 
 def simulated_dots(scene: ProjectorScene, points_px: np.ndarray, table_present: bool,
-                   noise_px: float = 0.2, wrong_ids: float = 0.0, seed: int = 0) -> list:
+                   noise_px: float = 0.2, wrong_ids: float = 0.0, seed: int = 0,
+                   shown: np.ndarray | None = None) -> list:
     """The 2D path as the capture's output: per camera extrinsic.CameraDots with the true
-    ids, noisy centroids, and a share `wrong_ids` of dots given another dot's id (a decoding
-    error, for testing the outlier rejection)."""
+    ids (indices into points_px), noisy centroids, and a share `wrong_ids` of dots given
+    another dot's id (a decoding error, for testing the outlier rejection). shown: the ids
+    the schedule shows (default all)."""
     from calibkit.extrinsic import CameraDots
 
     rng = np.random.default_rng(seed + 7)
+    shown = np.arange(len(points_px)) if shown is None else np.asarray(shown, np.int64)
     out = []
-    for idx, uv in observe_dots(scene, points_px, table_present, noise_px, seed=seed):
-        ids = idx.copy()
+    for idx, uv in observe_dots(scene, points_px[shown], table_present, noise_px, seed=seed):
+        ids = shown[idx]
         if wrong_ids > 0 and len(ids):
             bad = rng.random(len(ids)) < wrong_ids
             ids[bad] = rng.integers(0, len(points_px), int(bad.sum()))

@@ -39,7 +39,7 @@ def _sessions(refs: ex.References, table: bool | None) -> bool:
 
 
 def _capture_live(intr: Rig, specs: list[str], monitor: int, schedule: Schedule,
-                  with_table: bool, samples: int) -> tuple[list, list | None, int]:
+                  tsched: Schedule | None, samples: int) -> tuple[list, list | None, int]:
     """The projector on monitor `monitor`, the cameras from their device numbers or files."""
     from calibkit.sources import open_source
     from projector.display import WindowDisplay
@@ -69,9 +69,9 @@ def _capture_live(intr: Rig, specs: list[str], monitor: int, schedule: Schedule,
     try:
         floor = _run_session(LiveRig(), schedule, len(intr), "floor", samples)
         table = None
-        if with_table:
+        if tsched is not None:
             input("put the table in place under the projector, then press Enter ")
-            table = _run_session(LiveRig(), schedule, len(intr), "table", samples)
+            table = _run_session(LiveRig(), tsched, len(intr), "table", samples)
     finally:
         window.close()
         for s in sources:
@@ -240,6 +240,7 @@ def register(app: typer.Typer) -> None:
                 typer.echo(f"warning: a {what} reference point is {pm.residual_max_mm:.0f} mm "
                            "off the others' fit: re-measure it", err=True)
         schedule = _schedule(proj_px, step, shifts, radius)
+        tsched = ex.table_schedule(schedule, table_map) if table_map is not None else None
         if show_refs and not sim:
             _show_references(refs, monitor, radius)
         if sim and render:
@@ -251,7 +252,7 @@ def register(app: typer.Typer) -> None:
                 tcap = None
                 if with_table:
                     dev.set_table(True)
-                    tcap = _run_session(dev, schedule, len(intr), "table", samples)
+                    tcap = _run_session(dev, tsched, len(intr), "table", samples)
             floor_dots, table_dots = fcap.cameras, None if tcap is None else tcap.cameras
             frames = fcap.frames + (tcap.frames if tcap is not None else 0)
         elif sim:
@@ -259,16 +260,20 @@ def register(app: typer.Typer) -> None:
 
             floor_dots = sp.simulated_dots(scene, schedule.points_xy, False, noise_px,
                                            seed=seed)
-            table_dots = sp.simulated_dots(scene, schedule.points_xy, True, noise_px,
-                                           seed=seed + 1) if with_table else None
+            table_dots = None
             cfg = sp.ProjectorSimConfig(projector_px=proj_px, seed=seed)
             lat = sp.latency_frames(cfg, len(intr))
-            frames = (1 + with_table) * ex.capture_frames_estimate(schedule, lat, samples)
+            frames = ex.capture_frames_estimate(schedule, lat, samples)
+            if tsched is not None:
+                table_dots = sp.simulated_dots(scene, schedule.points_xy, True, noise_px,
+                                               seed=seed + 1,
+                                               shown=np.concatenate(tsched.layers))
+                frames += ex.capture_frames_estimate(tsched, lat, samples)
         else:
             if not camera:
                 raise UserError("live capture needs --camera once per camera (or --sim)")
             floor_dots, table_dots, frames = _capture_live(intr, list(camera), monitor,
-                                                           schedule, with_table, samples)
+                                                           schedule, tsched, samples)
         dots = ex.assemble(intr.names, floor_dots, table_dots, schedule, floor_map, table_map)
         opts = ex.SolveOptions(joint=joint, reference_sigma_m=ref_sigma_mm / 1000.0)
         result = ex.calibrate(intr, dots, floor_map, table_map, opts)
