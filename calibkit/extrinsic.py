@@ -719,7 +719,11 @@ def calibrate(intrinsics: Rig, dots: DotObservations, floor: PlaneMap,
             messages.append(res.warning)
     placed = [r.camera for r in poses if r.camera is not None]
     if not placed:
-        raise UserError("no camera could be calibrated: " + "; ".join(messages))
+        why = ", ".join(f"{r.name} {r.warning.split(': ')[0].split(' ', 2)[2]}"
+                        .replace(f" (needs {opts.min_dots})", "") for r in poses)
+        raise UserError(f"no camera could be calibrated ({why}): each needs "
+                        f"{opts.min_dots} identified dots; turn the cameras towards the "
+                        "floor the projector lights, and check --intrinsics and --refs")
     rig = Rig(tuple(placed))
     refined = dots.xyz
     if opts.joint and len(placed) >= 2:
