@@ -1,0 +1,129 @@
+"""`calibkit extrinsic --projector` end to end on the simulator, and its error messages."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from calibkit.camera import Rig
+from calibkit.compare import compare_rigs
+from calibkit.extrinsic import load_dots, load_references
+from calibkit.recording import load_observations
+
+
+def _one_line_error(res, code=2):
+    assert res.code == code, res.out + res.err
+    lines = [line for line in res.err.strip().splitlines() if line]
+    assert len(lines) == 1 and lines[0].startswith("calibkit: error: "), res.err
+    assert "Traceback" not in res.err
+    return lines[0]
+
+
+def test_sim_writes_the_rig_truth_and_plane_observations(calibkit_cli, tmp_path):
+    out = tmp_path / "rig.toml"
+    res = calibkit_cli("extrinsic", "--projector", "--sim", "--cameras", "4", "--seed", "3",
+                       "--out", out, "--json", tmp_path / "r.json")
+    assert res.code == 0, res.err
+    rig, truth = Rig.load(out), Rig.load(tmp_path / "rig.truth.toml")
+    assert rig.names == truth.names == ["cam0", "cam1", "cam2", "cam3"]
+    cmp = compare_rigs(truth, rig, align=False)
+    assert max(c["position_mm"] for c in cmp["cameras"]) < 10.0
+    assert max(c["rotation_deg"] for c in cmp["cameras"]) < 0.1
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["truth"]["position_error_max_mm"] < 10.0
+    assert report["capture"]["seconds_at_30fps"] < 60.0
+    for cam in report["cameras"]:
+        assert cam["calibrated"] and cam["table_dots"] > 20
+        assert 0.2 < cam["reprojection_rms_px"] < 0.35  # 0.2 px per axis injected
+        assert 0 < cam["mean_ray_distance_table_mm"] < 5
+    assert rig.quality["extrinsic"]["reprojection_rms_px"] > 0
+    # the simulated tape measurements read back as a reference file
+    refs = load_references(tmp_path / "rig.refs.toml")
+    assert len(refs.floor_px) == 16 and refs.table_height_m == 0.75
+    dots = load_dots(tmp_path / "rig.dots.npz")
+    assert set(dots.camera_names) == set(rig.names) and len(dots) > 1000
+    floor_obs, _ = load_observations(tmp_path / "rig.floor.mcrec", rig)
+    assert len(floor_obs.frames()) == 3
+    # calibkit compare reads the pair as written
+    cmp_res = calibkit_cli("compare", tmp_path / "rig.truth.toml", out, "--no-align")
+    assert cmp_res.code == 0 and "cam3" in cmp_res.out
+
+
+def test_sim_without_a_table_warns_and_still_calibrates(calibkit_cli, tmp_path):
+    out = tmp_path / "rig.toml"
+    res = calibkit_cli("extrinsic", "--projector", "--sim", "--cameras", "3",
+                       "--table-height", "0", "--no-joint", "--out", out)
+    assert res.code == 0, res.err
+    assert "warning: no table" in res.err
+    assert len(Rig.load(out)) == 3
+
+
+def test_rendered_sim_runs_detection_end_to_end(calibkit_cli, tmp_path):
+    out = tmp_path / "rig.toml"
+    res = calibkit_cli("extrinsic", "--projector", "--sim", "--render", "--cameras", "2",
+                       "--size", "320x240", "--step", "96", "--radius", "10", "--seed", "1",
+                       "--out", out, "--json", tmp_path / "r.json")
+    assert res.code == 0, res.err
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["capture"]["simulated_frames"] is False
+    assert 0 < report["capture"]["seconds_at_30fps"] < 60
+    assert "floor dots:" in res.err and "table dots:" in res.err  # progress on stderr
+    assert report["truth"]["position_error_max_mm"] < 25.0
+    assert report["cameras"][0]["floor_dots"] > 100
+
+
+def test_template_then_unmeasured_file_is_refused(calibkit_cli, tmp_path):
+    tpl = tmp_path / "refs.toml"
+    res = calibkit_cli("extrinsic", "--projector", "--template", tpl,
+                       "--projector-size", "1920x1080")
+    assert res.code == 0, res.err
+    text = tpl.read_text()
+    assert text.count("[[floor]]") == 16 and "size = [1920, 1080]" in text
+    rig = tmp_path / "intr.toml"
+    from calibkit import sim
+
+    sim.make_rig(2).save(rig)
+    res = calibkit_cli("extrinsic", "--projector", "--refs", tpl, "--intrinsics", rig,
+                       "--out", tmp_path / "out.toml", "--camera", "0", "--camera", "1")
+    line = _one_line_error(res)
+    assert "floor point 1 holds a value that is not a number" in line
+
+
+def test_usage_errors_are_one_line(calibkit_cli, tmp_path):
+    line = _one_line_error(calibkit_cli("extrinsic", "--sim", "--out", tmp_path / "x.toml"))
+    assert "--projector" in line
+    line = _one_line_error(calibkit_cli("extrinsic", "--projector", "--out",
+                                        tmp_path / "x.toml"))
+    assert "--refs REFS.toml is required" in line
+    refs = tmp_path / "refs.toml"
+    pts = ((0, 0), (500, 0), (0, 500), (500, 500))
+    refs.write_text("".join(f"[[floor]]\npx = [{u}, {v}]\nxy_m = [{u / 100}, {v / 100}]\n"
+                            for u, v in pts)
+                    + "".join(f"[[table.point]]\npx = [{u}, {v}]\nxy_m = [{u / 900}, "
+                              f"{v / 900}]\n" for u, v in pts))
+    line = _one_line_error(calibkit_cli("extrinsic", "--projector", "--refs", refs,
+                                        "--intrinsics", refs, "--out", tmp_path / "x.toml"))
+    assert "table points are given but not the table's height" in line
+    line = _one_line_error(calibkit_cli("extrinsic", "--projector", "--sim", "--out",
+                                        tmp_path / "x.toml", "--table-height", "-1"))
+    assert "--table-height" in line
+    assert not (tmp_path / "x.toml").exists()
+
+
+def test_refs_without_table_reject_table_flag(calibkit_cli, tmp_path):
+    refs = tmp_path / "refs.toml"
+    pts = ((0, 0), (500, 0), (0, 500), (500, 500), (250, 250))
+    refs.write_text("".join(f"[[floor]]\npx = [{u}, {v}]\nxy_m = [{u / 100}, "
+                            f"{v / 100 + 0.001 * np.sin(u)}]\n" for u, v in pts))
+    from calibkit import sim
+
+    sim.make_rig(2).save(tmp_path / "intr.toml")
+    line = _one_line_error(calibkit_cli("extrinsic", "--projector", "--refs", refs,
+                                        "--intrinsics", tmp_path / "intr.toml", "--table",
+                                        "--out", tmp_path / "x.toml"))
+    assert "--table needs the table" in line
+    line = _one_line_error(calibkit_cli("extrinsic", "--projector", "--refs", refs,
+                                        "--intrinsics", tmp_path / "intr.toml",
+                                        "--out", tmp_path / "x.toml"))
+    assert "--camera" in line
