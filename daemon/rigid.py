@@ -25,7 +25,7 @@ class BodyDef:
     id: int  # streaming id, 0..65535
     markers: np.ndarray  # (k, 3) metres, body frame
     pivot: np.ndarray  # (3,) the point reported as the body's position, body frame
-    min_markers_start: int = 3
+    min_markers_start: int = 4  # (at most the marker count) four points fix a body uniquely
     min_markers_keep: int = 3
     smoothing: float = 0.0  # 0 = off; else weight of the previous pose (0..1)
 
@@ -183,8 +183,14 @@ class RigidTracker:
         R = np.tile(np.eye(3), (len(self.bodies), 1, 1))
         t = np.zeros((len(self.bodies), 3))
         err = np.full(len(self.bodies), np.nan)
+        sigma = None
+        if len(tracks) and tracks.sigma_m is not None:
+            sigma = tracks.sigma_m[np.maximum(row, 0)]
         for _ in range(3):
+            # weights: inverse variance of each marker's triangulation, when known
             w = seen.astype(np.float64)
+            if sigma is not None:
+                w = np.where(seen, 1.0 / np.maximum(np.where(seen, sigma, 1.0), 1e-6) ** 2, 0.0)
             R, t = kabsch_batch(self.markers, dst, w)
             fitted = np.matmul(self.markers, R.transpose(0, 2, 1)) + t[:, None, :]
             diff = fitted - dst
@@ -233,7 +239,7 @@ class RigidTracker:
             own = self._rows(tracks, self.assigned[b])
             own = own[own >= 0]
             pool = np.concatenate([free, own[tracks.seen[own]]])
-            if len(pool) < body.min_markers_start:
+            if len(pool) < min(body.min_markers_start, len(body.markers)):
                 continue
             match = find_body(body, tracks.xyz[pool], self.config.distance_tol_m,
                               self.config.max_error_m)
@@ -285,7 +291,7 @@ def find_body(body: BodyDef, xyz: np.ndarray, tol_m: float, max_error_m: float):
     """
     k = len(body.markers)
     n = len(xyz)
-    need = body.min_markers_start
+    need = max(3, min(body.min_markers_start, k))
     if n < need:
         return None
     D = np.linalg.norm(xyz[:, None, :] - xyz[None, :, :], axis=2)

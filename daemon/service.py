@@ -246,15 +246,25 @@ class Daemon:
         self.rig = self.scene.rig
         bodies = self._bodies(cfg)
         self._warn_alike(bodies)
-        self.evaluator = Evaluator(self.scene)
+        self.evaluator = Evaluator(self.scene, slots=not cfg.bodies)
         self.pipeline = Pipeline(self.rig, cfg.tracker, cfg.rigid, bodies,
                                  make_publishers(cfg, bodies),
                                  hooks=[self.evaluator])
+        self._warm_up()
         runtime = cfg.runtime_dir or default_runtime_dir()
         self.control = ControlServer(runtime, self.handle)
         self.control.open()
         for p in self.pipeline.publishers:
             p.start()
+
+    def _warm_up(self) -> None:
+        """Run the correspondence once on a frame's blobs before READY: its compiled kernels
+        load on first use (about a second), which would otherwise stall the first frames."""
+        from calibkit.correspondence import match_frame
+
+        samples = [self.scene.sample(c, 0, 0) for c in range(len(self.rig))]
+        camera = np.concatenate([np.full(len(s.uv), s.camera) for s in samples])
+        match_frame(self.rig, camera, np.concatenate([s.uv for s in samples]))
 
     def _bodies(self, cfg: Config) -> list:
         if cfg.bodies or cfg.sim is None or not cfg.sim.define_bodies:

@@ -35,6 +35,54 @@ class TrackerConfig:
         default_factory=lambda: CorrespondenceConfig(two_camera=False))
 
 
+class AllCameras:
+    """Projection of points into every camera of a rig at once, laid out (point, camera):
+    one matrix product for all rotations, the distortion broadcast over cameras, no
+    per-observation gathering. The tracker projects every track into every camera every
+    frame, so this layout is what it needs."""
+
+    def __init__(self, arrays: RigArrays) -> None:
+        self.n = len(arrays.fx)
+        self.R_stack = arrays.R.reshape(-1, 3).T.copy()  # (3, 3C): X @ R_stack -> (T, 3C)
+        self.R = arrays.R
+        self.t = arrays.t.reshape(1, -1)  # (1, 3C)
+        self.fx, self.fy, self.cx, self.cy, self.skew = (
+            v[None, :] for v in (arrays.fx, arrays.fy, arrays.cx, arrays.cy, arrays.skew))
+        self.k1, self.k2, self.p1, self.p2, self.k3 = (arrays.dist[:, i][None, :]
+                                                       for i in range(5))
+
+    def project(self, xyz: np.ndarray):
+        """(T, 3) -> pixels (T, C, 2), depth (T, C), d pixels / d xyz (T, C, 2, 3)."""
+        pc = (xyz @ self.R_stack + self.t).reshape(len(xyz), self.n, 3)
+        z = pc[:, :, 2]
+        zs = np.where(np.abs(z) < 1e-12, 1e-12, z)
+        inv_z = 1.0 / zs
+        x, y = pc[:, :, 0] * inv_z, pc[:, :, 1] * inv_z
+        k1, k2, k3, p1, p2 = self.k1, self.k2, self.k3, self.p1, self.p2
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+        yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        uv = np.empty(z.shape + (2,))
+        uv[:, :, 0] = self.fx * xd + self.skew * yd + self.cx
+        uv[:, :, 1] = self.fy * yd + self.cy
+        dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+        j11 = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
+        j12 = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
+        j22 = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
+        a11 = (self.fx * j11 + self.skew * j12) * inv_z
+        a12 = (self.fx * j12 + self.skew * j22) * inv_z
+        a21 = self.fy * j12 * inv_z
+        a22 = self.fy * j22 * inv_z
+        # d(uv)/d(pc) (T, C, 2, 3), then times R (C, 3, 3)
+        Jc = np.empty(z.shape + (2, 3))
+        Jc[:, :, 0, 0], Jc[:, :, 0, 1] = a11, a12
+        Jc[:, :, 0, 2] = -(a11 * x + a12 * y)
+        Jc[:, :, 1, 0], Jc[:, :, 1, 1] = a21, a22
+        Jc[:, :, 1, 2] = -(a21 * x + a22 * y)
+        return uv, z, np.matmul(Jc, self.R[None])
+
+
 @dataclass(eq=False)
 class TrackFrame:
     """The tracks after one frame, sorted by id."""
@@ -45,6 +93,7 @@ class TrackFrame:
     n_cameras: np.ndarray  # (T,) observations used this frame
     blobs: np.ndarray  # (T, C) index of the frame's blob each camera gave, -1 if none
     missing: np.ndarray  # (T,) frames since last seen
+    sigma_m: np.ndarray | None = None  # (T,) position std per pixel of noise (m/px)
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -57,6 +106,7 @@ class Tracker:
         self.rig = rig
         self.config = config or TrackerConfig()
         self.arrays = RigArrays.from_rig(rig)
+        self.cams = AllCameras(self.arrays)
         self.n_cameras = len(rig)
         self.sizes = np.array([c.size for c in rig], dtype=np.float64)  # (C, 2)
         self.ids = np.zeros(0, dtype=np.int64)
@@ -66,7 +116,6 @@ class Tracker:
         self.next_id = 1
         self.last_t_ns: int | None = None
         self.frames = 0
-        self._cam_idx = np.zeros(0, dtype=np.int64)
 
     def reset(self) -> None:
         self.__init__(self.rig, self.config)
@@ -88,14 +137,11 @@ class Tracker:
         seen = np.zeros(n_tracks, dtype=bool)
         n_cams = np.zeros(n_tracks, dtype=np.int64)
         new_xyz = pred.copy()
+        self.sigma = np.full(n_tracks, np.inf)
         if n_tracks and n_blobs:
-            proj, z, J = self.arrays.project(self.cam_idx(n_tracks),
-                                             np.repeat(pred, n_cameras, axis=0), jacobian=True)
-            proj = proj.reshape(n_tracks, n_cameras, 2)
-            blobs, explained = self._associate(proj, (z > 0).reshape(n_tracks, n_cameras),
-                                               camera, uv)
-            ok, xyz, n_used, blobs = self._triangulate(
-                pred, proj, J.reshape(n_tracks, n_cameras, 2, 3), uv, blobs)
+            proj, z, J = self.cams.project(pred)
+            blobs, explained = self._associate(proj, z > 0, camera, uv)
+            ok, xyz, n_used, blobs = self._triangulate(pred, proj, J, uv, blobs)
             seen = ok
             n_cams = n_used
             new_xyz[ok] = xyz[ok]
@@ -116,13 +162,16 @@ class Tracker:
         if due and n_blobs - used.sum() >= cfg.min_cameras_new:
             blobs, seen, n_cams = self._new_tracks(camera, uv, used, blobs, seen, n_cams)
         keep = self.missing <= cfg.max_missing
-        keep &= self._not_duplicate(seen)
+        if len(self.ids) > n_tracks:  # new tracks this frame: check for duplicates
+            keep &= self._not_duplicate(seen)
         if not np.all(keep):
             self.ids, self.xyz, self.vel = self.ids[keep], self.xyz[keep], self.vel[keep]
             self.missing = self.missing[keep]
             blobs, seen, n_cams = blobs[keep], seen[keep], n_cams[keep]
+            self.sigma = self.sigma[keep]
+        sigma = np.where(seen, self.sigma, np.inf)
         return TrackFrame(self.ids.copy(), self.xyz.copy(), seen, n_cams, blobs,
-                          self.missing.copy())
+                          self.missing.copy(), sigma)
 
     def _associate(self, proj: np.ndarray, front: np.ndarray, camera: np.ndarray,
                    uv: np.ndarray):
@@ -161,48 +210,44 @@ class Tracker:
         return out, explained
 
     def _triangulate(self, pred, proj, J, uv, blobs):
-        """Gauss-Newton in pixels from the prediction, dense over (track, camera): the
-        prediction is within a millimetre, so no linear start (and no undistortion) is
-        needed, and the prediction's projection and Jacobian (already computed for the
-        gating) give the first step. An observation whose residual then exceeds outlier_px
-        is dropped (the worst per track, while two others remain) before the second step.
+        """Gauss-Newton in pixels, dense over (track, camera), linearised once at the
+        prediction: the prediction is within millimetres, where the projection is linear
+        to far below the noise, so the gating's projection and Jacobian serve for the
+        solve too (no undistortion, no second projection). Observations whose linearised
+        residual after the step exceeds outlier_px are dropped (the worst per track, while
+        two others remain) and the step solved again.
         -> (ok (T,), xyz (T, 3), cameras used (T,), blobs with dropped ones set to -1)."""
         cfg = self.config
-        n_tracks, n_cams = blobs.shape
+        n_tracks = len(blobs)
         have = blobs >= 0
-        obs = uv[np.maximum(blobs, 0)]  # (T, C, 2)
-        xyz = pred.copy()
+        r = proj - uv[np.maximum(blobs, 0)]  # (T, C, 2)
+        JtJ = np.matmul(J.transpose(0, 1, 3, 2), J)  # (T, C, 3, 3)
+        Jtr = np.matmul(J.transpose(0, 1, 3, 2), r[..., None])[..., 0]  # (T, C, 3)
         t = np.arange(n_tracks)
+        eye = np.eye(3) * 1e-9
         for it in range(2):
+            w = have[:, :, None].astype(np.float64)
+            H = np.sum(JtJ * w[..., None], axis=1) + eye
+            g = np.sum(Jtr * w, axis=1)
+            H_inv = np.linalg.inv(H)
+            step = np.matmul(H_inv, g[:, :, None])[:, :, 0]
+            r_after = r - np.matmul(J, step[:, None, :, None])[..., 0]
+            e = np.where(have, np.sqrt(np.sum(r_after * r_after, axis=2)), -1.0)
             if it:
-                p, _, Jf = self.arrays.project(self.cam_idx(n_tracks),
-                                               np.repeat(xyz, n_cams, axis=0), jacobian=True)
-                proj, J = p.reshape(n_tracks, n_cams, 2), Jf.reshape(n_tracks, n_cams, 2, 3)
-            r = proj - obs
-            if it:  # after one step the residuals say which observations are wrong
-                e = np.where(have, np.sqrt(np.sum(r * r, axis=2)), -1.0)
-                worst = np.argmax(e, axis=1)
-                drop = (e[t, worst] > cfg.outlier_px) & (have.sum(axis=1) > 2)
-                have[t[drop], worst[drop]] = False
-            w = have.astype(np.float64)
-            H = np.einsum("tc,tcki,tckj->tij", w, J, J)
-            g = np.einsum("tc,tcki,tck->ti", w, J, r)
-            H += np.eye(3) * 1e-9
-            step = np.linalg.solve(H, g[:, :, None])[:, :, 0]
-            xyz -= step
-        # residuals after the last step, to first order
-        r_after = r - np.einsum("tckj,tj->tck", J, step)
-        e = np.sqrt(np.sum(r_after * r_after, axis=2))
+                break
+            worst = np.argmax(e, axis=1)
+            drop = (e[t, worst] > cfg.outlier_px) & (have.sum(axis=1) > 2)
+            if not np.any(drop):
+                break
+            have[t[drop], worst[drop]] = False
+        xyz = pred - step
         n_used = have.sum(axis=1)
-        ok = (n_used >= 2) & np.all(~have | (e <= cfg.outlier_px), axis=1)
-        ok &= np.isfinite(xyz[:, 0])
+        ok = (n_used >= 2) & np.all(e <= cfg.outlier_px, axis=1) & np.isfinite(xyz[:, 0])
         blobs = np.where(have, blobs, -1)
+        # H^-1 is the point's covariance per unit pixel variance: a track seen by two
+        # cameras at a narrow angle is far less certain (along its depth) than one seen by six
+        self.sigma = np.sqrt(np.maximum(np.trace(H_inv, axis1=1, axis2=2), 0.0) / 3.0)
         return ok, xyz, n_used, blobs
-
-    def cam_idx(self, n_tracks: int) -> np.ndarray:
-        if len(self._cam_idx) < n_tracks * self.n_cameras:
-            self._cam_idx = np.tile(np.arange(self.n_cameras), max(n_tracks, 64) * 2)
-        return self._cam_idx[:n_tracks * self.n_cameras]
 
     def _new_tracks(self, camera, uv, used, blobs, seen, n_cams):
         cfg = self.config
@@ -221,10 +266,11 @@ class Tracker:
             d = np.linalg.norm(xyz[:, None, :] - self.xyz[None, :, :], axis=2)  # (P, T)
             # a point on top of a seen track is a duplicate of it
             take &= ~np.any((d < cfg.merge_m) & seen[None, :], axis=1)
-            # a point near a coasting track is that track back
-            coasting = np.where(~seen[None, :] & (d < cfg.revive_m), d, np.inf)
-            near = np.argmin(coasting, axis=1)
-            revive = take & np.isfinite(coasting[np.arange(len(xyz)), near])
+            # a point near a coasting track is that track back, if each is the other's only
+            # candidate (two markers near one lost track would swap identities)
+            close = ~seen[None, :] & (d < cfg.revive_m) & take[:, None]
+            near = np.argmax(close, axis=1)
+            revive = (close.sum(axis=1) == 1) & (close.sum(axis=0)[near] == 1)
             if np.any(revive):
                 tr, pt = near[revive], np.flatnonzero(revive)
                 tr, first = np.unique(tr, return_index=True)
@@ -235,6 +281,7 @@ class Tracker:
                 seen[tr] = True
                 blobs[tr] = table[pt]
                 n_cams[tr] = ncam[pt]
+                self.sigma[tr] = np.where(np.isfinite(self.sigma[tr]), self.sigma[tr], 1e-3)
                 take[revive] = False
         if np.any(take):
             k = int(take.sum())
@@ -244,6 +291,10 @@ class Tracker:
             self.vel = np.concatenate([self.vel, np.zeros((k, 3))])
             self.missing = np.concatenate([self.missing, np.zeros(k, dtype=np.int64)])
             seen = np.concatenate([seen, np.ones(k, dtype=bool)])
+            # a new point's certainty: like a tracked one seen by as many cameras
+            typical = np.median(self.sigma[np.isfinite(self.sigma)]) if np.any(
+                np.isfinite(self.sigma)) else 1e-3
+            self.sigma = np.concatenate([self.sigma, np.full(k, typical)])
             n_cams = np.concatenate([n_cams, ncam[take]])
             blobs = np.concatenate([blobs, table[take]])
         return blobs, seen, n_cams

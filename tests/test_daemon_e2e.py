@@ -146,7 +146,7 @@ def test_live_daemon_outputs_control_reload_and_stop(tmp_path, mocapd_cli):
             if p.valid[i]:
                 valid += 1
                 errors.append(np.linalg.norm(p.position[i] - b.poses[f][:3, 3]))
-    assert valid >= 0.95 * 2 * (len(got) - 10)
+    assert valid >= 0.85 * 2 * (len(got) - 10)  # 4-marker bodies start with all 4 seen
     assert np.sqrt(np.mean(np.square(errors))) < 0.002  # ~0.6 mm expected at 0.2 px
     # the daemon's own latency field (this loop polls too slowly to time arrivals; the
     # benchmark measures the receiver side); loose bounds for a shared CI machine

@@ -46,7 +46,9 @@ def test_noise_free_tracks_are_exact_and_complete(scene):
         ids, xyz = truth.at_frame(f)
         seen = fr.xyz[fr.seen]
         d = np.linalg.norm(seen[:, None] - xyz[None], axis=2)
-        assert np.all(d.min(axis=1) < 1e-9)
+        # one Gauss-Newton step linearised at the prediction: exact to second order in the
+        # prediction error (~mm), i.e. to well under a micrometre
+        assert np.all(d.min(axis=1) < 1e-6)
         assert fr.seen.sum() == len(ids)  # every marker tracked, no duplicates
 
 
