@@ -1,0 +1,234 @@
+"""VRPN tracker server: wire layout, a hand-written client over both connection paths (TCP and
+UDP connect-back), libmotioncapture's VRPN client, and a client that stops reading."""
+
+from __future__ import annotations
+
+import select
+import socket
+import struct
+import threading
+import time
+
+import numpy as np
+from test_natnet import Feeder, Scene, finish, run_motioncapture  # shared scene and client
+
+from daemon.publish import vrpn
+
+# ---- layout ---------------------------------------------------------------------------------
+
+def test_cookie_and_message_layout():
+    c = vrpn.cookie()
+    assert len(c) == 24 and c.startswith(b"vrpn: ver. 07.35  0") and c[19:] == bytes(5)
+    assert vrpn.check_cookie(b"vrpn: ver. 07.38  0".ljust(24, b"\0"))  # minor versions mix
+    assert not vrpn.check_cookie(b"vrpn: ver. 06.10  0".ljust(24, b"\0"))
+    m = vrpn.pack(3, 7, b"abcde", t_s=1700000000.25, seq=9)
+    assert len(m) == 24 + 8  # payload padded to 8 bytes
+    assert struct.unpack(">iiiiii", m[:24]) == (29, 1700000000, 250000, 3, 7, 9)
+    d = vrpn.describe(vrpn.SENDER_DESCRIPTION, 2, "body0")
+    assert struct.unpack_from(">iiiii", d)[3:] == (2, -1)
+    assert d[24:24 + 10] == struct.pack(">i", 6) + b"body0\0"
+
+
+def test_unpack_handles_partial_and_several_messages():
+    stream = vrpn.pack(1, 2, b"x" * 9) + vrpn.pack(4, -2, b"") + vrpn.pack(5, 6, b"y" * 16)
+    buf, got = bytearray(), []
+    for k in range(0, len(stream), 7):  # as TCP may deliver it
+        buf += stream[k:k + 7]
+        got += vrpn.unpack_messages(buf)
+    assert [(s, t, p) for s, t, p, _ in got] == [(1, 2, b"x" * 9), (4, -2, b""),
+                                                 (5, 6, b"y" * 16)]
+    assert not buf
+
+
+def test_pose_messages_carry_tracked_bodies_only():
+    scene = Scene()
+    r = scene.frame(41)  # the last body is occluded
+    m = vrpn.pose_messages(r, np.array([0, 1]), 1700000000.5)
+    assert m.dtype.itemsize == 88 and len(m) == 1
+    got = vrpn.unpack_messages(bytearray(m.tobytes()))
+    sender, type_id, payload, t = got[0]
+    assert (sender, type_id, len(payload), t) == (0, 0, 64, 1700000000.5)
+    sensor, _, *values = struct.unpack(">ii7d", payload)
+    assert sensor == 0
+    np.testing.assert_array_equal(values[:3], r.poses.position[0])
+    np.testing.assert_array_equal(values[3:], r.poses.quaternion[0])
+
+
+# ---- a minimal VRPN client, written from the protocol description ---------------------------
+
+class RawClient:
+    """Connects (directly over TCP, or by lobbing a UDP request and accepting the server's
+    call back), exchanges cookies, reads the server's descriptions and messages."""
+
+    def __init__(self, port: int, lob: bool, udp: bool = False, read: bool = True,
+                 rcvbuf: int | None = None) -> None:
+        if lob:
+            listener = socket.socket()
+            listener.bind(("127.0.0.1", 0))
+            listener.listen(1)
+            listener.settimeout(5)
+            u = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            u.sendto(f"127.0.0.1 {listener.getsockname()[1]}".encode() + b"\0",
+                     ("127.0.0.1", port))
+            self.sock, _ = listener.accept()
+            listener.close()
+            u.close()
+        else:
+            self.sock = socket.socket()
+            if rcvbuf:
+                self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+            self.sock.connect(("127.0.0.1", port))
+        self.sock.settimeout(5)
+        self.sock.sendall(vrpn.cookie())
+        cookie = b""
+        while len(cookie) < 24:
+            cookie += self.sock.recv(24 - len(cookie))
+        assert vrpn.check_cookie(cookie)
+        self.senders, self.types, self.poses, self.pongs = {}, {}, [], 0
+        self.buf = bytearray()
+        self.udp = None
+        if udp:  # offer a UDP port for the low-latency messages, as VRPN clients do
+            self.udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            self.udp.bind(("127.0.0.1", 0))
+            self.sock.sendall(vrpn.pack(self.udp.getsockname()[1], vrpn.UDP_DESCRIPTION,
+                                        b"127.0.0.1\0"))
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        if read:
+            self.thread.start()
+
+    def ping(self, name: str) -> None:
+        self.sock.sendall(vrpn.describe(vrpn.SENDER_DESCRIPTION, 5, name)
+                          + vrpn.describe(vrpn.TYPE_DESCRIPTION, 3, vrpn.PING)
+                          + vrpn.pack(5, 3))
+
+    def _take(self, messages) -> None:
+        for sender, type_id, payload, _t in messages:
+            if type_id == vrpn.SENDER_DESCRIPTION:
+                self.senders[sender] = payload[4:].split(b"\0")[0].decode()
+            elif type_id == vrpn.TYPE_DESCRIPTION:
+                self.types[sender] = payload[4:].split(b"\0")[0].decode()
+            elif self.types.get(type_id) == vrpn.POS_QUAT:
+                self.poses.append((self.senders[sender], struct.unpack(">ii7d", payload)[2:]))
+            elif self.types.get(type_id) == vrpn.PONG:
+                self.pongs += 1
+
+    def _run(self) -> None:
+        socks = [self.sock] + ([self.udp] if self.udp is not None else [])
+        while not self.stop.is_set():
+            for s in select.select(socks, [], [], 0.05)[0]:
+                data = s.recv(65536)
+                if s is self.udp:
+                    self._take(vrpn.unpack_messages(bytearray(data)))
+                elif not data:
+                    return
+                else:
+                    self.buf += data
+                    self._take(vrpn.unpack_messages(self.buf))
+
+    def close(self) -> None:
+        self.stop.set()
+        if self.thread.is_alive():
+            self.thread.join()
+        self.sock.close()
+
+
+def check_poses(poses, handed, scene: Scene, atol: float = 0.0) -> set:
+    """Every (name, pose) received is that body's pose in a handed frame where it was
+    tracked; the frames matched."""
+    frames = sorted(handed)
+    names = [b.name for b in scene.bodies]
+    tables = [np.array([np.concatenate([handed[i].poses.position[j],
+                                        handed[i].poses.quaternion[j]]) for i in frames])
+              for j in range(len(names))]
+    matched = set()
+    for name, values in poses:
+        j = names.index(name)
+        d = np.nan_to_num(np.abs(tables[j] - np.asarray(values)), nan=1.0).max(axis=1)
+        k = int(np.argmin(d))
+        assert d[k] <= atol, f"{name}: pose not among the handed frames ({d[k]:.2e})"
+        assert handed[frames[k]].poses.valid[j]
+        matched.add((name, frames[k]))
+    return matched
+
+
+def test_raw_clients_over_tcp_and_connect_back_with_pings():
+    scene = Scene()
+    pub = vrpn.VrpnPublisher(scene.defs(), host="127.0.0.1", port=0)
+    with Feeder(pub, scene) as feed:
+        direct = RawClient(pub.port, lob=False)
+        back = RawClient(pub.port, lob=True, udp=True)
+        feed.wait_frames(100)
+        back.ping("body1")
+        direct.ping("nobody")  # not one of ours: no pong, as a VRPN server does
+        feed.wait_frames(10)
+        status = pub.status()
+        direct.close()
+        back.close()
+    assert status["clients"] == 2 and status["errors"] == 0
+    for c in (direct, back):
+        assert set(c.senders.values()) == {"body0", "body1"}
+        assert {vrpn.POS_QUAT, vrpn.PONG} <= set(c.types.values())
+        matched = check_poses(c.poses, feed.handed, scene)  # float64 on the wire: exact
+        assert len(matched) >= 150
+        assert {n for n, _ in matched} == {"body0", "body1"}
+        # the occluded body is not sent while hidden: fewer of its poses than the other's
+        n1 = sum(n == "body1" for n, _ in matched)
+        assert 0.3 * len(matched) < n1 < 0.6 * len(matched)
+    assert back.pongs == 1 and direct.pongs == 0
+
+
+def test_motioncapture_vrpn_clients_join_and_leave():
+    """libmotioncapture's VRPN client (UDP connect-back, pings, UDP poses): two clients, the
+    second joining late and leaving early; the first sees every body's pose, hidden bodies
+    drop out, the second changes nothing for it."""
+    scene = Scene()
+    pub = vrpn.VrpnPublisher(scene.defs(), host="127.0.0.1", port=0)
+    with Feeder(pub, scene) as feed:
+        cfg = {"hostname": f"127.0.0.1:{pub.port}"}  # the port the server was given
+        first = run_motioncapture("vrpn", cfg, 300)
+        feed.wait_frames(80)
+        second = run_motioncapture("vrpn", cfg, 60)
+        got_second = finish(second)
+        got_first = finish(first)
+        pongs = pub.pongs
+    assert pub.status()["errors"] == 0 and pongs >= 2  # each tracker answered its pings
+    for got, least in ((got_first, 150), (got_second, 25)):
+        poses = [(n, v) for frame in got for n, v in frame.items()]
+        matched = check_poses(poses, feed.handed, scene, atol=2e-6)  # float32 in the client
+        assert {n for n, _ in matched} == {"body0", "body1"} and len(matched) > least
+    # while body1 was hidden the client reported body0 alone
+    assert any("body0" in f and "body1" not in f for f in got_first)
+    assert any("body0" in f and "body1" in f for f in got_first)
+    # the client polls at its own 100 Hz against our 100 Hz, so about every other poll is
+    # empty; a client stalled by the second one's arrival or leaving would show far fewer
+    assert sum(bool(f) for f in got_first) > 110
+
+
+def test_a_client_that_stops_reading_is_dropped_and_the_others_go_on():
+    scene = Scene(n_bodies=8)
+    scene.occluded = lambda i: False
+    pub = vrpn.VrpnPublisher(scene.defs(), host="127.0.0.1", port=0,
+                             max_backlog_bytes=32_000)
+    pub.open()
+    try:
+        stalled = RawClient(pub.port, lob=False, read=False, rcvbuf=4096)
+        reader = RawClient(pub.port, lob=False)
+        deadline = time.monotonic() + 10
+        while sum(c.connected for c in pub.clients) < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        sent, frame = 0, scene.frame(0)
+        while len(pub.clients) == 2 and time.monotonic() < deadline:
+            pub.send(frame)
+            sent += 1
+        assert len(pub.clients) == 1, "the stalled client was never dropped"
+        for _ in range(50):
+            pub.send(frame)
+        while len(reader.poses) < 8 * (sent + 50) and time.monotonic() < deadline + 5:
+            time.sleep(0.01)
+        assert len(reader.poses) == 8 * (sent + 50)  # every pose of every frame
+        assert pub.status()["clients"] == 1
+        stalled.close()
+        reader.close()
+    finally:
+        pub.close()
