@@ -332,6 +332,7 @@ def run_motioncapture(kind: str, cfg: dict, n_frames: int):
 
 
 def finish(proc, timeout_s: float = 20):
+    """The client's frames: [{body name: [x, y, z, qx, qy, qz, qw]}] per waitForNextFrame."""
     try:
         out, err = proc.communicate(timeout=timeout_s)
     except subprocess.TimeoutExpired:
