@@ -29,12 +29,12 @@ def chessboard_screen(screen_px, square_px=120, cols=15, rows=8):
     w, h = screen_px
     x0 = (w - cols * square_px) // 2
     y0 = (h - rows * square_px) // 2
-    img = np.zeros((h, w), np.float32)
+    img = np.ones((h, w), np.float32)  # a white border, as a printed board has
     for r in range(rows):
         for c in range(cols):
-            if (r + c) % 2 == 0:
+            if (r + c) % 2 == 1:
                 img[y0 + r * square_px:y0 + (r + 1) * square_px,
-                    x0 + c * square_px:x0 + (c + 1) * square_px] = 1.0
+                    x0 + c * square_px:x0 + (c + 1) * square_px] = 0.0
     gx, gy = np.meshgrid(np.arange(1, cols), np.arange(1, rows))
     # a square edge lies between pixels: pixel centres at integers, so corners sit at -0.5
     corners = np.column_stack([x0 + gx.ravel() * square_px - 0.5,
@@ -117,7 +117,7 @@ def main() -> None:
     runs = [one_run(seed, args.views) for seed in range(args.runs)]
     keys = ["frames_per_view", "capture_s_per_view", "points", "rms_px", "fx_err_pct",
             "fy_err_pct", "cx_err_px", "cy_err_px", "cv_fx_err_pct", "cv_fy_err_pct",
-            "cv_cx_err_px", "cv_cy_err_px", "solve_s", "raster_frames_per_view"]
+            "cv_cx_err_px", "cv_cy_err_px", "cv_views", "solve_s", "raster_frames_per_view"]
     print(f"monitor intrinsic calibration: 640x480 camera, {args.views} views, "
           f"{args.runs} runs (seeds 0..{args.runs - 1})")
     print(f"{'figure':24s}" + "".join(f"{'run ' + str(r['seed']):>11s}" for r in runs)
@@ -127,6 +127,7 @@ def main() -> None:
         vals = [r.get(k, float("nan")) for r in runs]
         med[k] = float(np.nanmedian(vals))
         print(f"{k:24s}" + "".join(f"{v:11.4g}" for v in vals) + f"{med[k]:11.4g}")
+    print("(cv_views: views in which OpenCV found the whole chessboard; it needs 3)")
     print("\nratio of errors, OpenCV chessboard / monitor dots (median over runs; > 1 means "
           "the dots are more accurate):")
     for p, unit in (("fx", "pct"), ("fy", "pct"), ("cx", "px"), ("cy", "px")):

@@ -241,7 +241,8 @@ class DotCapture:
             p[near] = b.uv[j[near]]
             per_shot.append(p)
         stack = np.stack(per_shot)
-        spread = np.sqrt(np.nanmean(np.sum((stack - uv) ** 2, axis=2), axis=0)) \
+        # NaN (and so dropped below) where a sample missed the dot
+        spread = np.sqrt(np.mean(np.sum((stack - uv) ** 2, axis=2), axis=0)) \
             if len(shots) > 1 else np.zeros(len(uv))
         seen_in_all = np.isfinite(stack).all(axis=(0, 2))
         keep &= seen_in_all & (spread <= self.max_scatter_px)

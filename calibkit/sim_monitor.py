@@ -127,14 +127,18 @@ class MonitorSim:
             if self._ray_cache is None:
                 self._ray_cache = self._rays()
             ray = self._ray_cache
-            d = np.column_stack([ray, np.ones(len(ray))])
             view = self.views[self.view_index]
             n = view.R[:, 2]
+            # plain elementwise products: numpy's threaded BLAS is slow on a busy machine
             with np.errstate(divide="ignore", invalid="ignore"):
-                depth = (n @ view.t) / (d @ n)
-            xyz = d * depth[:, None]
-            local = (xyz - view.t) @ view.R  # R^T (X - t)
-            scr = local[:, :2] / (self.config.pixel_pitch_mm / 1000.0)
+                depth = float(np.dot(n, view.t)) / (ray[:, 0] * n[0] + ray[:, 1] * n[1] + n[2])
+            rel = [ray[:, 0] * depth - view.t[0], ray[:, 1] * depth - view.t[1],
+                   depth - view.t[2]]
+            pitch_m = self.config.pixel_pitch_mm / 1000.0
+            # R^T (X - t): screen coordinates in metres, then pixels
+            scr = np.column_stack([
+                (rel[0] * view.R[0, k] + rel[1] * view.R[1, k] + rel[2] * view.R[2, k]) / pitch_m
+                for k in (0, 1)])
             sw, sh = self.config.screen_px
             ok = ((depth > 0) & (scr[:, 0] >= -0.5) & (scr[:, 0] <= sw - 0.5)
                   & (scr[:, 1] >= -0.5) & (scr[:, 1] <= sh - 0.5))
