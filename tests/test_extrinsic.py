@@ -308,3 +308,17 @@ def test_rendered_capture_identifies_dots_and_places_cameras():
     res = ex.calibrate(scene.rig, dots, floor, table)
     pos, rot = _errors(scene.rig, res.rig)
     assert max(pos.values()) < 15.0 and max(rot.values()) < 0.15
+
+
+def test_example_reference_file_matches_the_simulator():
+    """fixtures/extrinsic_refs.toml holds the simulator's (seed 0) tape measurements."""
+    from pathlib import Path
+
+    refs = ex.load_references(Path(__file__).parent.parent / "fixtures" / "extrinsic_refs.toml")
+    scene = sp.make_scene(6, seed=0)
+    truth, plane = scene.land(refs.floor_px, table_present=False)
+    assert np.all(plane == 0)
+    err = refs.floor_xy_m - truth[:, :2]
+    assert np.sqrt(np.mean(err**2)) < 0.008  # 5 mm per axis, written to the millimetre
+    floor, table = ex.plane_maps(refs)
+    assert table is not None and table.height_m == scene.table.height_m
