@@ -110,10 +110,13 @@ def _print(result: ex.ExtrinsicResult) -> None:
     print_table(rows, ["camera", "calibrated", "floor dots", "table dots", "rms_px",
                        "ray_mm", "ray_table_mm"])
     r = result.report
+    def mm(v: float) -> str:
+        return "-" if not np.isfinite(v) else f"{v:.2f} mm"
+
     typer.echo(f"\nall cameras: reprojection RMS {r['reprojection_rms_px']:.3f} px, mean ray "
-               f"distance {r['mean_ray_distance_mm']:.2f} mm over {r['dots']} dots, "
-               f"{r['mean_ray_distance_table_mm']:.2f} mm over the {r['table_dot_points']} "
-               "table dots")
+               f"distance {mm(r['mean_ray_distance_mm'])} over {r['dots']} dots, "
+               f"{mm(r['mean_ray_distance_table_mm'])} over the {r['table_dot_points']} "
+               "table dots (dots seen by two or more cameras)")
 
 
 def register(app: typer.Typer) -> None:
