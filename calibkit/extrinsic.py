@@ -703,6 +703,10 @@ def calibrate(intrinsics: Rig, dots: DotObservations, floor: PlaneMap,
               table: PlaneMap | None, opts: SolveOptions = SolveOptions()) -> ExtrinsicResult:
     """Every camera's pose from its dots; cameras that cannot be placed are left out with
     a warning. Raises UserError when none can be placed."""
+    absent = [n for n in dots.camera_names if n not in intrinsics.names]
+    if absent:
+        raise UserError(f"camera '{absent[0]}' has no intrinsics in the rig file (it has "
+                        f"{', '.join(intrinsics.names)})")
     poses, messages = [], []
     if table is None:
         opts = dataclasses.replace(opts, min_table_dots=0)

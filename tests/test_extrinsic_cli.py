@@ -127,3 +127,14 @@ def test_refs_without_table_reject_table_flag(calibkit_cli, tmp_path):
                                         "--intrinsics", tmp_path / "intr.toml",
                                         "--out", tmp_path / "x.toml"))
     assert "--camera" in line
+
+
+def test_intrinsics_without_the_cameras_are_refused(calibkit_cli, tmp_path):
+    from calibkit import sim
+
+    rig = sim.make_rig(2)
+    Rig(tuple(c.replace(name=f"other{i}") for i, c in enumerate(rig))).save(tmp_path / "i.toml")
+    line = _one_line_error(calibkit_cli("extrinsic", "--projector", "--sim", "--cameras", "2",
+                                        "--intrinsics", tmp_path / "i.toml",
+                                        "--out", tmp_path / "x.toml"))
+    assert "camera 'cam0' has no intrinsics in the rig file (it has other0, other1)" in line

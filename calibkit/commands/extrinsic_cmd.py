@@ -251,11 +251,11 @@ def register(app: typer.Typer) -> None:
 
             cfg = sp.ProjectorSimConfig(projector_px=proj_px, seed=seed)
             with sp.ProjectorRigSim(scene, cfg) as dev:
-                fcap = _run_session(dev, schedule, len(intr), "floor", samples)
+                fcap = _run_session(dev, schedule, len(scene.rig), "floor", samples)
                 tcap = None
                 if with_table:
                     dev.set_table(True)
-                    tcap = _run_session(dev, tsched, len(intr), "table", samples)
+                    tcap = _run_session(dev, tsched, len(scene.rig), "table", samples)
             floor_dots, table_dots = fcap.cameras, None if tcap is None else tcap.cameras
             frames = fcap.frames + (tcap.frames if tcap is not None else 0)
         elif sim:
@@ -265,7 +265,7 @@ def register(app: typer.Typer) -> None:
                                            seed=seed)
             table_dots = None
             cfg = sp.ProjectorSimConfig(projector_px=proj_px, seed=seed)
-            lat = sp.latency_frames(cfg, len(intr))
+            lat = sp.latency_frames(cfg, len(scene.rig))
             frames = ex.capture_frames_estimate(schedule, lat, samples)
             if tsched is not None:
                 table_dots = sp.simulated_dots(scene, schedule.points_xy, True, noise_px,
@@ -277,7 +277,8 @@ def register(app: typer.Typer) -> None:
                 raise UserError("live capture needs --camera once per camera (or --sim)")
             floor_dots, table_dots, frames = _capture_live(intr, list(camera), monitor,
                                                            schedule, tsched, samples)
-        dots = ex.assemble(intr.names, floor_dots, table_dots, schedule, floor_map, table_map)
+        names = truth.names if truth is not None else intr.names
+        dots = ex.assemble(names, floor_dots, table_dots, schedule, floor_map, table_map)
         opts = ex.SolveOptions(joint=joint, reference_sigma_m=ref_sigma_mm / 1000.0)
         result = ex.calibrate(intr, dots, floor_map, table_map, opts)
         result.report["capture"] = {"frames": frames, "seconds_at_30fps": frames / 30.0,
