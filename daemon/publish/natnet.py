@@ -71,11 +71,6 @@ MARKER_PC_SOLVED = 0x02
 MARKER_HAS_MODEL = 0x08
 MARKER_UNLABELED = 0x10
 
-RIGID_BODY = np.dtype([("id", "<i4"), ("pos", "<f4", 3), ("quat", "<f4", 4), ("error", "<f4"),
-                       ("params", "<i2")])  # 38 bytes, packed as on the wire
-LABELED_MARKER = np.dtype([("id", "<i4"), ("pos", "<f4", 3), ("size", "<f4"),
-                           ("params", "<i2"), ("residual", "<f4")])  # 26 bytes
-
 # z-up (ours) -> Motive's y-up: (x, y, z) -> (x, z, -y)
 Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
@@ -100,12 +95,13 @@ def server_info(data_port: int, multicast: bool, group: str) -> bytes:
     return message(NAT_SERVERINFO, payload)
 
 
+_AXES = {"z": np.eye(3), "y": Y_UP}
+
+
 def axes(up_axis: str) -> np.ndarray:
-    if up_axis == "z":
-        return np.eye(3)
-    if up_axis == "y":
-        return Y_UP
-    raise ValueError(f"up_axis must be 'z' or 'y', got {up_axis!r}")
+    if up_axis not in _AXES:
+        raise ValueError(f"up_axis must be 'z' or 'y', got {up_axis!r}")
+    return _AXES[up_axis]
 
 
 def rotate_quaternion(q: np.ndarray, M: np.ndarray) -> np.ndarray:
@@ -140,41 +136,61 @@ def _block(count: int, data: bytes) -> bytes:
     return struct.pack("<ii", count, len(data)) + data
 
 
+def _records(*columns) -> bytes:
+    """Packed records (no padding, as NatNet lays them out) from per-field columns."""
+    n = len(columns[0])
+    return np.concatenate([np.ascontiguousarray(c).reshape(n, -1).view(np.uint8)
+                           for c in columns], axis=1).tobytes()
+
+
+_IDENTITY_Q = np.array([0.0, 0.0, 0.0, 1.0])
+_LABELLED = MARKER_PC_SOLVED | MARKER_HAS_MODEL
+_UNLABELLED = MARKER_PC_SOLVED | MARKER_UNLABELED
+
+
 def frame_payload(result, up_axis: str = "z", legacy_unlabeled: bool = False,
                   t0_ns: int = 0, transmit_ns: int | None = None,
                   models_changed: bool = False) -> bytes:
     """The NAT_FRAMEOFDATA payload for a FrameResult (daemon.pipeline)."""
     M = axes(up_axis)
+    turn = up_axis != "z"
     p = result.poses
     valid = np.asarray(p.valid, bool)
-    rb = np.zeros(len(p.ids), RIGID_BODY)
-    rb["id"] = p.ids
-    rb["pos"] = np.where(valid[:, None], np.nan_to_num(p.position) @ M.T, 0.0)
-    q = rotate_quaternion(np.asarray(p.quaternion, float), M)
-    rb["quat"] = np.where(valid[:, None], q, [0.0, 0.0, 0.0, 1.0])
-    rb["error"] = np.where(valid, np.nan_to_num(p.error_m), 0.0)
-    rb["params"] = valid.astype(np.int16)  # bit 0: tracking valid
+    n = len(valid)
+    pos, q = np.asarray(p.position, float), np.asarray(p.quaternion, float)
+    if turn:
+        pos, q = pos @ M.T, rotate_quaternion(q, M)
+    # rigid bodies, 38 bytes: id, x y z, qx qy qz qw, mean error, params (bit 0: valid);
+    # an invalid body keeps a zero pose (its NaNs never reach the wire)
+    rigid = _records(np.asarray(p.ids).astype("<i4"),
+                     np.where(valid[:, None], pos, 0.0).astype("<f4"),
+                     np.where(valid[:, None], q, _IDENTITY_Q).astype("<f4"),
+                     np.where(valid, p.error_m, 0.0).astype("<f4"),
+                     valid.astype("<i2")) if n else b""
 
-    # markers: the seen tracks; those a body holds are labelled with the body's id
+    # labelled markers, 26 bytes: id, x y z, size, params, residual. The seen tracks; those
+    # a body holds are (body id << 16 | member), the others unlabelled with their track id
     tr = result.tracks
     seen = np.asarray(tr.seen, bool)
-    ids, xyz = np.asarray(tr.ids)[seen], np.asarray(tr.xyz)[seen] @ M.T
-    labels = np.full(len(ids), -1, np.int64)
-    held = np.asarray(p.tracks) >= 0
-    if len(ids) and held.any():
-        k = held.shape[1]
-        label = (np.asarray(p.ids, np.int64)[:, None] << 16) | np.arange(1, k + 1)
-        tid = p.tracks[held]
-        at = np.minimum(np.searchsorted(ids, tid), len(ids) - 1)  # track ids are sorted
+    ids, xyz = np.asarray(tr.ids)[seen], np.asarray(tr.xyz)[seen]
+    if turn:
+        xyz = xyz @ M.T
+    m = len(ids)
+    labels = ids & 0xFFFF
+    is_label = np.zeros(m, bool)
+    tracks = np.asarray(p.tracks)
+    held = tracks >= 0
+    if m and held.any():
+        member = (np.asarray(p.ids, np.int64)[:, None] << 16) | np.arange(1, held.shape[1] + 1)
+        tid = tracks[held]
+        at = np.minimum(np.searchsorted(ids, tid), m - 1)  # track ids are sorted
         hit = ids[at] == tid
-        labels[at[hit]] = label[held][hit]
-    is_label = labels >= 0
-    lm = np.zeros(len(ids), LABELED_MARKER)
-    lm["id"] = (np.where(is_label, labels, ids & 0xFFFF) & 0xFFFFFFFF).astype(np.uint32).view(
-        np.int32)
-    lm["pos"] = xyz
-    lm["params"] = np.where(is_label, MARKER_PC_SOLVED | MARKER_HAS_MODEL,
-                            MARKER_PC_SOLVED | MARKER_UNLABELED)
+        labels[at[hit]] = member[held][hit]
+        is_label[at[hit]] = True
+    zeros = np.zeros(m, "<f4")
+    labelled = _records(labels.astype("<u4"), xyz.astype("<f4"), zeros,
+                        np.where(is_label, _LABELLED, _UNLABELLED).astype("<i2"),
+                        zeros) if m else b""
     legacy = xyz[~is_label].astype("<f4") if legacy_unlabeled else np.zeros((0, 3), "<f4")
 
     t_ns = int(result.t_ns)
@@ -185,10 +201,10 @@ def frame_payload(result, up_axis: str = "z", legacy_unlabeled: bool = False,
     body = (head
             + _block(0, b"")  # marker sets
             + _block(len(legacy), legacy.tobytes())  # legacy unlabelled markers
-            + _block(len(rb), rb.tobytes())
+            + _block(n, rigid)
             + _block(0, b"")  # skeletons
             + _block(0, b"")  # assets (4.1)
-            + _block(len(lm), lm.tobytes())
+            + _block(m, labelled)
             + _block(0, b"")  # force plates
             + _block(0, b"")  # devices
             + suffix)
