@@ -871,3 +871,22 @@ def load_dots(path: str | Path) -> DotObservations:
         raise UserError(f"{path}: no such file") from None
     except (OSError, KeyError, ValueError):
         raise UserError(f"{path}: not a dots file written by calibkit extrinsic") from None
+
+
+def join_bundle_data(a, b):
+    """Two calibkit.bundle.BundleData over the same rig as one: b's points are renumbered
+    after a's. This is how the projector's dots (bundle_data) join a wand solve: their
+    plane and position priors then hold the world frame while the wand refines the rest."""
+    from calibkit import bundle
+
+    if a.rig.names != b.rig.names:
+        raise ValueError("both BundleData must use the same rig (same cameras, same order)")
+    n = len(a.xyz)
+    cat = np.concatenate
+    return bundle.BundleData(
+        a.rig, cat([a.obs_point, b.obs_point + n]), cat([a.obs_camera, b.obs_camera]),
+        cat([a.obs_uv, b.obs_uv]), cat([a.xyz, b.xyz]),
+        cat([a.edge, b.edge + n]).reshape(-1, 2), cat([a.edge_length_m, b.edge_length_m]),
+        cat([a.known_point, b.known_point + n]), cat([a.known_xyz, b.known_xyz]),
+        cat([a.plane_point, b.plane_point + n]), cat([a.plane_normal, b.plane_normal]),
+        cat([a.plane_offset_m, b.plane_offset_m]))

@@ -322,3 +322,40 @@ def test_example_reference_file_matches_the_simulator():
     assert np.sqrt(np.mean(err**2)) < 0.008  # 5 mm per axis, written to the millimetre
     floor, table = ex.plane_maps(refs)
     assert table is not None and table.height_m == scene.table.height_m
+
+
+def test_plane_dots_hold_the_world_frame_in_a_wand_bundle():
+    """The dots joined to a wand solve (bundle_data + join_bundle_data): no world transform
+    afterwards, yet the cameras stay in the tape's frame, and agree better at head height."""
+    from calibkit import bundle, sim
+    from calibkit.geometry import triangulate
+
+    scene = sp.make_scene(4, seed=3)
+    refs = _refs(scene, 0.005, seed=3)
+    sch, floor, table, fd, td = _dots(scene, refs, 0.2, seed=3)
+    res = ex.calibrate(scene.rig, ex.assemble(scene.rig.names, fd, td, sch, floor, table),
+                       floor, table)
+    spacing = (0.0, 0.2, 0.5)
+    obs = sim.observe(scene.rig, sim.wand_motion(200, 100.0, 4.0, spacing, seed=3),
+                      noise_px=0.2, seed=3)
+    pts, pidx = np.unique(obs.frame * 3 + obs.marker, return_inverse=True)
+    xyz = triangulate(res.rig, pidx, obs.camera, obs.uv, n_points=len(pts),
+                      ray_distance=False).xyz
+    frame, marker = np.divmod(pts, 3)
+    edges, lengths = [], []
+    for a, b in ((0, 1), (1, 2), (0, 2)):
+        ia = np.flatnonzero(marker == a)
+        ib = np.searchsorted(pts, frame[ia] * 3 + b).clip(0, len(pts) - 1)
+        ok = pts[ib] == frame[ia] * 3 + b
+        edges.append(np.column_stack([ia[ok], ib[ok]]))
+        lengths.append(np.full(int(ok.sum()), spacing[b] - spacing[a]))
+    wand = bundle.BundleData(res.rig, pidx, obs.camera, obs.uv, xyz, np.concatenate(edges),
+                             np.concatenate(lengths))
+    joined = ex.join_bundle_data(wand, ex.bundle_data(res.rig, res.dots.select(res.inlier)))
+    assert len(joined.xyz) == len(xyz) + len(np.unique(res.dots.point[res.inlier]))
+    out = bundle.solve(joined, bundle.BundleOptions(known_sigma_m=0.005, plane_sigma_m=0.002,
+                                                    noise_px=0.3))
+    pos, rot = _errors(scene.rig, out.rig)
+    assert max(pos.values()) < 10.0 and max(rot.values()) < 0.1
+    assert (sp.ray_distance_at_height(out.rig, scene.rig, 1.7, 4.0)
+            < sp.ray_distance_at_height(res.rig, scene.rig, 1.7, 4.0))
