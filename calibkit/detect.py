@@ -160,6 +160,25 @@ class DetectorConfig:
         return replace(self, **changes)
 
 
+_kernels_module = None
+
+
+def _kernels():
+    """calibkit.detect_kernels (numba, imported on first use: it costs ~0.5 s), or None
+    where numba is missing or CALIBKIT_NO_JIT is set: detection then runs in numpy."""
+    global _kernels_module
+    if _kernels_module is None:
+        import os
+        _kernels_module = False
+        if not os.environ.get("CALIBKIT_NO_JIT"):
+            try:
+                from calibkit import detect_kernels
+                _kernels_module = detect_kernels
+            except ImportError:
+                pass
+    return _kernels_module or None
+
+
 # ---------------------------------------------------------------------------------------------
 # Background level
 
@@ -175,10 +194,18 @@ def background_level(image: np.ndarray, mask: np.ndarray | None = None) -> tuple
     to a few per cent); histograms are interpolated within each integer bin so that noise
     below one DN is still measured.
     """
+    return _background_level(image, mask, _kernels())
+
+
+def _background_level(image: np.ndarray, mask: np.ndarray | None,
+                      kernels) -> tuple[float, float]:
     if image.shape[1] < 2:
         return float(np.median(image)), 0.0
     sy = 12 if image.shape[0] >= 240 else 1
     sx = 8 if image.shape[1] >= 240 else 2
+    if kernels is not None and image.dtype == np.uint8:
+        has_mask = mask is not None
+        return kernels.background_u8(image, mask if has_mask else _NO_MASK, has_mask, sy, sx)
     a = image[::sy, 0:-1:sx]
     b = image[::sy, 1::sx][:, :a.shape[1]]
     if mask is not None:
@@ -206,6 +233,9 @@ def background_level(image: np.ndarray, mask: np.ndarray | None = None) -> tuple
         level = float(np.median(a))
         q25, q75 = np.percentile(a - b.ravel(), [25.0, 75.0])
     return float(level), float((q75 - q25) / (1.349 * np.sqrt(2.0)))
+
+
+_NO_MASK = np.zeros((1, 1), dtype=bool)  # stands in for "no mask" in compiled kernels
 
 
 def auto_threshold(image: np.ndarray, config: DetectorConfig = DetectorConfig(),
@@ -687,6 +717,16 @@ def _block_offsets(ky: int, kx: int, width: int) -> np.ndarray:
 
 def detect(image: np.ndarray, config: DetectorConfig = DetectorConfig()) -> Blobs:
     """Find the markers in one image: grayscale (h, w) or BGR colour (h, w, 3)."""
+    return _detect(image, config, _kernels())
+
+
+def detect_reference(image: np.ndarray, config: DetectorConfig = DetectorConfig()) -> Blobs:
+    """`detect` in plain numpy, without the compiled kernels: the reference the tests hold
+    the compiled path to (and the fallback where numba is unavailable)."""
+    return _detect(image, config, None)
+
+
+def _detect(image: np.ndarray, config: DetectorConfig, kernels) -> Blobs:
     image = np.asarray(image)
     if image.ndim == 3 and image.shape[2] == 1:
         image = image[:, :, 0]
@@ -705,7 +745,7 @@ def detect(image: np.ndarray, config: DetectorConfig = DetectorConfig()) -> Blob
         code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
         image = cv2.cvtColor(image, code)
     if config.threshold == "auto":
-        level, sigma = background_level(image, mask)
+        level, sigma = _background_level(image, mask, kernels)
         threshold = level + max(config.auto_k * sigma, config.min_contrast)
 
         def background() -> tuple[float, float]:
@@ -714,12 +754,43 @@ def detect(image: np.ndarray, config: DetectorConfig = DetectorConfig()) -> Blob
         threshold = float(config.threshold)
 
         def background() -> tuple[float, float]:
-            return background_level(image, mask)
+            return _background_level(image, mask, kernels)
+    if (kernels is not None and config.mode == "threshold"
+            and image.dtype in (np.uint8, np.uint16)):
+        return _detect_compiled(kernels, image, threshold, config, mask, background)
     pix = _bright_pixels(image, threshold, mask)
     if config.mode == "multi":
         return _detect_multi(image, pix, threshold, config, mask, background)
     regions = _Runs.find(pix, image.shape[1]).regions(image)
     return _measure(image, regions, config, threshold, mask, background)
+
+
+def _detect_compiled(kernels, image: np.ndarray, threshold: float, config: DetectorConfig,
+                     mask: np.ndarray | None,
+                     background: Callable[[], tuple[float, float]]) -> Blobs:
+    """The single-threshold mode with the compiled kernels: same blobs as the numpy path."""
+    top = np.iinfo(image.dtype).max
+    if threshold >= top:
+        return Blobs.empty(threshold)
+    image = np.ascontiguousarray(image)
+    tint = image.dtype.type(max(int(np.floor(threshold)), 0))  # v > t <=> v > floor(t)
+    has_mask = mask is not None
+    mask = np.ascontiguousarray(mask) if has_mask else _NO_MASK
+    owner = _owner_image(image.shape)
+    hot = kernels.hot_chunks(image.reshape(-1), tint)
+    runs, run_label, area, bbox, peak = kernels.find_regions(image, tint, image, mask,
+                                                             has_mask, owner, hot)
+    try:
+        if len(area) == 0:
+            return Blobs.empty(threshold)
+        level, sigma = background()
+        uv, area, peak, bbox, roundness = kernels.measure(
+            image, mask, has_mask, owner, run_label, area, bbox, peak, config.min_area,
+            config.max_area, config.min_roundness, config.window_margin_px, level,
+            max(sigma, 0.5))
+    finally:
+        kernels.clear_owner(owner, runs, image.shape[1])
+    return Blobs(uv, area, peak, bbox, roundness, np.zeros(len(uv)), threshold)
 
 
 def _bright_pixels(image: np.ndarray, threshold: float, mask: np.ndarray | None) -> np.ndarray:

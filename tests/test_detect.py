@@ -9,8 +9,10 @@ import pytest
 from calibkit.detect import (
     Blobs,
     DetectorConfig,
+    _background_level,
     background_level,
     detect,
+    detect_reference,
     label_pixels,
     match_to_truth,
 )
@@ -302,3 +304,72 @@ def test_sloping_background_is_fitted_as_a_plane():
     err = np.array(errors)
     assert np.abs(err.mean(axis=0)).max() < 0.015
     assert np.sqrt((err**2).sum(axis=1).mean()) < 0.04
+
+
+def assert_same_blobs(got: Blobs, ref: Blobs, tol_px: float = 1e-9):
+    assert len(got) == len(ref)
+    assert np.array_equal(got.area, ref.area)
+    assert np.array_equal(got.peak, ref.peak)
+    assert np.array_equal(got.bbox, ref.bbox)
+    assert np.array_equal(got.label, ref.label)
+    assert np.abs(got.uv - ref.uv).max(initial=0.0) <= tol_px
+    assert np.abs(got.roundness - ref.roundness).max(initial=0.0) <= 1e-6
+    assert got.threshold == ref.threshold
+
+
+def random_scene(rng, size=(160, 120)):
+    """Spots of random size and brightness, some touching, some cut by the image edge, on a
+    sloping background with noise; a mask over a random rectangle and a random lamp."""
+    w, h = size
+    n = int(rng.integers(3, 25))
+    uv = rng.uniform([-2, -2], [w + 1, h + 1], size=(n, 2))
+    angle = rng.uniform(0, np.pi, n // 3)
+    step = rng.uniform(5.5, 7.5, (n // 3, 1)) * np.stack([np.cos(angle), np.sin(angle)], 1)
+    uv = np.vstack([uv, uv[: n // 3] + step])  # touching neighbours of the first third
+    radius = rng.uniform(0.8, 5.0)
+    img = render_spots_float(size, uv, radius, peak=rng.uniform(40, 250, len(uv)))
+    yy, xx = np.mgrid[0:h, 0:w]
+    img = img + rng.uniform(0, 20) + rng.uniform(-0.3, 0.3) * xx + rng.uniform(-0.3, 0.3) * yy
+    img += render_spots_float(size, rng.uniform([0, 0], [w, h])[None], 12.0, peak=200)
+    img = np.clip(np.rint(img + rng.normal(0, rng.uniform(0, 3), img.shape)), 0, 255)
+    mask = np.zeros((h, w), bool)
+    x0, y0 = rng.integers(0, w - 10), rng.integers(0, h - 10)
+    mask[y0:y0 + rng.integers(3, 40), x0:x0 + rng.integers(3, 60)] = True
+    return img.astype(np.uint8), mask
+
+
+def test_compiled_path_equals_the_numpy_reference_on_random_scenes():
+    # Everything the compiled kernels do (candidate pixels, runs and regions, the windowed
+    # background-subtracted moments) must give the numpy reference's blobs exactly: the
+    # sums are of integers times half-integers, so centroids agree to rounding.
+    rng = np.random.default_rng(12)
+    n_blobs = 0
+    for _ in range(40):
+        img, mask = random_scene(rng)
+        for config in (DetectorConfig(), DetectorConfig(mask=mask),
+                       DetectorConfig(threshold=float(rng.uniform(10, 80)), mask=mask,
+                                      min_roundness=0.3, max_area=300),
+                       DetectorConfig(min_area=0, window_margin_px=int(rng.integers(0, 4)))):
+            got, ref = detect(img, config), detect_reference(img, config)
+            assert_same_blobs(got, ref)
+            n_blobs += len(got)
+        deep = img.astype(np.uint16) * 257 + rng.integers(0, 200, img.shape).astype(np.uint16)
+        assert_same_blobs(detect(deep), detect_reference(deep))
+        level = background_level(img, mask)
+        assert level == pytest.approx(_background_level(img, mask, None), abs=1e-12)
+    assert n_blobs > 1000  # the scenes did hold blobs to compare
+
+
+def test_compiled_regions_equal_the_reference_on_noise_of_any_shape():
+    # Narrow and odd-sized images: runs that end at row ends and chunk boundaries, regions
+    # that wrap nowhere, windows that fill the image.
+    rng = np.random.default_rng(13)
+    for _ in range(60):
+        h, w = int(rng.integers(1, 40)), int(rng.integers(2, 140))
+        img = rng.integers(0, 256, (h, w)).astype(np.uint8)
+        config = DetectorConfig(threshold=float(rng.integers(0, 255)), min_area=0,
+                                max_area=1e9)
+        assert_same_blobs(detect(img, config), detect_reference(img, config))
+    flat = np.full((30, 70), 9, np.uint8)  # nothing above the threshold
+    assert len(detect(flat)) == len(detect_reference(flat)) == 0
+    assert len(detect(np.full((8, 8), 255, np.uint8), DetectorConfig(threshold=255))) == 0
