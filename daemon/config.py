@@ -15,6 +15,9 @@ opens. docs/daemon.md documents every key.
                 ghosts, volume_m, size, seed, realtime, drop_camera, drop_from_s, drop_for_s
     [[rigid_body]] name, id, markers = [[x, y, z], ...], pivot, min_markers_start,
                    min_markers_keep, smoothing
+    [[camera]]  name (a camera of the rig), source ("0" a device, a video, an image folder,
+                "basler:SERIAL", "genicam:SERIAL"), fps, threshold, min_area, max_area
+    [replay]    path (a .mcrec recording), realtime
     [[udp]]     address = "HOST:PORT", rate_hz, ttl, bodies
     [[serial]]  device, baud, rate_hz, bodies
     [[mavlink]] device, baud, body, message, frame, rate_hz, system_id, component_id
@@ -57,6 +60,22 @@ class SimConfig:
     drop_from_s: float = 0.5
     drop_for_s: float = 0.5
     define_bodies: bool = True  # track the scene's bodies when the configuration has none
+
+
+@dataclass(frozen=True)
+class CameraIn:
+    name: str
+    source: str
+    fps: float = 30.0
+    threshold: float | str = "auto"
+    min_area: float = 2.0
+    max_area: float = 4000.0
+
+
+@dataclass(frozen=True)
+class ReplayIn:
+    path: Path
+    realtime: bool = True
 
 
 @dataclass(frozen=True)
@@ -124,6 +143,8 @@ class Config:
     udp: tuple[UdpOut, ...] = ()
     serial: tuple[SerialOut, ...] = ()
     mavlink: tuple[MavlinkOut, ...] = ()
+    cameras: tuple[CameraIn, ...] = ()
+    replay: ReplayIn | None = None
     natnet: NatnetOut | None = None
     vrpn: tuple[VrpnOut, ...] = ()
 
@@ -252,7 +273,7 @@ def parse_config(data: dict, path: Path | None = None, base: Path | None = None)
     """A Config from parsed TOML; relative paths are taken from `base` (the file's folder)."""
     w = _Where(path)
     top = {"rig", "runtime_dir", "pipeline", "tracker", "rigid", "sim", "rigid_body", "udp",
-           "serial", "mavlink", "natnet", "vrpn"}
+           "serial", "mavlink", "natnet", "vrpn", "camera", "replay"}
     _check_keys(w, data, top, "")
     base = base or Path.cwd()
     cfg = Config(path=path)
@@ -281,6 +302,15 @@ def parse_config(data: dict, path: Path | None = None, base: Path | None = None)
                               for i, t in enumerate(_list(w, data, "serial")))
     changes["mavlink"] = tuple(_mavlink(w, t, f"mavlink[{i}].")
                                for i, t in enumerate(_list(w, data, "mavlink")))
+    changes["cameras"] = tuple(_camera(w, t, f"camera[{i}].", base)
+                               for i, t in enumerate(_list(w, data, "camera")))
+    if len({c.name for c in changes["cameras"]}) < len(changes["cameras"]):
+        w.fail("camera", "two [[camera]] tables have the same name")
+    if "replay" in data:
+        t = _table(w, data, "replay")
+        _check_keys(w, t, {"path", "realtime"}, "replay.")
+        changes["replay"] = ReplayIn(base / _string(w, t, "path", "replay."),
+                                     _bool(w, t, "realtime", "replay.", True))
     if "natnet" in data:
         changes["natnet"] = _natnet(w, _table(w, data, "natnet"), "natnet.")
     changes["vrpn"] = tuple(_vrpn(w, t, f"vrpn[{i}].")
@@ -350,6 +380,22 @@ def _bodies(w, data) -> list[BodyDef]:
         ids.add(body_id)
         out.append(BodyDef(name, body_id, markers, pivot, start, keep, smoothing))
     return out
+
+
+def _camera(w, t, p, base: Path) -> CameraIn:
+    _check_keys(w, t, {"name", "source", "fps", "threshold", "min_area", "max_area"}, p)
+    threshold = t.get("threshold", "auto")
+    if threshold != "auto" and (isinstance(threshold, bool)
+                                or not isinstance(threshold, (int, float))
+                                or not 0 < threshold < 65536):
+        w.fail(p + "threshold", f'expected "auto" or a pixel value, got {threshold!r}')
+    source = str(_string(w, t, "source", p))
+    if not source.isdigit() and ":" not in source and (base / source).exists():
+        source = str(base / source)  # files and folders are relative to the configuration
+    return CameraIn(_string(w, t, "name", p), source,
+                    _number(w, t, "fps", p, 30.0, lo=0.1, hi=10000), threshold,
+                    _number(w, t, "min_area", p, 2.0, lo=0), _number(w, t, "max_area", p,
+                                                                     4000.0, lo=1))
 
 
 def _udp(w, t, p) -> UdpOut:

@@ -246,6 +246,9 @@ class Stats:
         self.latency: deque = deque(maxlen=window)  # arrival -> poses, ns
         self.all_latency: list[int] = []  # whole run, for the --json figures
         self.valid_bodies = 0
+        self.body_valid: dict[int, int] = {}  # body id -> frames it was valid
+        self.body_frames: dict[int, int] = {}
+        self.markers_seen: list[int] = []
 
     def add(self, result: FrameResult) -> None:
         self.frames += 1
@@ -255,6 +258,11 @@ class Stats:
         if len(self.all_latency) < 10_000_000:
             self.all_latency.append(lat)
         self.valid_bodies = int(np.sum(result.poses.valid))
+        for i, v in zip(result.poses.ids.tolist(), result.poses.valid.tolist(), strict=True):
+            self.body_valid[i] = self.body_valid.get(i, 0) + v
+            self.body_frames[i] = self.body_frames.get(i, 0) + 1
+        if len(self.markers_seen) < 10_000_000:
+            self.markers_seen.append(int(np.sum(result.tracks.seen)))
 
     def rate_hz(self) -> float:
         d = list(self.done)

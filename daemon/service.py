@@ -24,7 +24,7 @@ import numpy as np
 
 from calibkit.camera import Rig
 from calibkit.errors import UserError
-from daemon.config import Config, SimConfig, default_runtime_dir, load_config
+from daemon.config import Config, default_runtime_dir, load_config
 from daemon.pipeline import CaptureThread, FrameSet, Multiplexer, Pipeline, latency_figures
 from daemon.publish.mavlink import MavlinkPublisher
 from daemon.publish.natnet import NatNetPublisher
@@ -33,7 +33,14 @@ from daemon.publish.serial import SerialPublisher
 from daemon.publish.udp import UdpPublisher
 from daemon.publish.vrpn import VrpnPublisher
 from daemon.rigid import alike_bodies
-from daemon.sources import Evaluator, SimCamera, SimScene
+from daemon.sources import (
+    DetectCamera,
+    Evaluator,
+    ReplayScene,
+    SimCamera,
+    SimScene,
+    missing_plugins,
+)
 
 log = logging.getLogger("mocapd")
 SOCKET_NAME = "mocapd.sock"
@@ -239,17 +246,25 @@ class Daemon:
 
     def setup(self, n_frames: int | None = None) -> None:
         cfg = self.config
-        if cfg.sim is None:
-            raise UserError("live cameras are not configured yet: use --sim (with --rig for a "
-                            "calibrated rig), or replay a recording")
-        self.scene = SimScene(cfg.sim, self.rig, self._truth_rig, n_frames)
-        self.rig = self.scene.rig
+        self.live_sources = None
+        self.evaluator = None
+        if cfg.sim is not None:
+            self.scene = SimScene(cfg.sim, self.rig, self._truth_rig, n_frames)
+            self.rig = self.scene.rig
+            self.evaluator = Evaluator(self.scene, slots=not cfg.bodies)
+        elif cfg.replay is not None:
+            self.scene = ReplayScene(cfg.replay.path, self.rig)
+        elif cfg.cameras:
+            self.live_sources = self._cameras(cfg)
+        else:
+            where = f"{cfg.path}: " if cfg.path else ""
+            raise UserError(f"{where}camera: no input; add [[camera]] tables, a [replay] "
+                            "recording, or use --sim")
         bodies = self._bodies(cfg)
         self._warn_alike(bodies)
-        self.evaluator = Evaluator(self.scene, slots=not cfg.bodies)
         self.pipeline = Pipeline(self.rig, cfg.tracker, cfg.rigid, bodies,
                                  make_publishers(cfg, bodies),
-                                 hooks=[self.evaluator])
+                                 hooks=[self.evaluator] if self.evaluator else [])
         self._warm_up()
         runtime = cfg.runtime_dir or default_runtime_dir()
         self.control = ControlServer(runtime, self.handle)
@@ -257,11 +272,42 @@ class Daemon:
         for p in self.pipeline.publishers:
             p.start()
 
+    def _cameras(self, cfg: Config) -> list:
+        """Capture sources for the configured cameras; a camera whose plugin library is
+        missing is reported and skipped, the rest run."""
+        from calibkit.detect import DetectorConfig
+
+        names = self.rig.names
+        out = []
+        for cam in cfg.cameras:
+            if cam.name not in names:
+                raise UserError(f"{cfg.path}: camera {cam.name!r} is not in the rig "
+                                f"({', '.join(names)})")
+            missing = missing_plugins([cam.source.partition(":")[0]])
+            if missing:
+                log.error("%s: skipped: plugin %s is not installed", cam.name, missing[0])
+                continue
+            det = DetectorConfig(threshold=cam.threshold, min_area=cam.min_area,
+                                 max_area=cam.max_area)
+            out.append(DetectCamera(cam.name, names.index(cam.name), cam.source, det, cam.fps))
+        if not out:
+            raise UserError("no camera can be opened (see the messages above)")
+        return out
+
     def _warm_up(self) -> None:
         """Run the correspondence once on a frame's blobs before READY: its compiled kernels
         load on first use (about a second), which would otherwise stall the first frames."""
         from calibkit.correspondence import match_frame
 
+        if self.scene is None:  # live cameras: detection has compiled kernels too
+            from calibkit.detect import detect
+
+            image = np.full((64, 64), 10, np.uint8)
+            image[30:34, 30:34] = 200
+            for src in self.live_sources:
+                detect(image, src.detector)
+            match_frame(self.rig, np.arange(len(self.rig)), np.zeros((len(self.rig), 2)) + 100.0)
+            return
         samples = [self.scene.sample(c, 0, 0) for c in range(len(self.rig))]
         camera = np.concatenate([np.full(len(s.uv), s.camera) for s in samples])
         match_frame(self.rig, camera, np.concatenate([s.uv for s in samples]))
@@ -269,6 +315,8 @@ class Daemon:
     def _bodies(self, cfg: Config) -> list:
         if cfg.bodies or cfg.sim is None or not cfg.sim.define_bodies:
             return list(cfg.bodies)
+        if self.scene is None or not hasattr(self.scene, "body_defs"):
+            return []
         return self.scene.body_defs()
 
     def _warn_alike(self, bodies) -> None:
@@ -286,11 +334,14 @@ class Daemon:
     def run(self, frames: int | None = None, duration_s: float | None = None,
             progress=None) -> dict:
         """Track until stopped, `frames` frames or `duration_s` seconds; the figures."""
-        sim_cfg: SimConfig = self.config.sim
-        n_scene = frames or (int(duration_s * sim_cfg.fps) + 10 if duration_s else None)
+        cfg = self.config
+        fps = cfg.sim.fps if cfg.sim is not None else cfg.fps
+        n_scene = frames or (int(duration_s * fps) + 10 if duration_s else None)
         self.setup(n_scene)
+        realtime = (cfg.sim.realtime if cfg.sim is not None
+                    else cfg.replay.realtime if cfg.replay is not None else True)
         try:
-            if sim_cfg.realtime:
+            if realtime:
                 self._run_live(frames, duration_s, progress)
             else:
                 self._run_fast(frames, duration_s, progress)
@@ -299,12 +350,15 @@ class Daemon:
         return self.figures()
 
     def _run_fast(self, frames, duration_s, progress) -> None:
-        """The simulator as fast as the tracker goes: one loop, no capture threads."""
+        """A simulation or replay as fast as the tracker goes: one loop, no threads."""
         scene = self.scene
         period = 1e9 / scene.fps
         total = frames or (int(duration_s * scene.fps) if duration_s else None)
+        if isinstance(scene, ReplayScene):
+            total = min(total or scene.n_frames, scene.n_frames)
         sd_notify("READY=1")
-        log.info("tracking %d cameras (simulated, as fast as possible)", len(self.rig))
+        log.info("tracking %d cameras (%s, as fast as possible)", len(self.rig),
+                 "replay" if isinstance(scene, ReplayScene) else "simulated")
         i = 0
         while not self.stop_event.is_set() and (total is None or i < total):
             t_ns = round(i * period)
@@ -316,19 +370,32 @@ class Daemon:
 
     def _run_live(self, frames, duration_s, progress) -> None:
         scene = self.scene
-        t0 = time.monotonic_ns() + 50_000_000
-        self.captures = [CaptureThread(SimCamera(scene, c, t0), None)
-                         for c in range(len(self.rig))]
         cfg = self.config
-        self.mux = Multiplexer(len(self.rig), cfg.mode, scene.fps, cfg.timeout_frames,
-                               connected=lambda: np.array([c.connected or c.frames == 0
-                                                           for c in self.captures]))
+        t0 = time.monotonic_ns() + 50_000_000
+        if self.live_sources is not None:
+            sources, fps = self.live_sources, cfg.fps
+        else:
+            sources = [SimCamera(scene, c, t0) for c in range(len(self.rig))]
+            fps = scene.fps
+        self.captures = [CaptureThread(src, None) for src in sources]
+        index = {src.camera: k for k, src in enumerate(sources)}  # rig camera -> thread
+        n = len(self.rig)
+
+        def connected():
+            ok = np.zeros(n, dtype=bool)
+            for cam, k in index.items():
+                c = self.captures[k]
+                ok[cam] = c.connected or c.frames == 0
+            return ok
+
+        self.mux = Multiplexer(n, cfg.mode, fps, cfg.timeout_frames, connected=connected)
         for cap in self.captures:
             cap.push = self.mux.push
             cap.start()
         sd_notify("READY=1")
-        log.info("tracking %d cameras (simulated at %.0f fps, %s)", len(self.rig), scene.fps,
-                 cfg.mode)
+        log.info("tracking %d cameras (%s at %.0f fps, %s)", len(sources),
+                 "live" if self.live_sources else "replay" if isinstance(scene, ReplayScene)
+                 else "simulated", fps, cfg.mode)
         end = None if duration_s is None else t0 + int(duration_s * 1e9)
         while not self.stop_event.is_set():
             if end is not None and time.monotonic_ns() >= end:
@@ -338,6 +405,9 @@ class Daemon:
             fs = self.mux.next(0.1)
             if fs is not None:
                 self.pipeline.process(fs)
+            elif not any(c.thread.is_alive() for c in self.captures):
+                log.info("every source has ended")
+                break
             self._tick(progress)
 
     def _tick(self, progress) -> None:
@@ -449,8 +519,13 @@ class Daemon:
     def status(self) -> dict:
         st = self.pipeline.stats
         cams = []
+        by_camera = {c.source.camera: c for c in self.captures}
         for i, name in enumerate(self.rig.names):
-            cap = self.captures[i] if i < len(self.captures) else None
+            cap = by_camera.get(i)
+            if cap is None and self.captures:  # a camera that was skipped
+                cams.append({"name": name, "connected": False, "rate_hz": 0.0, "frames": 0,
+                             "dropped": 0, "failures": 0})
+                continue
             mux = getattr(self, "mux", None)
             cams.append({"name": name,
                          "connected": bool(cap.connected) if cap else True,
@@ -479,6 +554,10 @@ class Daemon:
             "frames": st.frames,
             "rate_hz": (len(st.done) - 1) / elapsed if elapsed > 0 else None,
             "latency_to_poses": latency_figures(st.all_latency),
+            "markers_tracked_median": float(np.median(st.markers_seen)) if st.markers_seen
+            else 0.0,
+            "bodies_valid_fraction": {str(i): st.body_valid[i] / st.body_frames[i]
+                                      for i in st.body_frames},
             "cameras": self.status()["cameras"],
             "outputs": [p.status() for p in self.pipeline.publishers],
         }

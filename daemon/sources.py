@@ -119,9 +119,48 @@ class SimScene:
         return cfg.drop_from_s <= t < cfg.drop_from_s + cfg.drop_for_s
 
 
+class ReplayScene:
+    """A recording (.mcrec or CSV) played back to the daemon, camera by camera.
+
+    The recording's cameras are matched to the rig's by name; frames are taken in order
+    at the recording's frame rate (or as fast as the tracker goes)."""
+
+    def __init__(self, path, rig: Rig) -> None:
+        from calibkit.recording import load_observations
+
+        obs, _ = load_observations(path)
+        index = {n: i for i, n in enumerate(rig.names)}
+        unknown = [n for n in obs.camera_names if n not in index]
+        if unknown:
+            raise UserError(f"{path}: cameras {', '.join(unknown)} are not in the rig "
+                            f"({', '.join(rig.names)})")
+        self.rig = rig
+        self.fps = float(obs.fps or 100.0)
+        cam = np.array([index[n] for n in obs.camera_names])[obs.camera]
+        self.frame_numbers = np.unique(obs.frame)
+        self.n_frames = len(self.frame_numbers)
+        if self.n_frames == 0:
+            raise UserError(f"{path}: the recording has no frames")
+        order = np.lexsort((cam, np.searchsorted(self.frame_numbers, obs.frame)))
+        self.obs, self.cam = obs.select(order), cam[order]
+        key = np.searchsorted(self.frame_numbers, self.obs.frame) * len(rig) + self.cam
+        self.starts = np.searchsorted(key, np.arange(self.n_frames * len(rig) + 1))
+
+    def sample(self, camera: int, i: int, t_ns: int) -> CameraSample:
+        k = i * len(self.rig) + camera
+        s, e = self.starts[k], self.starts[k + 1]
+        o = self.obs
+        return CameraSample(camera, i, t_ns, time.monotonic_ns(), o.uv[s:e], o.area[s:e],
+                            o.peak[s:e], None if o.marker is None else o.marker[s:e])
+
+    def dropped(self, camera: int, i: int) -> bool:
+        return False
+
+
 class SimCamera:
-    """One simulated camera as a capture thread reads it: paced at the scene's rate from a
-    shared start time, so all cameras' frame i share one capture time (a triggered rig)."""
+    """One simulated (or replayed) camera as a capture thread reads it: paced at the
+    scene's rate from a shared start time, so all cameras' frame i share one capture time
+    (a triggered rig). A replay ends with its recording."""
 
     def __init__(self, scene: SimScene, camera: int, t0_ns: int) -> None:
         self.scene, self.camera, self.t0_ns = scene, camera, t0_ns
@@ -130,7 +169,8 @@ class SimCamera:
     def open(self) -> Iterator[CameraSample]:
         period = 1e9 / self.scene.fps
         i = max(0, int(np.ceil((time.monotonic_ns() - self.t0_ns) / period)))
-        while True:
+        end = getattr(self.scene, "frame_numbers", None)
+        while end is None or i < len(end):
             due = self.t0_ns + round(i * period)
             wait = due - time.monotonic_ns()
             if wait > 0:
@@ -151,9 +191,8 @@ class DetectCamera:
 
     def open(self) -> Iterator[CameraSample]:
         from calibkit.detect import DetectorConfig, detect
-        from calibkit.sources import open_source
 
-        source = open_source(self.spec, fps=self.fps)
+        source = open_camera(self.spec, self.fps)
         cfg = self.detector or DetectorConfig()
         try:
             for frame in source:
@@ -163,6 +202,88 @@ class DetectCamera:
                                    blobs.area, blobs.peak)
         finally:
             source.close()
+
+
+def open_camera(spec: str, fps: float):
+    """A calibkit frame source for a camera spec; industrial cameras through their plugins."""
+    from calibkit.sources import open_source
+
+    kind, _, serial = spec.partition(":")
+    if kind == "basler":
+        return _PylonSource(serial)
+    if kind == "genicam":
+        return _HarvesterSource(serial)
+    return open_source(spec, fps=fps)
+
+
+class _PylonSource:
+    """A Basler camera through pypylon (untested here: no camera on the build machine)."""
+
+    def __init__(self, serial: str) -> None:
+        from pypylon import pylon
+
+        factory = pylon.TlFactory.GetInstance()
+        devices = [d for d in factory.EnumerateDevices()
+                   if not serial or d.GetSerialNumber() == serial]
+        if not devices:
+            raise OSError(f"no Basler camera {serial or ''} found")
+        self.cam = pylon.InstantCamera(factory.CreateDevice(devices[0]))
+        self.cam.Open()
+        self.cam.StartGrabbing(pylon.GrabStrategy_LatestImageOnly)
+        self.pylon = pylon
+
+    def __iter__(self):
+        from calibkit.sources import Frame
+
+        i = 0
+        while self.cam.IsGrabbing():
+            res = self.cam.RetrieveResult(2000, self.pylon.TimeoutHandling_ThrowException)
+            try:
+                if res.GrabSucceeded():
+                    yield Frame(str(self.cam.GetDeviceInfo().GetSerialNumber()), i,
+                                time.monotonic_ns(), res.Array.copy())
+                    i += 1
+            finally:
+                res.Release()
+
+    def close(self) -> None:
+        self.cam.Close()
+
+
+class _HarvesterSource:
+    """A GenICam camera through harvesters (untested here: no camera on the build machine).
+    MOCAPD_GENTL_CTI names the GenTL producer (.cti) file."""
+
+    def __init__(self, serial: str) -> None:
+        import os
+
+        from harvesters.core import Harvester
+
+        self.h = Harvester()
+        cti = os.environ.get("MOCAPD_GENTL_CTI")
+        if not cti:
+            raise OSError("set MOCAPD_GENTL_CTI to your camera's GenTL producer (.cti) file")
+        self.h.add_file(cti)
+        self.h.update()
+        sel = {"serial_number": serial} if serial else 0
+        self.ia = self.h.create(sel)
+        self.ia.start()
+
+    def __iter__(self):
+        from calibkit.sources import Frame
+
+        i = 0
+        while True:
+            with self.ia.fetch(timeout=2.0) as buf:
+                comp = buf.payload.components[0]
+                image = comp.data.reshape(comp.height, comp.width).copy()
+            yield Frame("genicam", i, time.monotonic_ns(), image)
+            i += 1
+
+    def close(self) -> None:
+        self.ia.stop()
+        self.ia.destroy()
+        self.h.reset()
 
 
 # ---- scoring against the truth --------------------------------------------------------------

@@ -262,3 +262,65 @@ def test_install_unit(tmp_path, mocapd_cli):
     assert f"--config {tmp_path / 'mocapd.toml'}" in text and "WatchdogSec=5" in text
     r = mocapd_cli("install-unit", "--config", tmp_path / "missing.toml", "--out", out)
     assert r.code == 2
+
+
+def test_replay_a_recording(tmp_path, mocapd_cli):
+    """A recording (as `mocapd record` writes) played back as fast as possible, with the
+    bodies defined in the configuration."""
+    from calibkit import sim
+    from calibkit.recording import save_observations
+
+    rig = sim.make_rig(6, 4.0, seed=8)
+    rig.save(tmp_path / "rig.toml")
+    truth, bodies = sim.rigid_body_motion(2, 150, 100.0, 4.0, 4, seed=9)
+    obs = sim.observe(rig, truth, noise_px=0.2, fps=100.0, seed=10)
+    save_observations(tmp_path / "rec.mcrec", obs, truth, rig)
+    text = "".join(f'[[rigid_body]]\nname = "{b.name}"\nid = {b.id}\nmarkers = '
+                   f"{np.round(b.markers_body, 9).tolist()}\n" for b in bodies)
+    (tmp_path / "mocapd.toml").write_text(text)
+    r = mocapd_cli("start", "--config", tmp_path / "mocapd.toml", "--rig", tmp_path / "rig.toml",
+                   "--replay", tmp_path / "rec.mcrec", "--fast", "--json", tmp_path / "f.json",
+                   "--runtime-dir", tmp_path / "rt")
+    assert r.code == 0, r.err
+    fig = json.loads((tmp_path / "f.json").read_text())
+    assert fig["frames"] == 150
+    assert fig["markers_tracked_median"] == 8
+    assert all(v > 0.95 for v in fig["bodies_valid_fraction"].values())
+    # a recording whose cameras the rig does not have: one line, exit 2
+    obs.camera_names = tuple(f"side{i}" for i in range(len(obs.camera_names)))
+    save_observations(tmp_path / "bad.mcrec", obs, truth, None)
+    r = mocapd_cli("start", "--rig", tmp_path / "rig.toml", "--replay", tmp_path / "bad.mcrec",
+                   "--runtime-dir", tmp_path / "rt")
+    assert r.code == 2 and "not in the rig" in r.err
+    assert len(r.err.strip().splitlines()) == 1
+
+
+def test_live_cameras_with_a_missing_plugin(tmp_path, mocapd_cli):
+    """Cameras from the configuration: one reads image files through detection, one needs
+    pypylon (not installed here): it is reported and skipped, the other runs."""
+    import cv2
+
+    from calibkit import sim
+
+    rig = sim.make_rig(3, 4.0, seed=8)
+    rig.save(tmp_path / "rig.toml")
+    xyz = sim.static_markers(6, 1, seed=3).xyz
+    for c in range(2):
+        folder = tmp_path / f"cam{c}"
+        folder.mkdir()
+        for i in range(5):
+            cv2.imwrite(str(folder / f"{i:03d}.png"), sim.render_frame(rig[c], xyz, seed=i)[0])
+    (tmp_path / "mocapd.toml").write_text(
+        'rig = "rig.toml"\n[pipeline]\nfps = 30\n'
+        '[[camera]]\nname = "cam0"\nsource = "cam0"\nfps = 30\n'
+        '[[camera]]\nname = "cam1"\nsource = "cam1"\nfps = 30\n'
+        '[[camera]]\nname = "cam2"\nsource = "basler:12345"\n')
+    r = mocapd_cli("start", "--config", tmp_path / "mocapd.toml", "--duration", 60,
+                   "--json", tmp_path / "f.json", "--runtime-dir", tmp_path / "rt")
+    assert r.code == 0, r.err
+    assert "cam2: skipped: plugin basler (needs pypylon) is not installed" in r.err
+    fig = json.loads((tmp_path / "f.json").read_text())
+    cams = {c["name"]: c for c in fig["cameras"]}
+    assert cams["cam0"]["frames"] == 5 and cams["cam1"]["frames"] == 5
+    assert cams["cam2"]["frames"] == 0
+    assert "every source has ended" in r.err  # it stopped by itself, long before 60 s

@@ -18,6 +18,7 @@ from daemon.config import (
     Config,
     MavlinkOut,
     NatnetOut,
+    ReplayIn,
     SerialOut,
     SimConfig,
     UdpOut,
@@ -154,8 +155,10 @@ def register(app: typer.Typer) -> None:
         runtime_dir: Annotated[Path | None, typer.Option(
             "--runtime-dir", help="Folder of the control socket.")] = None,
         fast: Annotated[bool, typer.Option(
-            "--fast", help="--sim: as fast as the tracker goes, not at the camera rate.")]
-        = False,
+            "--fast", help="--sim/--replay: as fast as the tracker goes, not at the camera "
+                           "rate.")] = False,
+        replay: Annotated[Path | None, typer.Option(
+            "--replay", help="Play a recording (.mcrec or CSV) instead of cameras.")] = None,
         sim_bodies: Annotated[int | None, typer.Option("--sim-bodies")] = None,
         sim_cameras: Annotated[int | None, typer.Option("--sim-cameras")] = None,
         sim_fps: Annotated[float | None, typer.Option("--sim-fps")] = None,
@@ -189,6 +192,10 @@ def register(app: typer.Typer) -> None:
                 changes["runtime_dir"] = runtime_dir
             if mode is not None:
                 changes["mode"] = mode
+            if replay is not None:
+                changes["replay"] = ReplayIn(replay, realtime=not fast)
+            elif fast and cfg.replay is not None:
+                changes["replay"] = replace(cfg.replay, realtime=False)
             if sim or cfg.sim is not None:
                 s = cfg.sim or SimConfig()
                 sim_changes = {"realtime": not fast} if fast else {}
@@ -207,7 +214,8 @@ def register(app: typer.Typer) -> None:
         truth = Rig.load(truth_rig) if truth_rig is not None else None
         daemon = Daemon(cfg, truth, extend=full)
         daemon.install_signals()
-        total = frames or (int(duration * cfg.sim.fps) if duration and cfg.sim else None)
+        fps = cfg.sim.fps if cfg.sim else cfg.fps
+        total = frames or (int(duration * fps) if duration else None)
         progress = Progress("mocapd", total) if total else None
         figures = daemon.run(frames, duration, progress.update if progress else None)
         if progress:
