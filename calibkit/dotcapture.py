@@ -230,8 +230,12 @@ class DotCapture:
             return np.zeros((0, 2)), np.zeros(0)
         uv = blobs.uv
         threshold = blobs.threshold
-        # a blob far smaller than its peers is a dot cut by the image or screen edge
-        keep = blobs.area >= 0.5 * np.median(blobs.area)
+        # a dot cut by the image border has a biased centroid; a blob far smaller than its
+        # peers is a dot cut some other way (a bezel, an obstacle)
+        h, w = diff.shape
+        x0, y0, x1, y1 = blobs.bbox.T
+        keep = (x0 > 0) & (y0 > 0) & (x1 < w - 1) & (y1 < h - 1)
+        keep &= blobs.area >= 0.5 * np.median(blobs.area)
         per_shot = []
         for shot in shots:
             b = detect(shot - off, cfg.replace(threshold=threshold))

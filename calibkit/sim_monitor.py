@@ -213,8 +213,12 @@ def default_sim_camera(size: tuple[int, int] = (640, 480), seed: int = 0) -> Cam
 
 def make_monitor_sim(n_views: int, size: tuple[int, int] = (640, 480), seed: int = 0,
                      config: MonitorSimConfig | None = None,
-                     camera: Camera | None = None) -> MonitorSim:
+                     camera: Camera | None = None, fill: float = 0.8) -> MonitorSim:
+    """A camera and the user's tilted views of the monitor. `fill`: how much of the image
+    the screen spans; above 1 the screen overflows the image (its edges out of view) and
+    the dots reach the image corners."""
     cfg = config or MonitorSimConfig(seed=seed)
     cam = camera or default_sim_camera(size, seed)
-    views = monitor_views(cam, n_views, cfg.screen_px, cfg.pixel_pitch_mm, seed=seed)
+    views = monitor_views(cam, n_views, cfg.screen_px, cfg.pixel_pitch_mm, fill=fill,
+                          seed=seed)
     return MonitorSim(cam, views, cfg)

@@ -249,30 +249,50 @@ def decode_layer(schedule: Schedule, layer: int, step_images: dict[int, np.ndarr
 def predict_from_neighbours(ref_screen: np.ndarray, ref_uv: np.ndarray, screen: np.ndarray,
                             k: int = 8, skip_self: bool = False
                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Image positions of screen points (P, 2) predicted by a local affine map fitted to the
-    k nearest identified dots around each (lens distortion is smooth, so an affine map holds
-    over a few dot spacings). Returns predictions (P, 2), the fit's RMS (P,) px, and whether
-    the neighbours surround the point closely enough to trust it (P,). With skip_self the
-    points are the reference dots themselves, each predicted without itself."""
+    """Image positions of screen points (P, 2) predicted by a local homography fitted to the
+    k nearest identified dots around each. A flat screen seen by a camera is a homography
+    up to the lens distortion, which is smooth, so over a few dot spacings the local fit
+    is good to a fraction of a pixel even for steep tilts (an affine fit is not: it misses
+    the perspective by pixels). Returns predictions (P, 2), the fit's RMS (P,) px, and
+    whether the neighbours surround the point closely enough to trust it (P,). With
+    skip_self the points are the reference dots themselves, each predicted without itself.
+    """
     from scipy.spatial import cKDTree
 
-    k = min(k, len(ref_uv) - (1 if skip_self else 0))
+    k = max(4, min(k, len(ref_uv) - (1 if skip_self else 0)))
     dist, nb = cKDTree(ref_screen).query(screen, k=k + (1 if skip_self else 0))
     if skip_self:
         dist, nb = dist[:, 1:], nb[:, 1:]
-    S = np.concatenate([ref_screen[nb] - screen[:, None, :], np.ones((len(screen), k, 1))],
-                       axis=2)  # (P, k, 3), centred on the point for conditioning
-    U = ref_uv[nb]  # (P, k, 2)
-    StS = np.einsum("pki,pkj->pij", S, S)
-    StU = np.einsum("pki,pkj->pij", S, U)
-    ok_fit = np.abs(np.linalg.det(StS)) > 1e-9
-    StS[~ok_fit] = np.eye(3)
-    A = np.linalg.solve(StS, StU)  # (P, 3, 2)
-    fit_rms = np.sqrt(np.mean(np.sum((np.einsum("pki,pij->pkj", S, A) - U) ** 2, axis=2),
-                              axis=1))
+    P = len(screen)
+    # normalise each neighbourhood (centred, unit spread) for a well-conditioned DLT
+    S = ref_screen[nb] - screen[:, None, :]
+    s_scale = np.maximum(np.sqrt(np.mean(np.sum(S ** 2, axis=2), axis=1)), 1e-9)
+    S = S / s_scale[:, None, None]
+    U0 = ref_uv[nb]
+    u_mean = U0.mean(axis=1)
+    U = U0 - u_mean[:, None, :]
+    u_scale = np.maximum(np.sqrt(np.mean(np.sum(U ** 2, axis=2), axis=1)), 1e-9)
+    U = U / u_scale[:, None, None]
+    one = np.ones((P, k))
+    zero = np.zeros((P, k, 3))
+    xs = np.stack([S[:, :, 0], S[:, :, 1], one], axis=2)  # (P, k, 3)
+    rows_u = np.concatenate([xs, zero, -U[:, :, :1] * xs], axis=2)
+    rows_v = np.concatenate([zero, xs, -U[:, :, 1:] * xs], axis=2)
+    A = np.concatenate([rows_u, rows_v], axis=1)  # (P, 2k, 9)
+    _, sv, vt = np.linalg.svd(A)
+    H = vt[:, -1, :].reshape(P, 3, 3)
+    proj = np.einsum("pij,pkj->pki", H, xs)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        fit = proj[:, :, :2] / proj[:, :, 2:]
+        fit_rms = np.sqrt(np.mean(np.sum((fit - U) ** 2, axis=2), axis=1)) * u_scale
+        centre = H[:, :2, 2] / H[:, 2, 2:3]  # the query point is the origin
+    pred = centre * u_scale[:, None] + u_mean
+    ok_fit = np.isfinite(pred).all(axis=1) & np.isfinite(fit_rms) & (sv[:, -2] > 1e-9)
+    pred = np.where(ok_fit[:, None], pred, 0.0)
+    fit_rms = np.where(ok_fit, fit_rms, np.inf)
     # neighbours must surround the point: no extrapolation far outside them
     near = dist[:, -1] <= 3.0 * np.median(dist[:, -1])
-    return A[:, 2, :], fit_rms, ok_fit & near
+    return pred, fit_rms, ok_fit & near
 
 
 def check_by_neighbours(screen: np.ndarray, uv: np.ndarray, k: int = 8,
@@ -280,7 +300,8 @@ def check_by_neighbours(screen: np.ndarray, uv: np.ndarray, k: int = 8,
     """Which identified dots agree with their neighbours: each dot's image position must be
     where its k nearest dots (on the screen) place it, within `max_px` (default a fifth of
     the image spacing). A misdecoded id points to a screen position far away, so its dot
-    sits where its supposed neighbours say it cannot be. Mask (N,)."""
+    sits where its supposed neighbours say it cannot be (a local homography fitted to
+    them, predict_from_neighbours). Mask (N,)."""
     from scipy.spatial import cKDTree
 
     n = len(uv)
@@ -309,16 +330,16 @@ def check_by_neighbours(screen: np.ndarray, uv: np.ndarray, k: int = 8,
 
 def identify_by_neighbours(ref_screen: np.ndarray, ref_uv: np.ndarray, screen: np.ndarray,
                            uv: np.ndarray, k: int = 8, max_px: float | None = None,
-                           max_fit_px: float = 1.0) -> np.ndarray:
+                           max_fit_px: float = 0.5) -> np.ndarray:
     """Name detected dots from their identified neighbours, without a code.
 
     ref_screen/ref_uv: (M, 2) already identified dots (screen and image positions);
     screen: (P, 2) the screen positions shown now; uv: (N, 2) the dots detected now.
     Around each shown position the k nearest identified dots (on the screen) give a local
-    affine map screen -> image (lens distortion is smooth, so it holds over a few dot
-    spacings); the detection nearest to the prediction is taken if it is within `max_px`
-    (default a quarter of the image spacing of the reference dots), the match is mutual,
-    and the affine fit itself is good to `max_fit_px`. Returns, per detection, the index
+    homography screen -> image (predict_from_neighbours); the detection nearest to the
+    prediction is taken if it is within `max_px` (default a quarter of the image spacing
+    of the reference dots), the match is mutual, and the local fit itself is good to
+    `max_fit_px`. Returns, per detection, the index
     into `screen` (-1 when not identified).
     """
     from scipy.spatial import cKDTree

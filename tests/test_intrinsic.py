@@ -271,3 +271,24 @@ def test_raster_scan_capture():
         truth, _ = sim.truth_uv(schedule.points_xy[dots.ids])
     assert len(dots) >= 0.6 * len(schedule.points_xy)
     assert np.linalg.norm(dots.uv - truth, axis=1).max() < 0.3
+
+
+def test_monitor_partly_out_of_view_reaches_the_corners():
+    """A screen larger than the image (its edges out of view): only the dots seen are used,
+    none is misnamed, and they cover the image corners a board would miss."""
+    config = MonitorSimConfig(**SMALL)
+    sim = make_monitor_sim(4, (320, 240), 0, config, fill=1.25)
+    schedule = coded_schedule(config.screen_px, 80.0, 2, 6.0)
+    views = []
+    with sim:
+        cap = DotCapture(sim, schedule)
+        for v in range(4):
+            sim.set_view(v)
+            dots = cap.run()
+            truth, _ = sim.truth_uv(schedule.points_xy[dots.ids])
+            assert np.linalg.norm(dots.uv - truth, axis=1).max() < 0.3
+            views.append(monitor_plane_view(dots, schedule, config.pixel_pitch_mm))
+    r = calibrate(views, sim.camera.size, dot_radius_m=6 * config.pixel_pitch_mm / 1000)
+    assert r.coverage == 1.0
+    assert abs(r.camera.fx / sim.camera.fx - 1) < 5e-4
+    assert abs(r.camera.cx - sim.camera.cx) < 0.5 and abs(r.camera.cy - sim.camera.cy) < 0.5
