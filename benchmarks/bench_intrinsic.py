@@ -69,9 +69,9 @@ def opencv_chessboard(sim, n_views, rng):
     return K, len(objs)
 
 
-def one_run(seed: int, n_views: int) -> dict:
+def one_run(seed: int, n_views: int, fill: float = 0.8, baseline: bool = True) -> dict:
     cfg = MonitorSimConfig(seed=seed)
-    sim = make_monitor_sim(n_views, (640, 480), seed, cfg)
+    sim = make_monitor_sim(n_views, (640, 480), seed, cfg, fill=fill)
     truth = sim.camera
     schedule = coded_schedule(cfg.screen_px, 80.0, 2, 6.0)
     views, frames = [], []
@@ -87,12 +87,13 @@ def one_run(seed: int, n_views: int) -> dict:
         t1 = time.perf_counter()
         res = calibrate(views, truth.size, dot_radius_m=6.0 * cfg.pixel_pitch_mm / 1000.0)
         solve_s = time.perf_counter() - t1
-        K, cv_views = opencv_chessboard(sim, n_views, np.random.default_rng(seed + 100))
+        K, cv_views = (opencv_chessboard(sim, n_views, np.random.default_rng(seed + 100))
+                       if baseline else (None, 0))
     c = res.camera
     out = {
         "seed": seed, "frames_per_view": float(np.median(frames)),
         "capture_s_per_view": float(np.median(frames)) / cfg.fps,
-        "points": res.points, "rms_px": res.rms_px,
+        "points": res.points, "rms_px": res.rms_px, "coverage": res.coverage,
         "fx_err_pct": 100 * abs(c.fx / truth.fx - 1), "fy_err_pct": 100 * abs(c.fy / truth.fy - 1),
         "cx_err_px": abs(c.cx - truth.cx), "cy_err_px": abs(c.cy - truth.cy),
         "solve_s": solve_s, "sim_s": sim_s, "cv_views": cv_views,
@@ -115,7 +116,8 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=6)
     args = ap.parse_args()
     runs = [one_run(seed, args.views) for seed in range(args.runs)]
-    keys = ["frames_per_view", "capture_s_per_view", "points", "rms_px", "fx_err_pct",
+    keys = ["frames_per_view", "capture_s_per_view", "points", "coverage", "rms_px",
+            "fx_err_pct",
             "fy_err_pct", "cx_err_px", "cy_err_px", "cv_fx_err_pct", "cv_fy_err_pct",
             "cv_cx_err_px", "cv_cy_err_px", "cv_views", "solve_s", "raster_frames_per_view"]
     print(f"monitor intrinsic calibration: 640x480 camera, {args.views} views, "
@@ -138,6 +140,13 @@ def main() -> None:
     print(f"\ncapture per view {med['capture_s_per_view']:.1f} s at 30 fps (single-dot scan: "
           f"{med['raster_frames_per_view'] / 30:.0f} s), all views "
           f"{args.views * med['capture_s_per_view']:.0f} s")
+    # the monitor nearer, overflowing the image: dots reach the corners (no chessboard
+    # baseline: a board must be wholly in view)
+    near = [one_run(seed, args.views, fill=1.2, baseline=False) for seed in range(args.runs)]
+    print("\nmonitor overflowing the image (fill 1.2), dots only, medians: " + ", ".join(
+        f"{k} {np.median([r[k] for r in near]):.4g}" for k in
+        ("points", "coverage", "rms_px", "fx_err_pct", "fy_err_pct", "cx_err_px",
+         "cy_err_px")))
 
 
 if __name__ == "__main__":

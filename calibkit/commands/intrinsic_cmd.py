@@ -147,6 +147,9 @@ def register(app: typer.Typer) -> None:
         size: Annotated[str, typer.Option(help="--sim: camera size.")] = "640x480",
         latency_ms: Annotated[float, typer.Option(help="--sim: display latency.")] = 70.0,
         noise: Annotated[float, typer.Option(help="--sim: sensor noise, DN.")] = 2.0,
+        fill: Annotated[float, typer.Option(
+            help="--sim: how much of the image the monitor spans (above 1 it overflows "
+                 "the image).")] = 0.8,
     ) -> None:
         """Calibrate one camera's intrinsics (focal lengths, principal point, distortion)."""
         modes = [name for name, on in (("--display", display), ("--images", images is not None),
@@ -183,7 +186,9 @@ def register(app: typer.Typer) -> None:
             pitch = pixel_pitch or cfg.pixel_pitch_mm
             cfg.pixel_pitch_mm = pitch
             schedule = _schedule(cfg.screen_px, step, shifts, radius, raster)
-            with make_monitor_sim(views, img_size, seed, cfg) as simulator:
+            if not 0.1 <= fill <= 3.0:
+                raise UserError(f"--fill must be between 0.1 and 3, got {fill}")
+            with make_monitor_sim(views, img_size, seed, cfg, fill=fill) as simulator:
                 truth = simulator.camera.replace(name=camera)
                 plane_views = _capture(simulator, schedule, views, pitch,
                                        lambda v, done: simulator.set_view(v), img_size,
