@@ -219,7 +219,9 @@ class NatNetPublisher(Publisher):
                  group: str = "239.255.42.99", up_axis: str = "z", ttl: int = 1,
                  rate_hz: float = 0.0, legacy_unlabeled: bool = False,
                  keepalive_timeout_s: float = 10.0, name: str = "natnet") -> None:
-        super().__init__(rate_hz=rate_hz)
+        # a reload starts the new server while the old one still holds the port: retry
+        # soon, so the stream pauses for a fraction of a second, not a whole one
+        super().__init__(rate_hz=rate_hz, retry_s=0.1)
         axes(up_axis)
         self.bodies = list(bodies)
         self.interface, self.command_port, self.data_port = interface, command_port, data_port

@@ -170,7 +170,9 @@ class VrpnPublisher(Publisher):
     def __init__(self, bodies=(), host: str = "0.0.0.0", port: int = 3883,
                  rate_hz: float = 0.0, udp: bool = True, max_backlog_bytes: int = 1 << 20,
                  name: str = "vrpn") -> None:
-        super().__init__(rate_hz=rate_hz)
+        # a reload starts the new server while the old one still holds the port: retry
+        # soon, so the stream pauses for a fraction of a second, not a whole one
+        super().__init__(rate_hz=rate_hz, retry_s=0.1)
         self.bodies = list(bodies)
         self.host, self.port = host, port
         self.use_udp = udp
