@@ -160,6 +160,7 @@ class ProjectorSimConfig:
     white_dn: float = 170.0
     noise_dn: float = 2.0
     blur_px: float = 0.5
+    supersample: int = SUPERSAMPLE  # sub-samples per camera pixel and axis
     seed: int = 0
 
 
@@ -209,6 +210,7 @@ class ProjectorRigSim:
         self.history: list[_Shown] = [_Shown(-1e9, 0)]
         self._images: dict[int, np.ndarray] = {0: np.zeros(cfg.projector_px[::-1], np.float32)}
         self._maps: dict[tuple[int, bool], tuple] = {}
+        self._rays: dict[int, np.ndarray] = {}
         self._warped: dict[tuple[int, int], np.ndarray] = {}
 
     def close(self) -> None:
@@ -241,7 +243,11 @@ class ProjectorRigSim:
         fraction of each camera pixel that sees lit surface), for the current table state."""
         key = (c, self.table_present)
         if key not in self._maps:
-            self._maps[key] = _camera_to_projector(self.scene, c, self.table_present)
+            s = self.config.supersample
+            if c not in self._rays:
+                self._rays[c] = _camera_rays(self.scene.rig[c], s)
+            self._maps[key] = _camera_to_projector(self.scene, c, self.table_present, s,
+                                                   self._rays[c])
         return self._maps[key]
 
     def _warp(self, c: int, key: int) -> np.ndarray:
@@ -299,9 +305,10 @@ def _camera_rays(cam: Camera, s: int) -> np.ndarray:
     return np.column_stack([map_coordinates(coarse[:, :, k], at, order=1) for k in range(2)])
 
 
-def _camera_to_projector(scene: ProjectorScene, c: int, table_present: bool):
-    cam, s = scene.rig[c], SUPERSAMPLE
-    n = _camera_rays(cam, s)
+def _camera_to_projector(scene: ProjectorScene, c: int, table_present: bool, s: int,
+                         n: np.ndarray):
+    """Camera c's sub-samples (normalised rays n) -> projector pixels and a lit mask."""
+    cam = scene.rig[c]
     d = np.concatenate([n, np.ones((len(n), 1))], axis=1) @ cam.R  # world directions
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     o = cam.centre

@@ -283,7 +283,7 @@ def test_rendered_capture_identifies_dots_and_places_cameras():
     floor, table = ex.plane_maps(refs)
     sch = coded_schedule(PROJ, 96, 2, 10)
     tsch = ex.table_schedule(sch, table)
-    cfg = sp.ProjectorSimConfig(camera_latency_s=(0.03, 0.12), seed=1)
+    cfg = sp.ProjectorSimConfig(camera_latency_s=(0.03, 0.12), supersample=2, seed=1)
     with sp.ProjectorRigSim(scene, cfg) as dev:
         fcap = ex.capture_session(dev, sch, 2)
         dev.set_table(True)
