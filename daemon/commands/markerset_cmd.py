@@ -1,0 +1,210 @@
+"""`mocapd markerset learn`, `mocapd label`, `mocapd fill`, `mocapd skeleton`: marker sets."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from calibkit.clitools import Progress, print_table, write_json
+from calibkit.errors import UserError
+
+JsonOpt = Annotated[Path | None, typer.Option("--json", help="Write the figures as JSON.")]
+RateOpt = Annotated[float | None, typer.Option(
+    "--rate", help="Frame rate, Hz, for inputs that do not carry one (CSV).")]
+
+
+def _check_out(path: Path, inputs: list[Path]) -> None:
+    if path.suffix.lower() not in (".c3d", ".csv"):
+        raise UserError(f"--out must end in .c3d or .csv, got {path.name}")
+    for p in inputs:
+        if p.exists() and path.resolve() == p.resolve():
+            raise UserError(f"--out {path} is an input; write to another file")
+
+
+def register(app: typer.Typer) -> None:
+    ms_app = typer.Typer(help="Marker sets: learn one from a labelled take.",
+                         no_args_is_help=True)
+    app.add_typer(ms_app, name="markerset")
+
+    @ms_app.command("learn")
+    def learn_cmd(
+        takes: Annotated[list[Path], typer.Argument(help="Labelled takes (.c3d or .csv).")],
+        out: Annotated[Path, typer.Option("--out", help="Marker set to write (.toml).")],
+        name: Annotated[str | None, typer.Option("--name", help="Marker set name.")] = None,
+        spread_mm: Annotated[float, typer.Option(
+            "--segment-spread-mm", help="Markers whose distances vary less than this "
+                                        "form a segment.")] = 12.0,
+        json_path: JsonOpt = None,
+    ) -> None:
+        """Learn a marker set (segments, distances, handedness) from labelled takes."""
+        from daemon.c3dio import read_take
+        from daemon.markerset import learn
+
+        if out.suffix.lower() != ".toml":
+            raise UserError(f"--out must be a .toml file, got {out.name}")
+        if spread_mm <= 0:
+            raise UserError("--segment-spread-mm must be positive")
+        loaded = [read_take(p) for p in takes]
+        ms = learn(loaded, spread_mm / 1000.0, name or out.stem)
+        ms.save(out)
+        rows = [[s.name, len(s.markers), round(1000 * s.spread_m, 1),
+                 ms.segments[s.parent].name if s.parent >= 0 else "-"] for s in ms.segments]
+        print_table(rows, ["segment", "markers", "spread_mm", "parent"])
+        typer.echo(f"wrote {out}: {ms.n} markers, {len(ms.segments)} segments, "
+                   f"{len(ms.chiral)} handedness checks, from "
+                   f"{sum(t.n_frames for t in loaded)} frames")
+        if json_path is not None:
+            write_json(json_path, {"markers": ms.n, "segments": [
+                {"name": s.name, "markers": [ms.labels[i] for i in s.markers],
+                 "spread_mm": 1000 * s.spread_m} for s in ms.segments]})
+
+    @app.command("label")
+    def label_cmd(
+        points: Annotated[Path, typer.Argument(
+            help="Unlabelled points: CSV frame,x,y,z (metres) or a C3D (labels ignored).")],
+        markerset: Annotated[Path, typer.Option("--markerset", help="Marker set (.toml).")],
+        out: Annotated[Path, typer.Option("--out", help="Labelled take (.c3d or .csv).")],
+        seed_frames: Annotated[int, typer.Option(
+            "--seed-frames", help="Use the first N frames' labels from --seed (or from a "
+                                  "labelled C3D given as POINTS).")] = 0,
+        seed: Annotated[Path | None, typer.Option(
+            "--seed", help="Labelled take holding the first frames' labels.")] = None,
+        rate: RateOpt = None,
+        json_path: JsonOpt = None,
+    ) -> None:
+        """Name every point of every frame; ghosts are left out."""
+        import numpy as np
+
+        from daemon.c3dio import Points, read_points_csv, read_take, write_take
+        from daemon.label import label_take
+        from daemon.markerset import MarkerSet
+
+        _check_out(out, [points])
+        if seed_frames < 0:
+            raise UserError("--seed-frames must be >= 0")
+        ms = MarkerSet.load(markerset)
+        if not points.exists():
+            raise UserError(f"{points} does not exist")
+        rate_hz = rate
+        seed_take = None
+        if points.suffix.lower() == ".c3d":
+            labelled = read_take(points)
+            pts = Points.from_take(labelled)
+            rate_hz = rate_hz or labelled.rate_hz
+            if seed_frames and seed is None:
+                seed_take = labelled
+        elif points.suffix.lower() == ".csv":
+            pts = read_points_csv(points)
+        else:
+            raise UserError(f"{points}: POINTS must be a .csv (frame,x,y,z) or .c3d file")
+        if seed is not None:
+            seed_take = read_take(seed, rate_hz)
+        if seed_frames and seed_take is None:
+            raise UserError("--seed-frames needs --seed LABELLED.c3d|csv with those frames")
+        if seed_take is not None:
+            missing = [n for n in ms.labels if n not in seed_take.labels]
+            if missing:
+                raise UserError(f"the seed take lacks marker(s) {', '.join(missing[:5])} of "
+                                f"the marker set")
+        if not len(pts.frame):
+            raise UserError(f"{points} holds no points")
+        rate_hz = rate_hz or 120.0
+        n_frames = len(np.unique(pts.frame))
+        progress = Progress("label", n_frames)
+        take, conf, _ = label_take(pts, ms, rate_hz, seed_take, seed_frames, progress)
+        progress.update(n_frames)
+        progress.finish()
+        write_take(out, take)
+        seen = take.visible
+        n_pts = len(pts.frame)
+        figures = {"frames": int(take.n_frames), "points": n_pts,
+                   "labelled": int(seen.sum()), "unlabelled_points": int(n_pts - seen.sum()),
+                   "confidence_median": float(np.median(conf)) if len(conf) else 0.0,
+                   "low_confidence_frames": int((conf < 0.5).sum()),
+                   "per_marker_seen": {n: int(c) for n, c in zip(ms.labels, seen.sum(0),
+                                                                   strict=True)}}
+        typer.echo(f"wrote {out}: {take.n_frames} frames, {int(seen.sum())} of {n_pts} "
+                   f"points labelled, median confidence {figures['confidence_median']:.2f}")
+        if json_path is not None:
+            write_json(json_path, figures)
+
+    @app.command("fill")
+    def fill_cmd(
+        take_path: Annotated[Path, typer.Argument(help="Labelled take (.c3d or .csv).")],
+        out: Annotated[Path, typer.Option("--out", help="Filled take (.c3d or .csv).")],
+        max_gap: Annotated[float | None, typer.Option(
+            "--max-gap", help="Longest gap to fill, seconds (longer ones stay empty).")] = None,
+        method: Annotated[str, typer.Option(
+            "--method", help="auto, rigid, cubic, linear, newton or pca.")] = "auto",
+        markerset: Annotated[Path | None, typer.Option(
+            "--markerset", help="Marker set (.toml) for segment spreads; else the take's "
+                                "own.")] = None,
+        rate: RateOpt = None,
+        json_path: JsonOpt = None,
+    ) -> None:
+        """Fill the gaps of hidden markers; filled samples are marked (CSV column filled)."""
+        from daemon.c3dio import read_take, write_take
+        from daemon.gapfill import METHODS, fill
+        from daemon.markerset import MarkerSet
+
+        _check_out(out, [take_path])
+        if method not in METHODS:
+            raise UserError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
+        if max_gap is not None and max_gap <= 0:
+            raise UserError("--max-gap must be positive (seconds)")
+        take = read_take(take_path, rate)
+        ms = MarkerSet.load(markerset) if markerset is not None else None
+        before = int((~take.visible).sum())
+        filled, counts = fill(take, ms, max_gap, method)
+        write_take(out, filled)
+        after = int((~filled.visible).sum())
+        typer.echo(f"wrote {out}: filled {before - after} of {before} missing samples "
+                   f"({', '.join(f'{k} {v}' for k, v in counts.items() if v) or 'no gaps'})")
+        if json_path is not None:
+            write_json(json_path, {"missing_before": before, "missing_after": after,
+                                   "gaps_by_method": counts})
+
+    _register_skeleton(app)
+
+
+def _register_skeleton(app: typer.Typer) -> None:
+    @app.command("skeleton")
+    def skeleton_cmd(
+        rom: Annotated[Path, typer.Argument(
+            help="Range-of-motion take, labelled (.c3d or .csv).")],
+        out: Annotated[Path, typer.Option("--out", help="Skeleton to write (.toml).")],
+        model: Annotated[str, typer.Option(
+            "--model", help="Segment model: cmu41 (shipped) or a model TOML.")] = "cmu41",
+        bvh: Annotated[Path | None, typer.Option(
+            "--bvh", help="Also export this take's motion as BVH.")] = None,
+        motion: Annotated[Path | None, typer.Option(
+            "--motion", help="Take to export with --bvh (default: the ROM take).")] = None,
+        rate: RateOpt = None,
+        json_path: JsonOpt = None,
+    ) -> None:
+        """Joint centres by sphere fits, bone lengths; export motion as BVH."""
+        from daemon.c3dio import read_take
+        from daemon.skeleton import export_bvh, fit_skeleton, load_model
+
+        if out.suffix.lower() != ".toml":
+            raise UserError(f"--out must be a .toml file, got {out.name}")
+        if bvh is not None and bvh.suffix.lower() != ".bvh":
+            raise UserError(f"--bvh must end in .bvh, got {bvh.name}")
+        take = read_take(rom, rate)
+        mdl = load_model(model)
+        skel = fit_skeleton(take, mdl)
+        skel.save(out)
+        rows = [[j.name, j.parent or "-", round(1000 * j.rms_m, 1),
+                 round(1000 * float(skel.bone_length_m(j.name)), 1)] for j in skel.joints]
+        print_table(rows, ["joint", "parent", "fit_rms_mm", "bone_mm"])
+        typer.echo(f"wrote {out}: {len(skel.joints)} joints")
+        if bvh is not None:
+            mtake = read_take(motion, rate) if motion is not None else take
+            export_bvh(bvh, skel, mtake)
+            typer.echo(f"wrote {bvh}: {mtake.n_frames} frames")
+        if json_path is not None:
+            write_json(json_path, {"joints": {j.name: {"parent": j.parent,
+                                                       "fit_rms_mm": 1000 * j.rms_m}
+                                              for j in skel.joints}})
