@@ -159,12 +159,16 @@ def register(app: typer.Typer) -> None:
                            "rate.")] = False,
         replay: Annotated[Path | None, typer.Option(
             "--replay", help="Play a recording (.mcrec or CSV) instead of cameras.")] = None,
-        sim_bodies: Annotated[int | None, typer.Option("--sim-bodies")] = None,
-        sim_cameras: Annotated[int | None, typer.Option("--sim-cameras")] = None,
-        sim_fps: Annotated[float | None, typer.Option("--sim-fps")] = None,
-        noise_px: Annotated[float | None, typer.Option("--noise-px")] = None,
-        seed: Annotated[int | None, typer.Option("--seed")] = None,
-        verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
+        sim_bodies: Annotated[int | None, typer.Option(
+            "--sim-bodies", help="--sim: rigid bodies in the scene (default 3).")] = None,
+        sim_cameras: Annotated[int | None, typer.Option(
+            "--sim-cameras", help="--sim without --rig: cameras (default 8).")] = None,
+        sim_fps: Annotated[float | None, typer.Option(
+            "--sim-fps", help="--sim: camera rate, Hz (default 240).")] = None,
+        noise_px: Annotated[float | None, typer.Option(
+            "--noise-px", help="--sim: centroid noise sigma, px (default 0.2).")] = None,
+        seed: Annotated[int | None, typer.Option("--seed", help="--sim: random seed.")] = None,
+        verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Debug log.")] = False,
     ) -> None:
         """Track markers and rigid bodies and serve their poses until stopped (SIGTERM).
 
