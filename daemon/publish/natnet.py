@@ -353,7 +353,9 @@ class NatNetPublisher(Publisher):
             return None
         msg_id, size = struct.unpack_from("<HH", data)
         self.requests += 1
-        if msg_id == NAT_CONNECT:
+        if msg_id == NAT_CONNECT:  # a new session: no frames until its keep-alives
+            with self._lock:
+                self.subscribers.pop(addr, None)
             return self._info
         if msg_id == NAT_KEEPALIVE:
             with self._lock:
