@@ -70,6 +70,9 @@ class Labeller:
         iu = np.argwhere(np.triu(markerset.mean_m < 0.25, 1))
         self.swap_pairs = iu
         self.adapted = False
+        self._tol_known = None
+        self._tol_cache = None
+        self.since_reacquired = np.zeros(n, int)
         self.known_frames = np.zeros(n, int)    # frames whose distances this take taught
         self.adapt_tol = _tolerance(markerset, noise_m)
         self.pos = np.full((n, 3), np.nan)
@@ -90,9 +93,14 @@ class Labeller:
         noise and, until the take's own distances are learned, the spread between
         subjects."""
         known = self.known_frames >= 30
+        if self._tol_known is not None and np.array_equal(known, self._tol_known):
+            return self._tol_cache
         both = known[:, None] & known[self.nb]
         subject = np.where(both, 0.0, self.nb_subject)
-        return 3.0 * np.sqrt(self.nb_sd ** 2 + subject ** 2 + 2 * self.noise_m ** 2) + 0.004
+        self._tol_known = known
+        self._tol_cache = 3.0 * np.sqrt(self.nb_sd ** 2 + subject ** 2
+                                        + 2 * self.noise_m ** 2) + 0.004
+        return self._tol_cache
 
     def seed(self, xyz: np.ndarray) -> None:
         """Start from a labelled frame (n, 3), NaN for markers not seen in it."""
@@ -165,7 +173,8 @@ class Labeller:
         tracked = np.nonzero(self.age <= 2)[0]
         if len(tracked) and k:
             q = self.pos[tracked] + self.vel[tracked] * (self.age[tracked, None] + 1)
-            cost = np.linalg.norm(q[:, None] - P[None], axis=2)
+            diff = q[:, None] - P[None]
+            cost = np.sqrt(np.einsum("tki,tki->tk", diff, diff))
             cost[cost > self.gate_m] = BIG
             r, c = linear_sum_assignment(cost)
             good = cost[r, c] < BIG
@@ -216,9 +225,12 @@ class Labeller:
             marker_of[free[c[good]]] = lost[r[good]]
             cur[lost[r[good]]] = P[free[c[good]]]
 
-        self._repair_swaps(cur, point_of, marker_of)
+        changed = len(lost) > 0 or bad.any()
+        if changed:
+            err = self._structure_error(cur)
+        if self._repair_swaps(cur, point_of, marker_of, err):
+            err = self._structure_error(cur)
         has = point_of >= 0
-        err = self._structure_error(cur)
         conf_m = np.where(has, np.exp(-0.5 * np.nan_to_num(err, nan=0.5) ** 2 * 4), 0.0)
         self._commit(cur, has)
         conf = np.zeros(k)
@@ -228,7 +240,8 @@ class Labeller:
     def _structure_error(self, cur: np.ndarray) -> np.ndarray:
         """Per marker: mean over its labelled neighbours of |d - mean| / tolerance (each
         capped at 3, so one bad neighbour cannot condemn a marker alone)."""
-        d = np.linalg.norm(cur[:, None] - cur[self.nb], axis=2)
+        diff = cur[:, None] - cur[self.nb]
+        d = np.sqrt(np.einsum("nki,nki->nk", diff, diff))
         e = np.abs(d - self.nb_mean) / self._tol()
         ok = np.isfinite(e)
         num = ok.sum(1)
@@ -276,14 +289,17 @@ class Labeller:
                 np.minimum(self.age[lost[none]] + 1, 3)[:, None]
         return pred
 
-    def _repair_swaps(self, cur: np.ndarray, point_of: np.ndarray, marker_of: np.ndarray
-                      ) -> None:
+    def _repair_swaps(self, cur: np.ndarray, point_of: np.ndarray, marker_of: np.ndarray,
+                      err: np.ndarray) -> bool:
         """Swap two labelled markers when their distances to the other markers fit much
         better the other way round (a swap that tracking alone would carry on)."""
         i, j = self.swap_pairs[:, 0], self.swap_pairs[:, 1]
-        ok = np.isfinite(cur[i]).all(1) & np.isfinite(cur[j]).all(1)
+        suspect = (self.since_reacquired < 60) | (np.nan_to_num(err) > 0.5)
+        if not suspect.any():
+            return False
+        ok = np.isfinite(cur[i]).all(1) & np.isfinite(cur[j]).all(1) & (suspect[i] | suspect[j])
         if not ok.any():
-            return
+            return False
         i, j = i[ok], j[ok]
         x = np.nan_to_num(cur)
         seen = np.isfinite(cur).all(1)
@@ -297,6 +313,7 @@ class Labeller:
         keep = (wi * (di - mi) ** 2 + wj * (dj - mj) ** 2).sum(1)
         swap = (wi * (dj - mi) ** 2 + wj * (di - mj) ** 2).sum(1)
         better = (swap < 0.25 * keep) & (keep - swap > 25.0)
+        done = False
         for a, b in zip(i[better], j[better], strict=True):
             if point_of[a] < 0 or point_of[b] < 0:
                 continue
@@ -306,6 +323,8 @@ class Labeller:
             cur[[a, b]] = cur[[b, a]]
             self.pos[[a, b]] = self.pos[[b, a]]
             self.vel[[a, b]] = self.vel[[b, a]]
+            done = True
+        return done
 
     def _commit(self, cur: np.ndarray, has: np.ndarray) -> None:
         seen_prev = has & (self.age == 0)
@@ -314,6 +333,7 @@ class Labeller:
                             np.where(has[:, None], 0.0, self.vel))
         # a reacquired marker takes its neighbours' velocity
         re = has & ~seen_prev
+        self.since_reacquired = np.where(re, 0, self.since_reacquired + 1)
         if re.any():
             nbv = self.vel[self.nb[re]]
             ok = has[self.nb[re]]
@@ -326,8 +346,8 @@ class Labeller:
         self.age = np.where(has, 0, self.age + 1)
         if steady.any():
             self.snap[steady] = cur[None]
-        if self.adapt > 0 and has.sum() > 3:
-            self._learn_distances(cur, self.adapt)
+        if self.adapt > 0 and has.sum() > 3 and self.frames % 4 == 0:
+            self._learn_distances(cur, min(1.0, 4 * self.adapt))
         self.frames += 1
 
 
