@@ -239,6 +239,17 @@ def test_frame_too_large_for_the_size_field_is_refused():
         nn.message(nn.NAT_FRAMEOFDATA, bytes(70000))
 
 
+def test_crowded_frame_keeps_bodies_and_their_markers_within_the_size_field():
+    scene = Scene(loose=3000)
+    r = scene.frame(0)
+    payload = nn.frame_payload(r, legacy_unlabeled=True)
+    assert 65000 < len(payload) <= nn.MAX_PAYLOAD
+    f = parse_frame(nn.message(nn.NAT_FRAMEOFDATA, payload))
+    assert len(f.rigid_bodies) == 2
+    assert sum(m.has_model for m in f.labeled_markers) == 8  # every body marker kept
+    assert 1000 < len(f.labeled_markers) < 3008
+
+
 # ---- the natnet client, unicast and multicast, joining and leaving -----------------------------
 
 def _client(pub, multicast: bool):

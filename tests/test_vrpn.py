@@ -163,6 +163,13 @@ def test_raw_clients_over_tcp_and_connect_back_with_pings():
     scene = Scene()
     pub = vrpn.VrpnPublisher(scene.defs(), host="127.0.0.1", port=0)
     with Feeder(pub, scene) as feed:
+        # a request to call back a port nobody listens on fails without holding anyone up
+        dead = socket.socket()
+        dead.bind(("127.0.0.1", 0))
+        bogus = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        bogus.sendto(f"127.0.0.1 {dead.getsockname()[1]}".encode() + b"\0",
+                     ("127.0.0.1", pub.port))
+        bogus.sendto(b"garbage", ("127.0.0.1", pub.port))
         direct = RawClient(pub.port, lob=False)
         back = RawClient(pub.port, lob=True, udp=True)
         feed.wait_frames(100)
@@ -172,7 +179,9 @@ def test_raw_clients_over_tcp_and_connect_back_with_pings():
         status = pub.status()
         direct.close()
         back.close()
-    assert status["clients"] == 2 and status["errors"] == 0
+    assert status["clients"] == 2 and status["errors"] == 0 and not pub._calling
+    dead.close()
+    bogus.close()
     for c in (direct, back):
         assert set(c.senders.values()) == {"body0", "body1"}
         assert {vrpn.POS_QUAT, vrpn.PONG} <= set(c.types.values())

@@ -144,6 +144,7 @@ def _records(*columns) -> bytes:
 
 
 _IDENTITY_Q = np.array([0.0, 0.0, 0.0, 1.0])
+_FIXED_BYTES = 4 + 8 * 8 + 46  # frame number, eight block headers, the suffix
 _LABELLED = MARKER_PC_SOLVED | MARKER_HAS_MODEL
 _UNLABELLED = MARKER_PC_SOLVED | MARKER_UNLABELED
 
@@ -187,11 +188,19 @@ def frame_payload(result, up_axis: str = "z", legacy_unlabeled: bool = False,
         hit = ids[at] == tid
         labels[at[hit]] = member[held][hit]
         is_label[at[hit]] = True
+    legacy = xyz[~is_label].astype("<f4") if legacy_unlabeled else np.zeros((0, 3), "<f4")
+    # the size field is 16 bits: past ~2000 markers, send the bodies' markers first and as
+    # many others as fit (the bodies themselves always go)
+    room = (MAX_PAYLOAD - _FIXED_BYTES - 38 * n) // 2
+    legacy = legacy[:max(0, room // 12)]
+    fit = max(0, (MAX_PAYLOAD - _FIXED_BYTES - 38 * n - 12 * len(legacy)) // 26)
+    if m > fit:
+        keep = np.sort(np.argsort(~is_label, kind="stable")[:fit])
+        labels, xyz, is_label, m = labels[keep], xyz[keep], is_label[keep], fit
     zeros = np.zeros(m, "<f4")
     labelled = _records(labels.astype("<u4"), xyz.astype("<f4"), zeros,
                         np.where(is_label, _LABELLED, _UNLABELLED).astype("<i2"),
                         zeros) if m else b""
-    legacy = xyz[~is_label].astype("<f4") if legacy_unlabeled else np.zeros((0, 3), "<f4")
 
     t_ns = int(result.t_ns)
     suffix = struct.pack("<IIdQQQhi", 0, 0, (t_ns - t0_ns) * 1e-9, t_ns, int(result.arrival_ns),

@@ -31,6 +31,7 @@ reads and flushes, the publisher thread packs frames).
 from __future__ import annotations
 
 import logging
+import os
 import select
 import socket
 import struct
@@ -187,6 +188,7 @@ class VrpnPublisher(Publisher):
         self._lock = threading.Lock()
         self._srv_thread: threading.Thread | None = None
         self._srv_stop = threading.Event()
+        self._calling: dict[socket.socket, tuple] = {}  # call backs under way
         self._senders_ids: tuple | None = None
         self._senders = np.zeros(0, np.int64)
         self._wall_offset_ns = time.time_ns() - time.monotonic_ns()
@@ -234,6 +236,9 @@ class VrpnPublisher(Publisher):
             clients, self.clients = self.clients, []
         for c in clients:
             c.sock.close()
+        for sock in self._calling:
+            sock.close()
+        self._calling.clear()
         for s in (self.listen_sock, self.udp_sock):
             if s is not None:
                 s.close()
@@ -279,7 +284,7 @@ class VrpnPublisher(Publisher):
             with self._lock:
                 clients = list(self.clients)
             reads = [self.listen_sock, self.udp_sock] + [c.sock for c in clients]
-            writes = [c.sock for c in clients if c.outbuf]
+            writes = [c.sock for c in clients if c.outbuf] + list(self._calling)
             try:
                 r, w, _ = select.select(reads, writes, [], 0.05)
             except (OSError, ValueError):  # a socket closed under us: look again
@@ -288,6 +293,8 @@ class VrpnPublisher(Publisher):
                 self._accept()
             if self.udp_sock in r:
                 self._lob()
+            for sock in list(self._calling):
+                self._called(sock, sock in w)
             for c in clients:
                 try:
                     if c.sock in w:
@@ -319,14 +326,33 @@ class VrpnPublisher(Publisher):
             log.info("%s: ignoring a UDP datagram from %s:%d", self.name, *src)
             return
         with self._lock:
-            if any(c.peer == target for c in self.clients):
+            if any(c.peer == target for c in self.clients) or any(
+                    t == target for t, _ in self._calling.values()):
                 return  # already connected (the client lobs again every 2 s until it hears)
+        sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        sock.setblocking(False)  # connect in the background: others are not held up
         try:
-            sock = socket.create_connection(target, timeout=1.0)
+            sock.connect(target)
+        except BlockingIOError:
+            pass
         except OSError as exc:
+            sock.close()
             log.info("%s: cannot call back %s:%d: %s", self.name, *target, exc)
             return
-        self._new_client(sock, target)
+        self._calling[sock] = (target, time.monotonic() + 2.0)
+
+    def _called(self, sock: socket.socket, writable: bool) -> None:
+        """A call back finished connecting, failed, or took too long."""
+        target, deadline = self._calling[sock]
+        err = sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR) if writable else 0
+        if writable and not err:
+            del self._calling[sock]
+            self._new_client(sock, target)
+        elif err or time.monotonic() > deadline:
+            del self._calling[sock]
+            sock.close()
+            log.info("%s: cannot call back %s:%d: %s", self.name, *target,
+                     os.strerror(err) if err else "timed out")
 
     def _new_client(self, sock: socket.socket, peer) -> None:
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
