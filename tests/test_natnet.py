@@ -485,3 +485,30 @@ def test_a_reloaded_server_takes_over_the_port_within_a_moment():
         feed.wait_frames(10)
         c.shutdown()
     assert frames
+
+
+def test_configuration_tables_and_their_errors():
+    from calibkit.errors import UserError
+    from daemon.config import parse_config
+    from daemon.service import make_publishers
+
+    cfg = parse_config({"natnet": {"interface": "127.0.0.1", "up_axis": "y",
+                                   "multicast": False, "command_port": 1600},
+                        "vrpn": [{"address": "127.0.0.1:4000", "udp": False}, {}]})
+    pubs = make_publishers(cfg, Scene().defs())
+    natnet_pub, v1, v2 = pubs
+    assert (natnet_pub.interface, natnet_pub.command_port, natnet_pub.data_port,
+            natnet_pub.multicast, natnet_pub.up_axis) == ("127.0.0.1", 1600, 1511, False, "y")
+    assert [b.name for b in natnet_pub.bodies] == ["body0", "body1"]
+    assert (v1.host, v1.port, v1.use_udp, v2.host, v2.port) == ("127.0.0.1", 4000, False,
+                                                                "0.0.0.0", 3883)
+    assert v2.body_names == ["body0", "body1"]
+    for bad, words in (({"natnet": {"group": "10.0.0.1"}}, "natnet.group"),
+                       ({"natnet": {"interface": "eth0"}}, "natnet.interface"),
+                       ({"natnet": {"up_axis": "x"}}, "natnet.up_axis"),
+                       ({"natnet": {"command_port": 0}}, "natnet.command_port"),
+                       ({"natnet": {"typo": 1}}, "natnet.typo"),
+                       ({"vrpn": {"address": "nowhere"}}, "vrpn[0].address"),
+                       ({"vrpn": [{"udp": "yes"}]}, "vrpn[0].udp")):
+        with pytest.raises(UserError, match=words.replace("[", r"\[").replace("]", r"\]")):
+            parse_config(bad)
