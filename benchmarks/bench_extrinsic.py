@@ -152,7 +152,7 @@ def rendered(seed: int) -> dict:
     with sp.ProjectorRigSim(scene, sp.ProjectorSimConfig(seed=seed)) as dev:
         fcap = ex.capture_session(dev, sch, 6)
         dev.set_table(True)
-        tcap = ex.capture_session(dev, tsch, 6)
+        tcap = ex.capture_session(dev, tsch, 6, latency_frames=fcap.latency_frames)
     wall = time.perf_counter() - t0
     dots = ex.assemble(scene.rig.names, fcap.cameras, tcap.cameras, sch, floor, table)
     res = ex.calibrate(scene.rig, dots, floor, table)

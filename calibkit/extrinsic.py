@@ -354,23 +354,32 @@ def _gray(image: np.ndarray) -> np.ndarray:
 
 def capture_session(device: ProjectorRig, schedule: Schedule, n_cameras: int,
                     samples: int = 3, hold: int = 1, max_settle_frames: int = 60,
-                    max_scatter_px: float = 0.3, progress=None) -> SessionCapture:
+                    max_scatter_px: float = 0.3, progress=None,
+                    latency_frames: list[int | None] | None = None) -> SessionCapture:
     """Run the schedule once with every camera watching.
 
     Each camera has its own SettleDetector (latencies differ): after the projector changes,
     a camera's samples are the first `samples` frames once its own image has settled; the
-    projector moves on when every camera has them. A camera whose image does not change
-    (it sees none of the dots) is done once the others are and its wait has passed their
-    longest latency; one that never settles gives no image for that pattern (a missing
-    bit, which the parity may restore).
+    projector moves on when every camera has them. The first pattern (every dot on) teaches
+    each camera its latency; later, a camera whose image does not change (none of its dots
+    changed) is done once the others are and its own latency has passed; one that never
+    settles gives no image for that pattern (a missing bit, which the parity may restore).
+    latency_frames: each camera's latency from an earlier session (the table session reuses
+    the floor's: a camera that sees the table top at a grazing angle barely changes).
     """
+    # a blank first: long enough for the slowest camera to stop showing what was there
+    # before (12 frames = 400 ms at 30 fps when no latency is known), then 5 still frames
+    # for the noise level
     device.show(Dots.make(np.zeros((0, 2))))
-    warm = [device.grab() for _ in range(8)]
+    known = [int(v) for v in (latency_frames or []) if v is not None]
+    warm = [device.grab() for _ in range(max(12, max(known, default=0) + hold + 2) + 5)]
     frames = len(warm)
     settle = []
     for c in range(n_cameras):
-        noise = signature_noise([w[c] for w in warm[3:]])
+        noise = signature_noise([w[c] for w in warm[-5:]])
         det = SettleDetector(noise=noise, hold=hold, max_wait_frames=max_settle_frames)
+        if latency_frames is not None and latency_frames[c] is not None:
+            det.latencies.append(int(latency_frames[c]))  # learnt in an earlier session
         det.start(warm[-1][c])
         settle.append(det)
     step_images: list[dict[int, np.ndarray | None]] = [{} for _ in range(n_cameras)]
@@ -397,10 +406,13 @@ def capture_session(device: ProjectorRig, schedule: Schedule, n_cameras: int,
             done = [len(s) >= samples for s in shots]
             if all(done):
                 break
-            # cameras that saw a change are done: the rest see nothing of this pattern
-            lat = [settle[c].latency_frames for c in range(n_cameras) if changed[c]]
-            if lat and all(d for d, ch in zip(done, changed, strict=True) if ch) and \
-                    waited > max(lat) + hold + samples + 1:
+            # the cameras that saw a change are done, and each other camera's latency (its
+            # own, else the slowest known) has passed: they see nothing of this pattern.
+            # Not on the first pattern (all dots on), where every camera learns its latency.
+            lat = [d.latency_frames for d in settle if d.latency_frames is not None]
+            if any(changed) and all(d for d, ch in zip(done, changed, strict=True) if ch) \
+                    and all(_latency_passed(settle[c].latency_frames, lat, i == 0, waited, hold)
+                            for c in range(n_cameras) if not done[c]):
                 for c in range(n_cameras):
                     if not done[c] and not changed[c]:
                         shots[c] = [_gray(images[c])] * samples
@@ -416,6 +428,15 @@ def capture_session(device: ProjectorRig, schedule: Schedule, n_cameras: int,
     cams = [identify_dots(schedule, step_images[c], on_shots[c], max_scatter_px)
             for c in range(n_cameras)]
     return SessionCapture(cams, frames, [d.latency_frames for d in settle])
+
+
+def _latency_passed(own: int | None, known: list[int], first: bool, waited: int,
+                    hold: int) -> bool:
+    """Has a camera whose image did not change waited past its latency (its own, else the
+    slowest known; never on the first pattern when it has none)?"""
+    if own is None and (first or not known):
+        return False
+    return waited > (own if own is not None else max(known)) + hold + 2
 
 
 def _nearest(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

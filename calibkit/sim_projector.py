@@ -232,7 +232,13 @@ class ProjectorRigSim:
         self._keys += 1
         self._images[self._keys] = self.display.render(dots)
         self.history.append(_Shown(self.t_s + self.config.projector_latency_s, self._keys))
-        if len(self.history) > 4:
+        self._forget()
+
+    def _forget(self) -> None:
+        """Drop patterns that no camera's exposure can reach any more (the slowest camera
+        still sees what was shown its latency ago)."""
+        horizon = self.t_s - float(np.max(self.latency_s)) - 2.0 / self.config.fps
+        while len(self.history) > 1 and self.history[1].t_s < horizon:
             old = self.history.pop(0)
             self._images.pop(old.key, None)
             for k in [k for k in self._warped if k[1] == old.key]:
@@ -271,6 +277,7 @@ class ProjectorRigSim:
         cfg = self.config
         self.t_s += 1.0 / cfg.fps
         self.frames += 1
+        self._forget()
         out = []
         for c, cam in enumerate(self.scene.rig):
             start = self.t_s - self.latency_s[c]

@@ -283,11 +283,12 @@ def test_rendered_capture_identifies_dots_and_places_cameras():
     floor, table = ex.plane_maps(refs)
     sch = coded_schedule(PROJ, 96, 2, 10)
     tsch = ex.table_schedule(sch, table)
-    cfg = sp.ProjectorSimConfig(camera_latency_s=(0.03, 0.12), supersample=2, seed=1)
+    # the slow camera lags the fast one by more than a pattern's sampling takes
+    cfg = sp.ProjectorSimConfig(camera_latency_s=(0.02, 0.25), seed=1)
     with sp.ProjectorRigSim(scene, cfg) as dev:
         fcap = ex.capture_session(dev, sch, 2)
         dev.set_table(True)
-        tcap = ex.capture_session(dev, tsch, 2)
+        tcap = ex.capture_session(dev, tsch, 2, latency_frames=fcap.latency_frames)
     expected = sp.latency_frames(cfg, 2)
     assert expected[0] < expected[1]
     for c in range(2):

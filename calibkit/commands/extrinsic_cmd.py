@@ -71,7 +71,8 @@ def _capture_live(intr: Rig, specs: list[str], monitor: int, schedule: Schedule,
         table = None
         if tsched is not None:
             input("put the table in place under the projector, then press Enter ")
-            table = _run_session(LiveRig(), tsched, len(intr), "table", samples)
+            table = _run_session(LiveRig(), tsched, len(intr), "table", samples,
+                                 floor.latency_frames)
     finally:
         window.close()
         for s in sources:
@@ -95,10 +96,12 @@ def _show_references(refs: ex.References, monitor: int, radius: float) -> None:
         window.close()
 
 
-def _run_session(device, schedule: Schedule, n_cameras: int, label: str, samples: int):
+def _run_session(device, schedule: Schedule, n_cameras: int, label: str, samples: int,
+                 latency_frames=None):
     progress = Progress(f"{label} dots", len(schedule.frames))
     cap = ex.capture_session(device, schedule, n_cameras, samples=samples,
-                             progress=lambda done, total: progress.update(done))
+                             progress=lambda done, total: progress.update(done),
+                             latency_frames=latency_frames)
     progress.finish(f"{cap.frames} camera frames ({cap.frames / 30.0:.1f} s at 30 fps)")
     return cap
 
@@ -255,7 +258,8 @@ def register(app: typer.Typer) -> None:
                 tcap = None
                 if with_table:
                     dev.set_table(True)
-                    tcap = _run_session(dev, tsched, len(scene.rig), "table", samples)
+                    tcap = _run_session(dev, tsched, len(scene.rig), "table", samples,
+                                        fcap.latency_frames)
             floor_dots, table_dots = fcap.cameras, None if tcap is None else tcap.cameras
             frames = fcap.frames + (tcap.frames if tcap is not None else 0)
         elif sim:
