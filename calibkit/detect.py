@@ -740,7 +740,7 @@ def _detect(image: np.ndarray, config: DetectorConfig, kernels) -> Blobs:
     if config.hsv_ranges:
         if image.ndim != 3:
             raise UserError("HSV ranges need a colour image; this one is grayscale")
-        return _detect_hsv(image[:, :, :3], config, mask)
+        return _detect_hsv(image[:, :, :3], config, mask, kernels)
     if image.ndim == 3:
         code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
         image = cv2.cvtColor(image, code)
@@ -769,28 +769,36 @@ def _detect_compiled(kernels, image: np.ndarray, threshold: float, config: Detec
                      mask: np.ndarray | None,
                      background: Callable[[], tuple[float, float]]) -> Blobs:
     """The single-threshold mode with the compiled kernels: same blobs as the numpy path."""
-    top = np.iinfo(image.dtype).max
-    if threshold >= top:
+    if threshold >= np.iinfo(image.dtype).max:
         return Blobs.empty(threshold)
     image = np.ascontiguousarray(image)
     tint = image.dtype.type(max(int(np.floor(threshold)), 0))  # v > t <=> v > floor(t)
+    return _measure_compiled(kernels, image, tint, image, config, threshold, mask, background)
+
+
+def _measure_compiled(kernels, candidates: np.ndarray, tint, values: np.ndarray,
+                      config: DetectorConfig, threshold: float, mask: np.ndarray | None,
+                      background: Callable[[], tuple[float, float]],
+                      label_value: int = 0) -> Blobs:
+    """Regions of the pixels of `candidates` above `tint` (not masked), measured on `values`
+    (both contiguous): what _Runs.find, _Runs.regions and _measure do, compiled."""
     has_mask = mask is not None
     mask = np.ascontiguousarray(mask) if has_mask else _NO_MASK
-    owner = _owner_image(image.shape)
-    hot = kernels.hot_chunks(image.reshape(-1), tint)
-    runs, run_label, area, bbox, peak = kernels.find_regions(image, tint, image, mask,
+    owner = _owner_image(values.shape)
+    hot = kernels.hot_chunks(candidates.reshape(-1), tint)
+    runs, run_label, area, bbox, peak = kernels.find_regions(candidates, tint, values, mask,
                                                              has_mask, owner, hot)
     try:
         if len(area) == 0:
             return Blobs.empty(threshold)
         level, sigma = background()
         uv, area, peak, bbox, roundness = kernels.measure(
-            image, mask, has_mask, owner, run_label, area, bbox, peak, config.min_area,
-            config.max_area, config.min_roundness, config.window_margin_px, level,
-            max(sigma, 0.5))
+            values, mask, has_mask, owner, run_label, area, bbox, peak,
+            float(config.min_area), float(config.max_area), float(config.min_roundness),
+            int(config.window_margin_px), float(level), float(max(sigma, 0.5)))
     finally:
-        kernels.clear_owner(owner, runs, image.shape[1])
-    return Blobs(uv, area, peak, bbox, roundness, np.zeros(len(uv)), threshold)
+        kernels.clear_owner(owner, runs, values.shape[1])
+    return Blobs(uv, area, peak, bbox, roundness, np.full(len(uv), label_value), threshold)
 
 
 def _bright_pixels(image: np.ndarray, threshold: float, mask: np.ndarray | None) -> np.ndarray:
@@ -814,13 +822,17 @@ def _bright_pixels(image: np.ndarray, threshold: float, mask: np.ndarray | None)
     return pix
 
 
-def _detect_hsv(bgr: np.ndarray, config: DetectorConfig, mask: np.ndarray | None) -> Blobs:
+def _detect_hsv(bgr: np.ndarray, config: DetectorConfig, mask: np.ndarray | None,
+                kernels) -> Blobs:
     """One pass per HSV range over the same image; brightness (V) weights the centroid."""
     if bgr.dtype != np.uint8:
         raise UserError(f"HSV detection needs an 8-bit colour image, got {bgr.dtype}")
     hsv = cv2.cvtColor(np.ascontiguousarray(bgr), cv2.COLOR_BGR2HSV)
     value = np.ascontiguousarray(hsv[:, :, 2])
-    level, sigma = background_level(value, mask)
+    level, sigma = _background_level(value, mask, kernels)
+
+    def background() -> tuple[float, float]:
+        return level, sigma
     parts = []
     for index, (lo, hi) in enumerate(config.hsv_ranges):
         if lo[0] <= hi[0]:
@@ -828,13 +840,16 @@ def _detect_hsv(bgr: np.ndarray, config: DetectorConfig, mask: np.ndarray | None
         else:  # the hue range wraps around red: lo..179 or 0..hi
             inside = cv2.inRange(hsv, np.array(lo), np.array((179, *hi[1:])))
             inside |= cv2.inRange(hsv, np.array((0, *lo[1:])), np.array(hi))
+        if kernels is not None:
+            parts.append(_measure_compiled(kernels, inside, np.uint8(0), value, config, level,
+                                           mask, background, index))
+            continue
         above = inside > 0
         if mask is not None:
             above &= ~mask
         pix = np.flatnonzero(above)
         regions = _Runs.find(pix, bgr.shape[1]).regions(value)
-        parts.append(_measure(value, regions, config, level, mask, lambda: (level, sigma),
-                              index))
+        parts.append(_measure(value, regions, config, level, mask, background, index))
     out = Blobs.concatenate(parts)
     out.threshold = float("nan")
     return out

@@ -285,9 +285,10 @@ def measure(values, mask, has_mask, owner, run_label, area, bbox, peak, min_area
         box[b, 3] = min(bbox[k, 3] + margin, h - 1)
     block = _block_sizes(box)
     res = np.empty((nk, 5))
+    acc = np.empty(21)
     for b in range(nk):
-        _window(values, mask, has_mask, owner, run_label, keep[b], box[b], block[b], level,
-                sigma, res[b])
+        _window(values, mask, has_mask, owner, run_label, keep[b], area[keep[b]], box[b],
+                block[b], level, sigma, acc, res[b])
     ok = np.flatnonzero((res[:, 2] > 0) & (res[:, 3] >= min_roundness))
     sel = keep[ok]
     return res[ok, :2], area[sel], peak[sel], bbox[sel], res[ok, 3]
@@ -317,23 +318,104 @@ def _block_sizes(box):
 
 
 @_jit
-def _window(values, mask, has_mask, owner, run_label, label, box, k, level, sigma, out):
+def _window(values, mask, has_mask, owner, run_label, label, region_area, box, k, level,
+            sigma, acc, out):
     """Centroid, weight, roundness and background of one window into out (u, v, s0,
-    roundness, b0): the background is the ring's mean, or its plane where it slopes."""
+    roundness, b0): the background is the ring's mean, or its plane where it slopes.
+
+    acc (21,) is scratch for the sums: of the window, v times 1, x, x^2, y, x y, y^2 and
+    the same of 1 (pixel count and coordinate sums); of the interior (the window shrunk by
+    one pixel, except on sides the image edge cuts), v times 1, x, y and 1, x, x^2, y, x y,
+    y^2."""
     h, w = values.shape
     ax0, ay0, ax1, ay1 = box[0], box[1], box[2], box[3]
     kx, ky = min(k, w), min(k, h)
     ox, oy = min(ax0, w - kx), min(ay0, h - ky)
     cx, cy = (kx - 1) * 0.5, (ky - 1) * 0.5
-    # The interior (window shrunk by one pixel, except on sides the image edge cuts).
     ix0 = ax0 + 1 - (1 if ax0 == 0 else 0)
     ix1 = ax1 - 1 + (1 if ax1 == w - 1 else 0)
     iy0 = ay0 + 1 - (1 if ay0 == 0 else 0)
     iy1 = ay1 - 1 + (1 if ay1 == h - 1 else 0)
-    s = np.zeros(6)  # window sums of v times 1, x, x^2, y, x y, y^2
-    n = np.zeros(6)  # the same of 1 (pixel count and coordinate sums)
-    si = np.zeros(3)  # interior sums of v times 1, x, y
-    ni = np.zeros(6)  # interior sums of 1, x, x^2, y, x y, y^2
+    acc[:] = 0.0
+    if _window_is_clean(owner, mask, has_mask, box, region_area, w):
+        _sums_clean(values, box, ox, oy, cx, cy, ix0, ix1, iy0, iy1, acc)
+    else:
+        _sums_checked(values, mask, has_mask, owner, run_label, label, box, ox, oy, cx, cy,
+                      ix0, ix1, iy0, iy1, acc)
+    _background_and_moments(acc[0:6], acc[6:12], acc[12:15], acc[15:21], level, sigma, out)
+    out[0] += ox + cx
+    out[1] += oy + cy
+
+
+@_jit
+def _window_is_clean(owner, mask, has_mask, box, region_area, w):
+    """No masked pixel and no pixel of another region in the window (the common case): the
+    window's region pixels are exactly its own region's area."""
+    owned = 0
+    masked = False
+    for y in range(box[1], box[3] + 1):
+        base = y * w
+        for x in range(box[0], box[2] + 1):
+            owned += owner[base + x] != 0
+        if has_mask:
+            for x in range(box[0], box[2] + 1):
+                masked |= mask[y, x]
+    return owned == region_area and not masked
+
+
+@_jit
+def _sums_clean(values, box, ox, oy, cx, cy, ix0, ix1, iy0, iy1, acc):
+    """The window sums where every pixel counts: a row's interior sums are its window sums
+    less the end pixels that lie on the ring."""
+    ax0, ay0, ax1, ay1 = box[0], box[1], box[2], box[3]
+    c0 = c1 = c2 = j0 = j1 = j2 = 0.0  # per row: counts and coordinate sums
+    for x in range(ax0, ax1 + 1):
+        xc = float(x - ox) - cx
+        c0 += 1.0
+        c1 += xc
+        c2 += xc * xc
+        if ix0 <= x <= ix1:
+            j0 += 1.0
+            j1 += xc
+            j2 += xc * xc
+    xl, xr = float(ax0 - ox) - cx, float(ax1 - ox) - cx
+    w = values.shape[1]
+    flat = values.reshape(-1)
+    for y in range(ay0, ay1 + 1):
+        yc = float(y - oy) - cy
+        # Integer sums about the block's first column (twice as fast as floats), then
+        # moved to its centre: exact either way, pixel values are integers.
+        s0 = s1 = s2 = 0
+        base = y * w
+        for x in range(ax0, ax1 + 1):
+            v = np.int64(flat[base + x])
+            dx = x - ox
+            s0 += v
+            s1 += v * dx
+            s2 += v * (dx * dx)
+        a0 = float(s0)
+        a1 = s1 - cx * s0
+        a2 = s2 - 2.0 * cx * s1 + cx * cx * s0
+        _add_row(acc, yc, a0, a1, a2, c0, c1, c2)
+        if iy0 <= y <= iy1:
+            i0, i1 = a0, a1
+            if ix0 > ax0:
+                vl = float(values[y, ax0])
+                i0 -= vl
+                i1 -= vl * xl
+            if ix1 < ax1:
+                vr = float(values[y, ax1])
+                i0 -= vr
+                i1 -= vr * xr
+            _add_inner_row(acc, yc, i0, i1, j0, j1, j2)
+
+
+@_jit
+def _sums_checked(values, mask, has_mask, owner, run_label, label, box, ox, oy, cx, cy,
+                  ix0, ix1, iy0, iy1, acc):
+    """The window sums without masked pixels and pixels of other regions."""
+    w = values.shape[1]
+    ax0, ay0, ax1, ay1 = box[0], box[1], box[2], box[3]
     for y in range(ay0, ay1 + 1):
         yc = float(y - oy) - cy
         a0 = a1 = a2 = c0 = c1 = c2 = 0.0
@@ -358,32 +440,41 @@ def _window(values, mask, has_mask, owner, run_label, label, box, k, level, sigm
                 j0 += 1.0
                 j1 += xc
                 j2 += xc * xc
-        y2 = yc * yc
-        s[0] += a0
-        s[1] += a1
-        s[2] += a2
-        s[3] += yc * a0
-        s[4] += yc * a1
-        s[5] += y2 * a0
-        n[0] += c0
-        n[1] += c1
-        n[2] += c2
-        n[3] += yc * c0
-        n[4] += yc * c1
-        n[5] += y2 * c0
+        _add_row(acc, yc, a0, a1, a2, c0, c1, c2)
         if inner_row:
-            si[0] += i0
-            si[1] += i1
-            si[2] += yc * i0
-            ni[0] += j0
-            ni[1] += j1
-            ni[2] += j2
-            ni[3] += yc * j0
-            ni[4] += yc * j1
-            ni[5] += y2 * j0
-    _background_and_moments(s, n, si, ni, level, sigma, out)
-    out[0] += ox + cx
-    out[1] += oy + cy
+            _add_inner_row(acc, yc, i0, i1, j0, j1, j2)
+
+
+@_jit
+def _add_row(acc, yc, a0, a1, a2, c0, c1, c2):
+    """Add one row's window sums (of v and of 1 times 1, x, x^2) to the 2D sums."""
+    y2 = yc * yc
+    acc[0] += a0
+    acc[1] += a1
+    acc[2] += a2
+    acc[3] += yc * a0
+    acc[4] += yc * a1
+    acc[5] += y2 * a0
+    acc[6] += c0
+    acc[7] += c1
+    acc[8] += c2
+    acc[9] += yc * c0
+    acc[10] += yc * c1
+    acc[11] += y2 * c0
+
+
+@_jit
+def _add_inner_row(acc, yc, i0, i1, j0, j1, j2):
+    """Add one row's interior sums (v times 1, x; 1, x, x^2) to the 2D interior sums."""
+    acc[12] += i0
+    acc[13] += i1
+    acc[14] += yc * i0
+    acc[15] += j0
+    acc[16] += j1
+    acc[17] += j2
+    acc[18] += yc * j0
+    acc[19] += yc * j1
+    acc[20] += yc * yc * j0
 
 
 @_jit

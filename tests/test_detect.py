@@ -373,3 +373,22 @@ def test_compiled_regions_equal_the_reference_on_noise_of_any_shape():
     flat = np.full((30, 70), 9, np.uint8)  # nothing above the threshold
     assert len(detect(flat)) == len(detect_reference(flat)) == 0
     assert len(detect(np.full((8, 8), 255, np.uint8), DetectorConfig(threshold=255))) == 0
+
+
+def test_compiled_hsv_ranges_equal_the_numpy_reference():
+    rng = np.random.default_rng(14)
+    red = ((170, 80, 60), (10, 255, 255))
+    green = ((50, 80, 60), (70, 255, 255))
+    n_blobs = 0
+    for _ in range(10):
+        gray, mask = random_scene(rng)
+        tint = rng.uniform(0, 1, (3, 3))[rng.integers(0, 3, gray.shape)]  # a colour per pixel
+        bgr = np.clip(gray[:, :, None] * (0.3 + tint), 0, 255).astype(np.uint8)
+        for config in (DetectorConfig(hsv_ranges=(red, green)),
+                       DetectorConfig(hsv_ranges=(green,), mask=mask, min_roundness=0.2)):
+            got, ref = detect(bgr, config), detect_reference(bgr, config)
+            assert np.isnan(got.threshold) and np.isnan(ref.threshold)
+            got.threshold = ref.threshold = 0.0
+            assert_same_blobs(got, ref)
+            n_blobs += len(got)
+    assert n_blobs > 100
