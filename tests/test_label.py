@@ -1,0 +1,138 @@
+"""Labelling the real CMU takes with their labels stripped and points shuffled per frame."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from daemon.c3dio import Points, Take, read_c3d, read_labelled_csv, write_points_csv
+from daemon.label import (
+    Labeller,
+    _chirality,
+    hide_spans,
+    initial_labels,
+    label_take,
+    points_with_ghosts,
+    score,
+)
+from daemon.markerset import MarkerSet, learn
+
+ROOT = Path(__file__).resolve().parent.parent
+DATA = ROOT / "fixtures" / "cmu_c3d"
+FRAMES = 360          # 3 s of each take keeps the tests fast
+
+
+@pytest.fixture(scope="module")
+def cmu41():
+    return MarkerSet.load(ROOT / "daemon" / "markersets" / "cmu41.toml")
+
+
+def _excerpt(name, labels, start=0):
+    t = read_c3d(DATA / name).select(labels)
+    return Take(t.labels, t.xyz_m[start:start + FRAMES], t.rate_hz, t.first_frame + start)
+
+
+@pytest.fixture(scope="module")
+def walk(cmu41):
+    return _excerpt("01_01.c3d", cmu41.labels)
+
+
+@pytest.fixture(scope="module")
+def acro(cmu41):
+    return _excerpt("85_02.c3d", cmu41.labels, start=300)
+
+
+def test_gap_free_with_seed_frames_is_exact(acro, cmu41):
+    pts, truth = points_with_ghosts(acro, 0, seed=1)
+    _, _, labels = label_take(pts, cmu41, seed=acro, seed_frames=10)
+    s = score(pts, truth, labels, 10)
+    assert s["correct"] == 1.0
+
+
+def test_gap_free_from_the_template_alone(walk, cmu41):
+    pts, truth = points_with_ghosts(walk, 0, seed=2)
+    _, _, labels = label_take(pts, cmu41)
+    assert score(pts, truth, labels)["correct"] >= 0.99
+
+
+def test_other_subjects_marker_set_with_seed_frames(walk, acro):
+    """A marker set learned on 85_02 only labels 01_01 (another person) given a labelled
+    start: the distances are re-learned from the seed frames."""
+    ms = learn([read_c3d(DATA / "85_02.c3d")])
+    pts, truth = points_with_ghosts(walk, 0, seed=3)
+    _, _, labels = label_take(pts, ms, seed=walk, seed_frames=10)
+    assert score(pts, truth, labels, 10)["correct"] >= 0.999
+
+
+@pytest.mark.parametrize("which", ["walk", "acro"])
+def test_hidden_spans_and_ghosts(which, walk, acro, cmu41):
+    """20 % of marker-frames hidden in spans of 0.1-1 s and 3 ghosts per frame: the issue's
+    target is >= 97 % on whole takes; on these 3 s excerpts we hold >= 95 %, and at least
+    95 % of the ghosts must stay unlabelled."""
+    take = walk if which == "walk" else acro
+    hidden = hide_spans(take, 0.2, seed=5)
+    pts, truth = points_with_ghosts(hidden, 3, seed=5)
+    out, conf, labels = label_take(pts, cmu41, seed=hidden, seed_frames=10)
+    s = score(pts, truth, labels, 10)
+    assert s["correct"] >= 0.95, s
+    assert s["ghosts_rejected"] >= 0.95, s
+    # every labelled sample sits where the truth has that marker (or is a rare ghost hit)
+    both = out.visible & hidden.visible
+    err = np.linalg.norm(out.xyz_m[both] - hidden.xyz_m[both], axis=1)
+    assert (err < 1e-9).mean() >= 0.95
+    assert conf.shape == (take.n_frames,) and 0.0 <= conf.min() and conf.max() <= 1.0
+
+
+def test_initial_labels_and_handedness_votes(walk, cmu41):
+    """One frame labelled from the marker set alone; and the handedness votes that pick
+    between a labelling and its left/right swapped twin (equal distances on a symmetric
+    body) favour the true one."""
+    x = walk.xyz_m[100]
+    perm = np.random.default_rng(0).permutation(len(x))
+    lab = initial_labels(x[perm], cmu41)
+    assert (lab == perm).mean() >= 0.95
+    names = cmu41.labels
+    flip = {"L": "R", "R": "L"}
+    swapped = np.array([names.index(flip[n[0]] + n[1:])
+                        if n[0] in flip and flip[n[0]] + n[1:] in names else i
+                        for i, n in enumerate(names)])
+    truth_point = np.argsort(perm)                  # marker -> point index
+    assert _chirality(x[perm], cmu41, truth_point) >= 0.9 * len(cmu41.chiral)
+    assert _chirality(x[perm], cmu41, truth_point[swapped]) <= -0.5 * len(cmu41.chiral)
+
+
+def test_per_frame_api(walk, cmu41):
+    lab = Labeller(cmu41, rate_hz=walk.rate_hz)
+    lab.seed(walk.xyz_m[0])
+    rng = np.random.default_rng(4)
+    for f in range(1, 30):
+        ghosts = rng.uniform(-1, 1, (2, 3)) + np.nanmean(walk.xyz_m[f], axis=0)
+        pts = np.concatenate([walk.xyz_m[f], ghosts])
+        perm = rng.permutation(len(pts))
+        labels, conf = lab.update(pts[perm])
+        want = np.r_[np.arange(cmu41.n), -1, -1][perm]
+        assert labels.shape == (len(pts),) and conf.shape == (len(pts),)
+        assert np.array_equal(labels, want)
+        assert (conf[labels >= 0] > 0.5).all() and (conf[labels < 0] == 0).all()
+    assert np.allclose(lab.positions, walk.xyz_m[29])
+
+
+def test_cli_label_csv(tmp_path, mocapd_cli, walk, cmu41):
+    short = Take(walk.labels, walk.xyz_m[:120], walk.rate_hz, 0)
+    write_points_csv(tmp_path / "pts.csv", Points.from_take(short, seed=6))
+    r = mocapd_cli("label", tmp_path / "pts.csv", "--markerset",
+                   ROOT / "daemon" / "markersets" / "cmu41.toml", "--out",
+                   tmp_path / "lab.csv", "--json", tmp_path / "lab.json", "--rate", "120")
+    assert r.code == 0, r.err
+    back = read_labelled_csv(tmp_path / "lab.csv")
+    back = back.select(cmu41.labels)
+    assert np.allclose(back.xyz_m, short.xyz_m, atol=2e-6)   # CSV keeps micrometres
+    r = mocapd_cli("label", tmp_path / "pts.csv", "--markerset", tmp_path / "none.toml",
+                   "--out", tmp_path / "x.csv")
+    assert r.code == 2 and "does not exist" in r.err
+    r = mocapd_cli("label", tmp_path / "pts.csv", "--markerset",
+                   ROOT / "daemon" / "markersets" / "cmu41.toml", "--out", tmp_path / "x.csv",
+                   "--seed-frames", "5")
+    assert r.code == 2 and "--seed" in r.err
