@@ -42,13 +42,16 @@ class DotDevice(Protocol):
 @dataclass(frozen=True, eq=False)
 class DotView:
     """Identified dots of one view: global point ids (N,), image positions (N, 2) px,
-    position scatter over the samples (N,) px; frames: camera frames the view took."""
+    position scatter over the samples (N,) px; frames: camera frames the view took;
+    dot_radius_px: the dots' typical apparent radius in the image (from their area above
+    the detection threshold, so it includes the blur's skirt)."""
 
     ids: np.ndarray
     uv: np.ndarray
     scatter_px: np.ndarray
     frames: int
     rejected: int = 0
+    dot_radius_px: float = float("nan")
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -132,6 +135,7 @@ class DotCapture:
         if self.settle is None:
             self.calibrate_noise()
         start_frames = self.frames
+        self._areas: list[float] = []
         self._wait_still()
         sch = self.schedule
         if sch.kind == "raster":
@@ -145,8 +149,9 @@ class DotCapture:
         uniq, counts = np.unique(ids_a, return_counts=True)
         dup = np.isin(ids_a, uniq[counts > 1])
         rejected += int(dup.sum())
+        radius = float(np.sqrt(np.median(self._areas) / np.pi)) if self._areas else float("nan")
         return DotView(ids_a[~dup], uv_a[~dup], sc_a[~dup], self.frames - start_frames,
-                       rejected)
+                       rejected, radius)
 
     def _run_raster(self, progress) -> tuple[list, list, list, int]:
         """One dot per frame: each frame's single dot is the one shown."""
@@ -230,6 +235,7 @@ class DotCapture:
             return np.zeros((0, 2)), np.zeros(0)
         uv = blobs.uv
         threshold = blobs.threshold
+        self._areas.extend(blobs.area.tolist())
         # a dot cut by the image border has a biased centroid; a blob far smaller than its
         # peers is a dot cut some other way (a bezel, an obstacle)
         h, w = diff.shape

@@ -292,3 +292,42 @@ def test_monitor_partly_out_of_view_reaches_the_corners():
     assert r.coverage == 1.0
     assert abs(r.camera.fx / sim.camera.fx - 1) < 5e-4
     assert abs(r.camera.cx - sim.camera.cx) < 0.5 and abs(r.camera.cy - sim.camera.cy) < 0.5
+
+
+@pytest.mark.parametrize("dropped", [None, 4])
+def test_decode_rendered_layer_with_a_dropped_frame(dropped):
+    """Decoding from camera images of the rendered code frames, noisy, with one frame
+    missing: every dot is still named correctly (the parity restores the lost bit)."""
+    sim = _small_sim(seed=3)
+    schedule = coded_schedule(sim.config.screen_px, 80.0, 1, 6.0)
+    rng = np.random.default_rng(3)
+    from projector.patterns import decode_layer
+
+    with sim:
+        sim.set_view(0)
+        images = {}
+        for i in schedule.layer_frames(0):
+            f = schedule.frames[i]
+            clean = sim.warp(sim.display.render(Dots.make(f.xy, schedule.radius_px)))
+            images[i] = clean + rng.normal(0, sim.config.noise_dn, clean.shape)
+        uv, front = sim.truth_uv(schedule.points_xy)
+        seen = front & sim.camera.in_image(uv, margin_px=3)
+    if dropped is not None:
+        images[schedule.layer_frames(0)[dropped]] = None
+    ids, dec = decode_layer(schedule, 0, images, uv[seen])
+    assert np.array_equal(ids, np.nonzero(seen)[0])
+    assert dec.restored.all() == (dropped is not None)
+
+
+def test_dot_radius_in_the_image_is_reported():
+    sim = _small_sim()
+    schedule = coded_schedule(sim.config.screen_px, 80.0, 1, 6.0)
+    with sim:
+        sim.set_view(0)
+        dots = DotCapture(sim, schedule).run()
+        # the screen's scale in the image, from two dots a step apart
+        a, _ = sim.truth_uv(np.array([[480.0, 270.0], [560.0, 270.0]]))
+    expected = 6.0 * np.linalg.norm(a[1] - a[0]) / 80.0
+    # the apparent radius (above the detection threshold) includes the blur's skirt:
+    # 0.6 px blur sigma, threshold ~5 % of the peak -> up to ~2 sigma more
+    assert expected < dots.dot_radius_px < expected + 2 * 0.6 + 0.3

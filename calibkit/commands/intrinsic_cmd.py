@@ -52,6 +52,10 @@ def _capture(device, schedule: Schedule, n_views: int, pitch_mm: float, next_vie
         views.append(view)
         progress.finish(f"{len(view)} dots, {dots.frames} frames "
                         f"({dots.frames / 30.0:.1f} s at 30 fps)")
+        if dots.dot_radius_px > 5.0:
+            print(f"the dots are {dots.dot_radius_px:.1f} px in radius in the image; their "
+                  "perspective bias is corrected, but smaller dots (--radius) are more "
+                  "accurate", file=sys.stderr)
         print(guidance(views, size, n_views), file=sys.stderr)
     return views
 
