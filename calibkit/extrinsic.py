@@ -626,7 +626,7 @@ def _pnp(cam: Camera, xyz: np.ndarray, uv: np.ndarray, opts: SolveOptions
         rvec, tvec = cv2.solvePnPRefineLM(obj[inlier], img[inlier], K, dist, rvec, tvec)
         proj, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
         r = np.linalg.norm(proj.reshape(-1, 2) - img, axis=1)
-        sigma = 1.4826 * np.median(r[inlier]) / 1.1774  # median of a 2D Gaussian's norm
+        sigma = np.median(r[inlier]) / 1.1774  # a 2D Gaussian's norm has median 1.1774 sigma
         new = r <= max(opts.outlier_sigmas * sigma, 0.5)
         if np.array_equal(new, inlier) or new.sum() < 6:
             break
