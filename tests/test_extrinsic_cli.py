@@ -62,17 +62,18 @@ def test_sim_without_a_table_warns_and_still_calibrates(calibkit_cli, tmp_path):
 def test_rendered_sim_runs_detection_end_to_end(calibkit_cli, tmp_path):
     out = tmp_path / "rig.toml"
     res = calibkit_cli("extrinsic", "--projector", "--sim", "--render", "--cameras", "2",
-                       "--size", "320x240", "--step", "96", "--radius", "10", "--seed", "1",
-                       "--table-height", "0", "--out", out, "--json", tmp_path / "r.json")
+                       "--size", "320x240", "--step", "80", "--shifts", "1", "--radius", "10",
+                       "--seed", "1", "--table-height", "0", "--out", out,
+                       "--json", tmp_path / "r.json")
     assert res.code == 0, res.err
     report = json.loads((tmp_path / "r.json").read_text())
     assert report["capture"]["simulated_frames"] is False
     assert 0 < report["capture"]["seconds_at_30fps"] < 30
     assert "floor dots:" in res.err  # progress on stderr
-    # floor only (the table session is tested in test_extrinsic): 2 cameras, ~300 dots each
+    # floor only, one grid layer (the table session is tested in test_extrinsic)
     assert report["truth"]["position_error_max_mm"] < 25.0
     assert report["truth"]["rotation_error_max_deg"] < 0.25
-    assert all(c["floor_dots"] > 100 for c in report["cameras"])
+    assert all(c["floor_dots"] > 60 for c in report["cameras"])
 
 
 def test_template_then_unmeasured_file_is_refused(calibkit_cli, tmp_path):
@@ -140,3 +141,62 @@ def test_intrinsics_without_the_cameras_are_refused(calibkit_cli, tmp_path):
                                         "--intrinsics", tmp_path / "i.toml",
                                         "--out", tmp_path / "x.toml"))
     assert "camera 'cam0' has no intrinsics in the rig file (it has other0, other1)" in line
+
+
+def test_live_path_with_a_stand_in_projector_and_cameras(calibkit_cli, tmp_path, monkeypatch):
+    """The live code path (--camera, --monitor) end to end: the projector window and the
+    camera devices are stood in for by the simulator (no display or camera here)."""
+    import calibkit.sources
+    import projector.display
+    import projector.screens
+    from calibkit import extrinsic as ex
+    from calibkit import sim_projector as sp
+    from calibkit.sources import Frame
+
+    four = sp.make_scene(4, size=(320, 240), table_height_m=None, seed=2)
+    scene = sp.ProjectorScene(Rig((four.rig[0], four.rig[2])), four.projector, None)
+    m = sp.measured_references(scene, ex.reference_layout_px((1280, 800)), np.zeros((0, 2)),
+                               0.005, seed=2)
+    (tmp_path / "refs.toml").write_text(ex.references_toml(
+        ex.References(m["floor_px"], m["floor_xy_m"])))
+    scene.rig.save(tmp_path / "intr.toml")
+    rig_sim = sp.ProjectorRigSim(scene, sp.ProjectorSimConfig(camera_latency_s=(0.03, 0.1)))
+    latest: dict[int, np.ndarray] = {}
+
+    class Window:
+        def __init__(self, monitor):
+            assert monitor == 2
+
+        def show(self, dots):
+            rig_sim.show(dots)
+
+        def close(self):
+            rig_sim.close()
+
+    class Camera:
+        def __init__(self, c):
+            self.c = c
+
+        def __iter__(self):
+            k = 0
+            while True:
+                if self.c == 0:  # both cameras expose together: one grab serves both
+                    latest.update(enumerate(rig_sim.grab()))
+                yield Frame(f"cam{self.c}", k, k, latest[self.c])
+                k += 1
+
+        def close(self):
+            pass
+
+    monkeypatch.setattr(projector.display, "WindowDisplay", Window)
+    monkeypatch.setattr(projector.screens, "require_display", lambda: None)
+    monkeypatch.setattr(calibkit.sources, "open_source", lambda spec: Camera(int(spec)))
+    out = tmp_path / "rig.toml"
+    res = calibkit_cli("extrinsic", "--projector", "--refs", tmp_path / "refs.toml",
+                       "--intrinsics", tmp_path / "intr.toml", "--camera", "0", "--camera",
+                       "1", "--monitor", "2", "--step", "96", "--radius", "10", "--out", out)
+    assert res.code == 0, res.err
+    assert "warning: no table" in res.err
+    cmp = compare_rigs(scene.rig, Rig.load(out), align=False)
+    assert max(c["position_mm"] for c in cmp["cameras"]) < 25.0
+    assert max(c["rotation_deg"] for c in cmp["cameras"]) < 0.25
