@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Protocol
 
+import cv2
 import numpy as np
 
 from calibkit.detect import DetectorConfig, detect
@@ -60,7 +61,7 @@ class DotView:
 def _gray(image: np.ndarray) -> np.ndarray:
     img = np.asarray(image)
     if img.ndim == 3:
-        img = img[:, :, :3].astype(np.float32) @ np.array([0.114, 0.587, 0.299], np.float32)
+        img = cv2.cvtColor(img[:, :, :3], cv2.COLOR_BGR2GRAY)
     return img.astype(np.float32)
 
 

@@ -331,3 +331,61 @@ def test_dot_radius_in_the_image_is_reported():
     # the apparent radius (above the detection threshold) includes the blur's skirt:
     # 0.6 px blur sigma, threshold ~5 % of the peak -> up to ~2 sigma more
     assert expected < dots.dot_radius_px < expected + 2 * 0.6 + 0.3
+
+
+def test_display_mode_runs_with_a_monitor_and_camera(calibkit_cli, monkeypatch, tmp_path):
+    """The live --display path end to end, with the window and the camera replaced by the
+    simulator (no glfw or camera here): show -> settle -> decode -> solve -> rig."""
+    import builtins
+
+    import calibkit.sources
+    import projector.display
+    import projector.screens
+    from calibkit.sources import Frame
+    from projector.screens import Screen
+
+    config = MonitorSimConfig(**SMALL)
+    sim = make_monitor_sim(3, (320, 240), 0, config)
+    view = iter(range(3))
+
+    class FakeCamera:
+        def __init__(self, device, camera=None):
+            self.camera = camera
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            sim.close()
+
+        def __iter__(self):
+            i = 0
+            while True:
+                yield Frame(self.camera, i, i, np.dstack([sim.grab()] * 3))  # BGR, as V4L2
+                i += 1
+
+    class FakeWindow:
+        def __init__(self, monitor):
+            pass
+
+        def show(self, dots):
+            sim.show(dots)
+
+        def close(self):
+            pass
+
+    screen = Screen(0, "sim", *config.screen_px, 0.0, 0.0)
+    monkeypatch.setattr(projector.screens, "require_display", lambda: None)
+    monkeypatch.setattr(projector.screens, "pick_screen",
+                        lambda index, pitch: (screen, config.pixel_pitch_mm))
+    monkeypatch.setattr(calibkit.sources, "DeviceSource", FakeCamera)
+    monkeypatch.setattr(projector.display, "WindowDisplay", FakeWindow)
+    monkeypatch.setattr(builtins, "input", lambda prompt="": sim.set_view(next(view)))
+    out = tmp_path / "live.json"
+    r = calibkit_cli("intrinsic", "--display", "--views", 3, "--json", out,
+                     "--rig", tmp_path / "rig.toml")
+    assert r.code == 0, r.err
+    data = json.loads(out.read_text())
+    assert abs(data["fx"] / sim.camera.fx - 1) < 1e-3
+    assert abs(data["cx"] - sim.camera.cx) < 0.5 and abs(data["cy"] - sim.camera.cy) < 0.5
+    assert Rig.load(tmp_path / "rig.toml")["cam0"].fx == pytest.approx(data["fx"])
