@@ -389,3 +389,24 @@ def test_display_mode_runs_with_a_monitor_and_camera(calibkit_cli, monkeypatch, 
     assert abs(data["fx"] / sim.camera.fx - 1) < 1e-3
     assert abs(data["cx"] - sim.camera.cx) < 0.5 and abs(data["cy"] - sim.camera.cy) < 0.5
     assert Rig.load(tmp_path / "rig.toml")["cam0"].fx == pytest.approx(data["fx"])
+
+
+def test_reported_std_matches_the_actual_errors():
+    """Over several noise draws, errors divided by the reported std scatter like N(0, 1)."""
+    truth = default_sim_camera()
+    z = []
+    for seed in range(8):
+        rng = np.random.default_rng(100 + seed)
+        xy = grid_positions((1920, 1080), 120.0)
+        views = []
+        for view in monitor_views(truth, 5, seed=0):
+            uv, front = truth.project(monitor_points(view, xy, 0.2715))
+            keep = front & truth.in_image(uv, 2)
+            obj = np.column_stack([xy[keep] * 0.2715e-3, np.zeros(keep.sum())])
+            views.append(PlaneView(obj, uv[keep] + rng.normal(0, 0.2, (keep.sum(), 2))))
+        r = calibrate(views, truth.size)
+        c = r.camera
+        z += [(c.fx - truth.fx) / r.std["fx"], (c.fy - truth.fy) / r.std["fy"],
+              (c.cx - truth.cx) / r.std["cx"], (c.cy - truth.cy) / r.std["cy"]]
+    rms_z = float(np.sqrt(np.mean(np.square(z))))
+    assert 0.5 < rms_z < 1.6, rms_z
