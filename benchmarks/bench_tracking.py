@@ -221,7 +221,7 @@ def main() -> None:
     out = {"scene": {"cameras": N_CAMERAS, "bodies": N_BODIES, "markers": N_BODIES * PER_BODY,
                      "fps": FPS, "noise_px": NOISE_PX}}
     rows = []
-    for name, size in SIZES.items():
+    for name, size in SIZES.items() if args.frames > 0 else ():
         rig, bodies, frames = scene(size, args.frames)
         runs, score = [], None
         for r in range(args.repeats):
@@ -244,8 +244,10 @@ def main() -> None:
                      round(base * 1000 / ms, 1), round(pos, 3), round(ang, 3),
                      round(100 * score.valid / score.total, 1), score.gross,
                      f"{score.track_swaps}/{score.body_swaps}"])
-    print_table(rows, ["cameras", "ms/frame", "frames/s", "baseline_ms", "speedup",
-                       "pos_mm_rms", "rot_deg_rms", "valid_%", "gross", "swaps_trk/body"])
+    if rows:
+        print_table(rows, ["cameras", "ms/frame", "frames/s", "baseline_ms", "speedup",
+                           "pos_mm_rms", "rot_deg_rms", "valid_%", "gross",
+                           "swaps_trk/body"])
     if args.minutes > 0:
         sw = swaps(SIZES["640x480"], args.minutes)
         out["swaps_640x480"] = {**sw, "minutes": sw["frames"] / FPS / 60}

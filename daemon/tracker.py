@@ -23,9 +23,10 @@ from calibkit.geometry import RigArrays
 @dataclass(frozen=True)
 class TrackerConfig:
     gate_px: float = 3.0  # a blob farther than this from a track's reprojection is not its own
-    gate_growth_px: float = 2.0  # extra gate per frame a track has been missing
+    gate_growth_px: float = 1.0  # extra gate per frame a track has been missing (up to 4)
     max_missing: int = 24  # frames a track coasts on its prediction before it is dropped
     outlier_px: float = 2.0  # an observation whose residual exceeds this is dropped
+    two_view_px: float = 1.0  # a point from two cameras must fit this well
     min_cameras_new: int = 3  # cameras needed to start a track (a pair is ambiguous)
     merge_m: float = 0.01  # a new point this close to a track is that track
     revive_m: float = 0.03  # a new point this close to a coasting track revives it
@@ -151,7 +152,7 @@ class Tracker:
             self.vel[seen] = a * v + (1 - a) * self.vel[seen]
         self.xyz = new_xyz
         self.missing = np.where(seen, 0, self.missing + 1)
-        self.vel[~seen] *= 0.8  # a coasting track slows down rather than flying off
+        self.vel[~seen] *= 0.97  # a coasting track slows down rather than flying off
         blobs[~seen] = -1
         n_cams = np.where(seen, n_cams, 0)
 
@@ -192,7 +193,7 @@ class Tracker:
         table[cam_sorted, rank] = uv[order]
         index = np.full((n_cams, max(width, 1)), -1, dtype=np.int64)
         index[cam_sorted, rank] = order
-        gate = cfg.gate_px + cfg.gate_growth_px * np.minimum(self.missing, 5)  # (T,)
+        gate = cfg.gate_px + cfg.gate_growth_px * np.minimum(self.missing, 4)  # (T,)
         dx = proj[:, :, 0, None] - table[None, :, :, 0]
         dy = proj[:, :, 1, None] - table[None, :, :, 1]
         d2 = dx * dx + dy * dy  # (T, C, W)
@@ -242,7 +243,12 @@ class Tracker:
             have[t[drop], worst[drop]] = False
         xyz = pred - step
         n_used = have.sum(axis=1)
-        ok = (n_used >= 2) & np.all(e <= cfg.outlier_px, axis=1) & np.isfinite(xyz[:, 0])
+        # Two rays always nearly meet when both blobs lie near one epipolar line, so a
+        # two-camera point must fit tightly, and a track that was lost needs three cameras
+        # to come back: otherwise a lost marker's track takes a passing neighbour.
+        limit = np.where(n_used == 2, min(cfg.outlier_px, cfg.two_view_px), cfg.outlier_px)
+        need = np.where(self.missing > 0, 3, 2)
+        ok = (n_used >= need) & np.all(e <= limit[:, None], axis=1) & np.isfinite(xyz[:, 0])
         blobs = np.where(have, blobs, -1)
         # H^-1 is the point's covariance per unit pixel variance: a track seen by two
         # cameras at a narrow angle is far less certain (along its depth) than one seen by six
