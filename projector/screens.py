@@ -40,6 +40,22 @@ class Screen:
         return 0.5 * (self.width_mm / self.width_px + self.height_mm / self.height_px)
 
 
+def parse_pixel_pitch(text: str | None) -> float | None:
+    """`--pixel-pitch`: mm per pixel, as a number (0.2745) or a ratio (527/1920: the
+    picture's width in mm over its width in pixels)."""
+    if text is None:
+        return None
+    try:
+        parts = [float(v) for v in str(text).split("/")]
+        value = parts[0] / parts[1] if len(parts) == 2 else parts[0]
+        if len(parts) > 2 or not value > 0 or value != value or value == float("inf"):
+            raise ValueError
+    except (ValueError, ZeroDivisionError):
+        raise UserError(f"--pixel-pitch takes mm per pixel, like 0.2745 or 527/1920 (width "
+                        f"in mm / width in pixels); got {text!r}") from None
+    return value
+
+
 def display_available() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 

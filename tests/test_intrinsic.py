@@ -242,6 +242,8 @@ def test_intrinsic_sim_command(calibkit_cli, tmp_path):
     (("--images", "/nonexistent/folder", "--board", "chessboard:9x6:25"), "no such folder"),
     (("--images", "."), "--images needs --board"),
     (("--sim", "--step", 10, "--radius", 6), "dot pattern"),
+    (("--sim", "--pixel-pitch", "527/0"), "--pixel-pitch takes"),
+    (("--sim", "--fill", 9), "--fill must be"),
 ])
 def test_intrinsic_errors(calibkit_cli, args, message):
     r = calibkit_cli("intrinsic", *args)

@@ -7,7 +7,7 @@ import pytest
 
 from calibkit.errors import UserError
 from projector.display import Dots, OffscreenDisplay
-from projector.screens import Screen, list_screens, parse_xrandr
+from projector.screens import Screen, list_screens, parse_pixel_pitch, parse_xrandr
 
 
 def _centroids(img: np.ndarray, xy: np.ndarray, half: int) -> np.ndarray:
@@ -75,3 +75,12 @@ VGA-1 disconnected (normal left inverted right x axis y)
     assert a.pixel_pitch_mm == pytest.approx(0.5 * (527 / 1920 + 296 / 1080))
     assert b.pixel_pitch_mm == 0.0  # unknown: the user must pass --pixel-pitch
     assert Screen(0, "x", 100, 100, 0, 0).pixel_pitch_mm == 0.0
+
+
+def test_parse_pixel_pitch():
+    assert parse_pixel_pitch("0.2745") == pytest.approx(0.2745)
+    assert parse_pixel_pitch("527/1920") == pytest.approx(527 / 1920)
+    assert parse_pixel_pitch(None) is None
+    for bad in ("-0.2", "0", "abc", "1/0", "1/2/3", "nan"):
+        with pytest.raises(UserError, match="--pixel-pitch takes"):
+            parse_pixel_pitch(bad)

@@ -8,23 +8,21 @@ from typing import Annotated
 import typer
 
 from calibkit.clitools import print_table, write_json
-from calibkit.errors import UserError
-from projector.screens import list_screens
+from projector.screens import list_screens, parse_pixel_pitch
 
 
 def register(app: typer.Typer) -> None:
     @app.command("displays")
     def displays_command(
-        pixel_pitch: Annotated[float | None, typer.Option(
-            "--pixel-pitch", help="Override the pixel pitch (mm per pixel) the monitors "
-                                  "report.")] = None,
+        pixel_pitch_text: Annotated[str | None, typer.Option(
+            "--pixel-pitch", help="Override the pixel pitch the monitors report: mm per "
+                                  "pixel, or WIDTH_MM/WIDTH_PX.")] = None,
         json_path: Annotated[Path | None, typer.Option(
             "--json", help="Write the list as JSON.")] = None,
     ) -> None:
         """List monitors: index, resolution, physical size and pixel pitch (the scale of
         `calibkit intrinsic --display`)."""
-        if pixel_pitch is not None and not pixel_pitch > 0:
-            raise UserError(f"--pixel-pitch must be a positive number of mm, got {pixel_pitch}")
+        pixel_pitch = parse_pixel_pitch(pixel_pitch_text)
         screens = list_screens()
         rows, data = [], []
         for s in screens:

@@ -25,6 +25,7 @@ from calibkit.intrinsic import (
     monitor_plane_view,
 )
 from projector.patterns import Schedule, coded_schedule, raster_schedule
+from projector.screens import parse_pixel_pitch
 
 
 def _schedule(screen_px: tuple[int, int], step: float, shifts: int, radius: float,
@@ -128,8 +129,9 @@ def register(app: typer.Typer) -> None:
         device: Annotated[int, typer.Option(help="--display: camera device number.")] = 0,
         monitor: Annotated[int, typer.Option(
             help="--display: monitor index (see `calibkit displays`).")] = 0,
-        pixel_pitch: Annotated[float | None, typer.Option(
-            "--pixel-pitch", help="Monitor pixel pitch in mm (overrides the reported one).")]
+        pixel_pitch_text: Annotated[str | None, typer.Option(
+            "--pixel-pitch", help="Monitor pixel pitch: mm per pixel, or WIDTH_MM/WIDTH_PX "
+                                  "(overrides the reported one).")]
         = None,
         step: Annotated[float, typer.Option(help="Dot grid step, screen pixels.")] = 80.0,
         shifts: Annotated[int, typer.Option(
@@ -165,6 +167,7 @@ def register(app: typer.Typer) -> None:
                             "separate the focal length from the distance")
         if samples < 1:
             raise UserError(f"--samples must be >= 1, got {samples}")
+        pixel_pitch = parse_pixel_pitch(pixel_pitch_text)
         truth: Camera | None = None
         dot_radius_m = 0.0
         if images is not None:
