@@ -353,7 +353,7 @@ def finish(proc, timeout_s: float = 20):
         proc.kill()
         raise AssertionError("motioncapture client timed out") from None
     assert proc.returncode == 0, err
-    return json.loads(out)
+    return json.loads(out.strip().splitlines()[-1])  # after what the library prints
 
 
 def match_poses(received: list[dict], handed: dict, scene: Scene, atol: float) -> set:
@@ -399,6 +399,27 @@ def test_motioncapture_natnet_multicast_with_a_late_second_client():
     # skips to the newest datagram when it falls behind, so on a busy machine not all)
     span = range(min(m2), max(m2) + 1)
     assert len(m1 & set(span)) >= 0.8 * len(span)
+
+
+def test_motioncapture_natnet_unicast():
+    """With multicast off, libmotioncapture listens on the data port of its own address
+    without keep-alives; the server sends there from its NAT_CONNECT on, and stops when
+    the port is closed (the refusal comes back)."""
+    scene = Scene()
+    pub = loopback_publisher(scene, multicast=False)
+    cfg = {"hostname": "127.0.0.1", "port_command": str(pub.command_port),
+           "interface_ip": "127.0.0.1"}
+    pub.direct_grace_s = 1.0
+    with Feeder(pub, scene) as feed:
+        got = finish(run_motioncapture("optitrack", cfg, 60))
+        assert "127.0.0.1" in pub.direct
+        deadline = time.monotonic() + 3
+        while pub.direct and time.monotonic() < deadline:
+            time.sleep(0.05)
+        left = dict(pub.direct)
+    matched = match_poses(got, feed.handed, scene, atol=2e-6)
+    assert len(matched) >= 50
+    assert not left  # the client is gone: its data port refused, the target was dropped
 
 
 # ---- the daemon end to end ---------------------------------------------------------------------

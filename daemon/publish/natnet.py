@@ -14,7 +14,9 @@ with uint16 message id and uint16 payload size):
   sending address to unicast frames for `keepalive_timeout_s`; NAT_REQUEST_FRAMEOFDATA gets
   the latest frame; NAT_DISCONNECT unsubscribes.
 - frames (NAT_FRAMEOFDATA) go to the multicast group on the data port (default
-  239.255.42.99:1511) and to every subscribed unicast address. Each carries the frame
+  239.255.42.99:1511) and to every subscribed unicast address. With multicast off they
+  also go to the data port of each connected client's address, where libmotioncapture
+  listens without sending keep-alives (dropped when that port refuses them). Each carries the frame
   number, rigid bodies (id, position, quaternion x y z w, mean marker error, tracking-valid
   flag), labelled markers (a body's markers as (body id << 16 | member), the others flagged
   unlabelled with their track id), a timestamp and three clock ticks (mid-exposure, data
@@ -64,6 +66,7 @@ SERVER_VERSION = (1, 0, 0, 0)
 APP_NAME = b"mocapd"
 CLOCK_HZ = 1_000_000_000  # the tick stamps are time.monotonic_ns()
 MAX_PAYLOAD = 65535  # the header's size field is a uint16
+DIRECT_GRACE_S = 3.0  # a keep-alive-less unicast client has this long to open its data port
 
 # marker parameter bits (NatNet's sMarker.params)
 MARKER_OCCLUDED = 0x01
@@ -242,6 +245,8 @@ class NatNetPublisher(Publisher):
         self.cmd_sock: socket.socket | None = None
         self.data_sock: socket.socket | None = None
         self.subscribers: dict[tuple[str, int], float] = {}  # address -> last keep-alive
+        self.direct: dict[str, tuple] = {}  # unicast: client IP -> (socket, since)
+        self.direct_grace_s = DIRECT_GRACE_S
         self.requests = 0
         self.latest: bytes | None = None
         self.t0_ns: int | None = None
@@ -294,7 +299,9 @@ class NatNetPublisher(Publisher):
         if self._cmd_thread is not None:
             self._cmd_thread.join(1.0)
             self._cmd_thread = None
-        for s in (self.cmd_sock, self.data_sock):
+        with self._lock:
+            direct, self.direct = [d[0] for d in self.direct.values()], {}
+        for s in (self.cmd_sock, self.data_sock, *direct):
             if s is not None:
                 s.close()
         self.cmd_sock = self.data_sock = None
@@ -302,7 +309,7 @@ class NatNetPublisher(Publisher):
     def status(self) -> dict:
         st = super().status()
         with self._lock:
-            st["unicast_clients"] = len(self.subscribers)
+            st["unicast_clients"] = len(self.subscribers) + len(self.direct)
         return st
 
     # ---- frames ----------------------------------------------------------------------------
@@ -326,11 +333,20 @@ class NatNetPublisher(Publisher):
             for a in gone:
                 del self.subscribers[a]
             targets = list(self.subscribers)
+            direct = list(self.direct.items())
         for addr in targets:
             try:
                 self.cmd_sock.sendto(data, addr)
             except OSError:  # a client gone (ICMP refused): it expires with its keep-alives
                 pass
+        for ip, (sock, since) in direct:
+            try:
+                sock.send(data)
+            except BlockingIOError:
+                pass
+            except OSError:  # refused: nobody listens there (yet: it binds after connecting)
+                if now - since > self.direct_grace_s:
+                    self._forget(ip)
 
     # ---- the command port ------------------------------------------------------------------
 
@@ -365,6 +381,8 @@ class NatNetPublisher(Publisher):
         if msg_id == NAT_CONNECT:  # a new session: no frames until its keep-alives
             with self._lock:
                 self.subscribers.pop(addr, None)
+            if not self.multicast:
+                self._direct(addr[0])
             return self._info
         if msg_id == NAT_KEEPALIVE:
             with self._lock:
@@ -377,11 +395,36 @@ class NatNetPublisher(Publisher):
         if msg_id == NAT_DISCONNECT:
             with self._lock:
                 self.subscribers.pop(addr, None)
+            self._forget(addr[0])
             return None
         if msg_id == NAT_REQUEST:
             text = data[4:4 + size].split(b"\0", 1)[0].decode("utf-8", "replace")
             return self._command(text)
         return message(NAT_UNRECOGNIZED_REQUEST, b"")
+
+    def _direct(self, ip: str) -> None:
+        """Unicast without keep-alives, as libmotioncapture does it: after connecting it
+        listens on the data port of its own address. A connected socket per client IP
+        learns from the ICMP refusal when nobody listens there (any more)."""
+        with self._lock:
+            if ip in self.direct:
+                self.direct[ip] = (self.direct[ip][0], time.monotonic())
+                return
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.setblocking(False)
+        try:
+            sock.connect((ip, self.data_port))
+        except OSError:
+            sock.close()
+            return
+        with self._lock:
+            self.direct[ip] = (sock, time.monotonic())
+
+    def _forget(self, ip: str) -> None:
+        with self._lock:
+            entry = self.direct.pop(ip, None)
+        if entry is not None:
+            entry[0].close()
 
     def _command(self, text: str) -> bytes:
         """NAT_RESPONSE to a command string: 0 for what we support or ignore, -1 otherwise."""
