@@ -53,6 +53,7 @@ class DotView:
     frames: int
     rejected: int = 0
     dot_radius_px: float = float("nan")
+    moved: int = 0  # dots dropped because they moved between the samples
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -137,6 +138,7 @@ class DotCapture:
             self.calibrate_noise()
         start_frames = self.frames
         self._areas: list[float] = []
+        self._moved = 0
         self._wait_still()
         sch = self.schedule
         if sch.kind == "raster":
@@ -152,7 +154,7 @@ class DotCapture:
         rejected += int(dup.sum())
         radius = float(np.sqrt(np.median(self._areas) / np.pi)) if self._areas else float("nan")
         return DotView(ids_a[~dup], uv_a[~dup], sc_a[~dup], self.frames - start_frames,
-                       rejected, radius)
+                       rejected, radius, self._moved)
 
     def _run_raster(self, progress) -> tuple[list, list, list, int]:
         """One dot per frame: each frame's single dot is the one shown."""
@@ -256,5 +258,7 @@ class DotCapture:
         spread = np.sqrt(np.mean(np.sum((stack - uv) ** 2, axis=2), axis=0)) \
             if len(shots) > 1 else np.zeros(len(uv))
         seen_in_all = np.isfinite(stack).all(axis=(0, 2))
-        keep &= seen_in_all & (spread <= self.max_scatter_px)
+        moved = keep & (~seen_in_all | ~(spread <= self.max_scatter_px))
+        self._moved += int(moved.sum())
+        keep &= ~moved
         return uv[keep], spread[keep]

@@ -77,6 +77,11 @@ def monitor_plane_view(dots, schedule, pixel_pitch_mm: float, name: str = "",
                        min_points: int = MIN_POINTS_PER_VIEW) -> PlaneView:
     """Identified dots (calibkit.dotcapture.DotView) -> a PlaneView in metres on the screen
     plane; a UserError when the monitor is (mostly) not in view."""
+    moved = getattr(dots, "moved", 0)
+    if len(dots) < min_points and moved >= min_points:
+        raise UserError(f"the image moved during {name or 'this view'}: {moved} dots shifted "
+                        "between frames: hold the camera and the monitor still (a tripod "
+                        "for the camera, the monitor resting on something) and retake it")
     if len(dots) < min_points:
         raise UserError(f"the monitor is not in view: only {len(dots)} dots were identified "
                         f"in {name or 'this view'} (need {min_points}); point the camera at "

@@ -38,6 +38,7 @@ class MonitorSimConfig:
     noise_dn: float = 2.0
     blur_px: float = 0.6
     drop_rate: float = 0.0  # chance that a camera frame is lost
+    shake_px: float = 0.0  # the camera shakes: each frame shifted by N(0, shake_px) px
     seed: int = 0
 
 
@@ -190,6 +191,11 @@ class MonitorSim:
             t1 = min(self.history[i + 1].t_s if i + 1 < len(self.history) else np.inf, end)
             if t1 > t0:
                 img += self._warped_for(shown) * np.float32((t1 - t0) / cfg.exposure_s)
+        if cfg.shake_px > 0:
+            dx, dy = self.rng.normal(0.0, cfg.shake_px, 2)
+            img = cv2.warpAffine(img, np.float32([[1, 0, dx], [0, 1, dy]]),
+                                 (img.shape[1], img.shape[0]), flags=cv2.INTER_LINEAR,
+                                 borderMode=cv2.BORDER_REPLICATE)
         img += np.float32(cfg.noise_dn) * self.rng.standard_normal(img.shape, np.float32)
         return np.clip(np.rint(img), 0, 255).astype(np.uint8)
 

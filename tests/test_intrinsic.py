@@ -412,3 +412,16 @@ def test_reported_std_matches_the_actual_errors():
               (c.cx - truth.cx) / r.std["cx"], (c.cy - truth.cy) / r.std["cy"]]
     rms_z = float(np.sqrt(np.mean(np.square(z))))
     assert 0.5 < rms_z < 1.6, rms_z
+
+
+def test_a_shaking_camera_is_told_to_hold_still():
+    """Dots that move between the averaged frames are dropped; when the whole image shakes
+    (1 px per frame) nothing is kept and the user is told why."""
+    config = MonitorSimConfig(**SMALL, shake_px=1.0)
+    schedule = coded_schedule(config.screen_px, 80.0, 2, 6.0)
+    with make_monitor_sim(1, (320, 240), 0, config) as sim:
+        sim.set_view(0)
+        dots = DotCapture(sim, schedule).run()
+    assert len(dots) < 12 and dots.moved > 100
+    with pytest.raises(UserError, match="the image moved"):
+        monitor_plane_view(dots, schedule, config.pixel_pitch_mm)
