@@ -2,21 +2,8 @@
 
 from __future__ import annotations
 
-import importlib
-
-import typer
-
 from calibkit import __version__
-from calibkit.clitools import run_app
-
-app = typer.Typer(
-    name="calibkit",
-    help="Calibrate a rig of motion-capture cameras (add --sim to any command to use the "
-         "built-in simulated rig).",
-    no_args_is_help=True,
-    add_completion=False,
-    pretty_exceptions_enable=False,
-)
+from calibkit.clitools import build_app, run_app
 
 # Each module defines register(app). Order here is the order of `calibkit --help`.
 COMMAND_MODULES = (
@@ -34,27 +21,9 @@ COMMAND_MODULES = (
     "convert_cmd",
 )
 
-
-def _version(value: bool) -> None:
-    if value:
-        typer.echo(f"calibkit {__version__}")
-        raise typer.Exit()
-
-
-@app.callback()
-def _root(version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
-                                       help="Print the version and exit.")) -> None:
-    """calibkit: calibration of multi-camera motion-capture rigs."""
-
-
-for _name in COMMAND_MODULES:
-    try:
-        _module = importlib.import_module(f"calibkit.commands.{_name}")
-    except ModuleNotFoundError as _exc:  # a command still being written (development only)
-        if _exc.name != f"calibkit.commands.{_name}":
-            raise
-        continue
-    _module.register(app)
+app = build_app("calibkit", "Calibrate a rig of motion-capture cameras (add --sim to any "
+                "command to use the built-in simulated rig).", __version__,
+                "calibkit.commands", COMMAND_MODULES)
 
 
 def main() -> None:

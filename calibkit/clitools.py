@@ -17,6 +17,39 @@ from calibkit.fileio import write_text_atomic
 EXIT_USER_ERROR = 2
 
 
+def build_app(name: str, help_text: str, version: str, package: str,
+              modules: tuple[str, ...]) -> typer.Typer:
+    """A Typer app whose commands live in `package`, one module each with register(app),
+    registered in the order given (the order of --help). A module not written yet is
+    skipped; an import error inside a module is a bug and raises."""
+    import importlib
+
+    app = typer.Typer(name=name, help=help_text, no_args_is_help=True, add_completion=False,
+                      pretty_exceptions_enable=False)
+
+    def show_version(value: bool) -> None:
+        if value:
+            typer.echo(f"{name} {version}")
+            raise typer.Exit()
+
+    @app.callback()
+    def _root(show: bool = typer.Option(False, "--version", callback=show_version,
+                                        is_eager=True, help="Print the version and exit.")
+              ) -> None:
+        pass
+
+    _root.__doc__ = help_text
+    for module_name in modules:
+        try:
+            module = importlib.import_module(f"{package}.{module_name}")
+        except ModuleNotFoundError as exc:
+            if exc.name != f"{package}.{module_name}":
+                raise
+            continue
+        module.register(app)
+    return app
+
+
 def run_app(app: typer.Typer, prog_name: str) -> None:
     """Run a Typer app; a UserError becomes one line on stderr and exit code 2."""
     try:

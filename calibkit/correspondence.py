@@ -55,15 +55,17 @@ def _essentials(arrays: RigArrays) -> np.ndarray:
     return tx @ R_ij
 
 
-_E_CACHE: dict[int, tuple[RigArrays, np.ndarray]] = {}
+_CACHE: dict[tuple[int, str], tuple[RigArrays, np.ndarray]] = {}
 
 
-def _essentials_cached(arrays: RigArrays) -> np.ndarray:
-    cached = _E_CACHE.get(id(arrays))
-    if cached is None or cached[0] is not arrays:
-        cached = (arrays, _essentials(arrays))
-        _E_CACHE[id(arrays)] = cached
-    return cached[1]
+def _cached(arrays: RigArrays, make) -> np.ndarray:
+    """make(arrays), computed once per rig's arrays (they are immutable)."""
+    key = (id(arrays), make.__name__)
+    hit = _CACHE.get(key)
+    if hit is None or hit[0] is not arrays:
+        hit = (arrays, make(arrays))
+        _CACHE[key] = hit
+    return hit[1]
 
 
 def _baseline_bases(arrays: RigArrays) -> np.ndarray:
@@ -81,17 +83,6 @@ def _baseline_bases(arrays: RigArrays) -> np.ndarray:
     return bases
 
 
-_BASES_CACHE: dict[int, tuple[RigArrays, np.ndarray]] = {}
-
-
-def _bases_cached(arrays: RigArrays) -> np.ndarray:
-    cached = _BASES_CACHE.get(id(arrays))
-    if cached is None or cached[0] is not arrays:
-        cached = (arrays, _baseline_bases(arrays))
-        _BASES_CACHE[id(arrays)] = cached
-    return cached[1]
-
-
 def _pairs(arrays: RigArrays, group: np.ndarray, camera: np.ndarray, n: np.ndarray,
            origins: np.ndarray, dirs: np.ndarray, tol_px: float, compiled: bool = True):
     """Candidate blob pairs (a, b) in different cameras of the same group (frame) whose
@@ -105,7 +96,7 @@ def _pairs(arrays: RigArrays, group: np.ndarray, camera: np.ndarray, n: np.ndarr
     if len(camera) < 2:
         empty = np.zeros(0, dtype=np.int64)
         return empty, empty, np.zeros(0), np.zeros(0)
-    E = _essentials_cached(arrays)
+    E = _cached(arrays, _essentials)
     order = np.argsort(group * 1024 + camera, kind="stable")
     g, c = group[order], camera[order]
     homog = np.concatenate([n[order], np.ones((len(n), 1))], axis=1)
@@ -135,8 +126,8 @@ def _pairs_numpy(arrays: RigArrays, group: np.ndarray, camera: np.ndarray, n: np
     searches its window (twice as wide as the tolerance asks, for lens distortion): a
     sort instead of testing every pair. The exact epipolar test then runs on those only.
     """
-    E = _essentials_cached(arrays)
-    bases = _bases_cached(arrays)
+    E = _cached(arrays, _essentials)
+    bases = _cached(arrays, _baseline_bases)
     n_cams = len(arrays.centre)
     homog = np.concatenate([n, np.ones((len(n), 1))], axis=1)
     cams = np.unique(camera)
