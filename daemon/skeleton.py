@@ -241,9 +241,17 @@ def solve_poses(skel: Skeleton, take: Take) -> tuple[dict, dict]:
             R, t = _kabsch(j.ref_m, pts, w)
         else:
             Rp, tp = R_w[j.parent], t_w[j.parent]
-            jc_rest = j.centre_m
-            # the joint centre is fixed in the parent's frame
-            J[j.name] = np.einsum("fij,j->fi", Rp, jc_rest) + tp
+            # the joint centre is fixed in the parent's frame ...
+            jp = np.einsum("fij,j->fi", Rp, j.centre_m) + tp
+            J[j.name] = jp
+            if len(j.markers) >= 3:
+                # ... and in the child's: with 3+ markers of its own the child places it
+                # too, and the two estimates are averaged (their errors are independent)
+                w = np.isfinite(pts).all(2).astype(float)
+                Rc, tc = _kabsch(j.ref_m[:-1], pts, w)
+                jc = np.einsum("fij,j->fi", Rc, j.ref_m[-1]) + tc
+                ok = (w.sum(1) >= 3) & np.isfinite(jp).all(1)
+                J[j.name] = np.where(ok[:, None], 0.5 * (jp + jc), jp)
             pts = np.concatenate([pts, J[j.name][:, None]], axis=1)
             w = np.isfinite(pts).all(2).astype(float)
             w[:, -1] *= 4.0        # the joint centre binds the child to its parent
