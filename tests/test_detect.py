@@ -392,3 +392,20 @@ def test_compiled_hsv_ranges_equal_the_numpy_reference():
             assert_same_blobs(got, ref)
             n_blobs += len(got)
     assert n_blobs > 100
+
+
+def test_threads_detecting_at_once_get_their_own_results():
+    # Cameras detect in their own threads and the kernels release the GIL: each thread must
+    # keep its own scratch (the region-owner image), or windows would see other frames'
+    # blobs. The frames show the same dense spots shifted a little, so every window of one
+    # frame holds spots of the others.
+    from concurrent.futures import ThreadPoolExecutor
+
+    rng = np.random.default_rng(15)
+    uv = spread_out(150, rng, size=(320, 240), sep_px=12.0)
+    frames = [render_spots((320, 240), uv + 0.9 * k, 3.0, rng=k) for k in range(6)]
+    alone = [detect(img) for img in frames]
+    with ThreadPoolExecutor(3) as pool:
+        for _ in range(20):
+            for got, ref in zip(pool.map(detect, frames), alone, strict=True):
+                assert_same_blobs(got, ref, tol_px=0.0)
