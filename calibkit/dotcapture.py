@@ -97,7 +97,7 @@ class DotCapture:
         noise = signature_noise(frames[3:])
         self.settle = SettleDetector(noise=noise, hold=self.hold)
         self.settle.start(frames[-1])
-        self.frames = len(frames)
+        self.frames = getattr(self, "frames", 0) + len(frames)
 
     def _wait_still(self) -> None:
         """Before a view: wait until the user holds the target still."""
@@ -134,9 +134,9 @@ class DotCapture:
 
     def run(self, progress=None) -> DotView:
         """Show the whole schedule once and identify every dot the camera saw."""
+        start_frames = getattr(self, "frames", 0)  # the first view pays for the noise too
         if self.settle is None:
             self.calibrate_noise()
-        start_frames = self.frames
         self._areas: list[float] = []
         self._moved = 0
         self._wait_still()
