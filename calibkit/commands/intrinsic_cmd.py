@@ -218,7 +218,6 @@ def register(app: typer.Typer) -> None:
                 window = WindowDisplay(monitor)
 
                 def next_view(v: int, done: list) -> None:
-                    print(guidance(done, img_size, views), file=sys.stderr)
                     input(f"view {v + 1}/{views}: hold the monitor in view, tilted, then "
                           "press Enter ")
 
