@@ -21,6 +21,7 @@ from calibkit import sim
 from daemon.config import SimConfig
 from daemon.pipeline import FrameResult
 from daemon.publish import natnet as nn
+from daemon.publish import packet
 from daemon.rigid import BodyDef, BodyPoses, matrix_from_quaternion, quaternion_xyzw
 from daemon.sources import SimScene
 from daemon.tracker import TrackFrame
@@ -425,15 +426,30 @@ def test_motioncapture_natnet_unicast():
 # ---- the daemon end to end ---------------------------------------------------------------------
 
 def test_mocapd_serves_natnet_poses_matching_the_simulator(tmp_path):
-    """`mocapd start --sim --natnet`: a unicast natnet client's poses against the
-    simulator's true poses (0.2 px noise: millimetres), model definitions by body name."""
+    """`mocapd start --sim` with `[natnet]`: a unicast natnet client's poses equal what the
+    daemon tracked (its own UDP packets of the same frames) and are the simulator's true
+    poses (0.2 px noise: millimetres); model definitions name the bodies."""
     cmd, = free_ports(1)
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", 0))
+    rx.setblocking(False)
+    tracked = {}
+
+    def drain():
+        while True:
+            try:
+                pk = packet.decode(rx.recv(65536))
+            except BlockingIOError:
+                return
+            tracked[pk.frame] = pk
+
     sim_args = dict(cameras=4, bodies=2, fps=100.0, noise_px=0.2, seed=5)
     n_frames = 400
     cfg = tmp_path / "mocapd.toml"
     cfg.write_text("[sim]\n" + "".join(f"{k} = {json.dumps(v)}\n" for k, v in sim_args.items())
                    + f'[natnet]\ninterface = "127.0.0.1"\ncommand_port = {cmd}\n'
-                   f"data_port = {cmd + 1}\nmulticast = false\n")
+                   f"data_port = {cmd + 1}\nmulticast = false\n"
+                   f'[[udp]]\naddress = "127.0.0.1:{rx.getsockname()[1]}"\n')
     proc = subprocess.Popen([sys.executable, "-m", "daemon.cli", "start", "--config", cfg,
                              "--frames", str(n_frames), "--runtime-dir", tmp_path / "rt"],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -460,11 +476,28 @@ def test_mocapd_serves_natnet_poses_matching_the_simulator(tmp_path):
         c.request_modeldef()
         c.run_async()
         while proc.poll() is None and len(frames) < 150:
-            time.sleep(0.05)
+            drain()
+            time.sleep(0.02)
         c.shutdown()
+        drain()
     finally:
         proc.terminate()
         proc.communicate(timeout=20)
+        rx.close()
+    same = 0
+    for f in frames:
+        pk = tracked.get(f.prefix.frame_number)
+        if pk is None:
+            continue
+        same += 1
+        assert [b.id_num for b in f.rigid_bodies] == list(pk.ids)
+        assert [b.tracking_valid for b in f.rigid_bodies] == list(pk.valid)
+        for b, pos, q, ok in zip(f.rigid_bodies, pk.position, pk.quaternion, pk.valid,
+                                 strict=True):
+            if ok:  # both float32 of the same float64 pose
+                np.testing.assert_array_equal(b.pos, pos)
+                np.testing.assert_array_equal(b.rot, q)
+    assert same > 100
     scene = SimScene(SimConfig(**sim_args), n_frames=n_frames)
     assert [b.name for b in descs[0].rigid_bodies] == ["body0", "body1"]
     errors, angles = [], []

@@ -16,7 +16,7 @@ import numpy as np
 from test_natnet import Feeder, Scene, finish, run_motioncapture  # shared scene and client
 
 from daemon.config import SimConfig
-from daemon.publish import vrpn
+from daemon.publish import packet, vrpn
 from daemon.sources import SimScene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -254,7 +254,22 @@ def test_a_client_that_stops_reading_is_dropped_and_the_others_go_on():
 
 def test_mocapd_vrpn_flag_serves_poses_matching_the_simulator(tmp_path):
     """`mocapd start --sim --vrpn HOST:PORT`, read by libmotioncapture's VRPN client: the
-    trackers are the scene's bodies by name, at the simulator's true poses (0.2 px noise)."""
+    trackers are the scene's bodies by name, at the poses the daemon tracked (its own UDP
+    packets) and at the simulator's true poses (0.2 px noise)."""
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", 0))
+    rx.settimeout(0.1)
+    tracked, stop = [], threading.Event()
+
+    def drain():
+        while not stop.is_set():
+            try:
+                tracked.append(packet.decode(rx.recv(65536)))
+            except TimeoutError:
+                pass
+
+    reader = threading.Thread(target=drain, daemon=True)
+    reader.start()
     s = socket.socket()
     s.bind(("127.0.0.1", 0))
     port = s.getsockname()[1]
@@ -265,6 +280,7 @@ def test_mocapd_vrpn_flag_serves_poses_matching_the_simulator(tmp_path):
         [sys.executable, "-m", "daemon.cli", "start", "--sim", "--sim-cameras", "4",
          "--sim-bodies", "2", "--sim-fps", "100", "--noise-px", "0.2", "--seed", "5",
          "--frames", str(n_frames), "--vrpn", f"127.0.0.1:{port}",
+         "--udp", f"127.0.0.1:{rx.getsockname()[1]}",
          "--runtime-dir", tmp_path / "rt"],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -282,6 +298,18 @@ def test_mocapd_vrpn_flag_serves_poses_matching_the_simulator(tmp_path):
     finally:
         proc.terminate()
         proc.communicate(timeout=20)
+        stop.set()
+        reader.join()
+        rx.close()
+    # every pose received is one the daemon tracked for that body (float32 both sides)
+    table = {name: np.array([np.concatenate([pk.position[k], pk.quaternion[k]])
+                             for pk in tracked for k in np.flatnonzero(pk.ids == body_id)
+                             if pk.valid[k]])
+             for name, body_id in (("body0", 1), ("body1", 2))}
+    for frame in got:
+        for name, values in frame.items():
+            off = np.abs(table[name] - np.array(values, np.float32)).max(axis=1).min()
+            assert off < 1e-6, f"{name}: a pose the daemon did not send ({off:.1e})"
     scene = SimScene(SimConfig(**sim_args), n_frames=n_frames)
     truth = {b.name: b.poses[:, :3, 3] for b in scene.bodies_truth}
     errors = {name: [] for name in truth}
