@@ -309,7 +309,8 @@ class Evaluator:
         self.valid = dict.fromkeys(self.ids, 0)
         self.gross = dict.fromkeys(self.ids, 0)
         self.frames = 0
-        self.track_label: dict[int, int] = {}
+        self.prev_ids = np.zeros(0, dtype=np.int64)  # tracks labelled so far, sorted
+        self.prev_labels = np.zeros(0, dtype=np.int64)
         self.track_swaps = 0
         self.swapped = dict.fromkeys(self.ids, False)
         self.body_swaps = 0
@@ -351,20 +352,24 @@ class Evaluator:
         if marker is None:
             return None
         tb = result.tracks.blobs
-        labels = np.where(tb >= 0, marker[np.maximum(tb, 0)], -1)
-        now = {}
-        for tid, row in zip(result.tracks.ids, labels, strict=True):
-            row = row[row >= 0]
-            if not len(row):
-                continue
-            vals, counts = np.unique(row, return_counts=True)
-            label = int(vals[np.argmax(counts)])
-            old = self.track_label.get(int(tid))
-            if old is not None and old != label:
-                self.track_swaps += 1
-            self.track_label[int(tid)] = label
-            now[int(tid)] = label
-        return now
+        lab = np.where(tb >= 0, marker[np.maximum(tb, 0)], -1)  # (T, C)
+        # the most frequent label of each row, vectorised: count equal entries per cell
+        same = (lab[:, :, None] == lab[:, None, :]) & (lab[:, None, :] >= 0)
+        votes = np.where(lab >= 0, same.sum(axis=2), 0)
+        best = lab[np.arange(len(lab)), np.argmax(votes, axis=1)] if len(lab) else lab[:, 0]
+        has = best >= 0
+        ids, best = result.tracks.ids[has], best[has]
+        if len(self.prev_ids) and len(ids):
+            pos = np.minimum(np.searchsorted(self.prev_ids, ids), len(self.prev_ids) - 1)
+            known = self.prev_ids[pos] == ids
+            self.track_swaps += int(np.sum(known & (self.prev_labels[pos] != best)))
+        # remember the latest label of every track ever labelled
+        keep = ~np.isin(self.prev_ids, ids)
+        self.prev_ids = np.concatenate([self.prev_ids[keep], ids])
+        self.prev_labels = np.concatenate([self.prev_labels[keep], best])
+        order = np.argsort(self.prev_ids)
+        self.prev_ids, self.prev_labels = self.prev_ids[order], self.prev_labels[order]
+        return dict(zip(ids.tolist(), best.tolist(), strict=True))
 
     def figures(self) -> dict:
         n = max(self.frames - self.skip, 1)
