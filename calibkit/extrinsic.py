@@ -74,8 +74,8 @@ def reference_layout_px(projector_size: tuple[int, int], n: int = 4,
                         inset: float = 0.1) -> np.ndarray:
     """Where to put the reference dots: an n x n grid inset from the projector's edges
     (spread wide: the homography is steadiest when the points surround the dots). The
-    world frame's yaw is only as good as these points: with 5 mm tape error, 9 points leave
-    up to ~0.09 degrees, 16 points ~0.06 (docs/extrinsic.md)."""
+    world frame's yaw is only as good as these points: with 5 mm tape error the worst of 10
+    simulated scenes was 0.106 degrees with 9 points, 0.072 with 16 (docs/extrinsic.md)."""
     w, h = projector_size
     xs = np.linspace(inset * (w - 1), (1 - inset) * (w - 1), n)
     ys = np.linspace(inset * (h - 1), (1 - inset) * (h - 1), n)
