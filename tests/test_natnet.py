@@ -413,7 +413,6 @@ def test_motioncapture_natnet_unicast():
     pub.direct_grace_s = 1.0
     with Feeder(pub, scene) as feed:
         got = finish(run_motioncapture("optitrack", cfg, 60))
-        assert "127.0.0.1" in pub.direct
         deadline = time.monotonic() + 3
         while pub.direct and time.monotonic() < deadline:
             time.sleep(0.05)
