@@ -200,3 +200,38 @@ def test_live_path_with_a_stand_in_projector_and_cameras(calibkit_cli, tmp_path,
     cmp = compare_rigs(scene.rig, Rig.load(out), align=False)
     assert max(c["position_mm"] for c in cmp["cameras"]) < 25.0
     assert max(c["rotation_deg"] for c in cmp["cameras"]) < 0.25
+
+
+def test_show_refs_lights_the_reference_dots(calibkit_cli, tmp_path, monkeypatch):
+    import builtins
+
+    import projector.display
+    import projector.screens
+
+    shown = []
+
+    class Window:
+        def __init__(self, monitor):
+            self.monitor = monitor
+
+        def show(self, dots):
+            shown.append((self.monitor, dots))
+
+        def close(self):
+            shown.append("closed")
+
+    monkeypatch.setattr(projector.display, "WindowDisplay", Window)
+    monkeypatch.setattr(projector.screens, "require_display", lambda: None)
+    monkeypatch.setattr(builtins, "input", lambda prompt="": "")
+    from pathlib import Path
+
+    refs = Path(__file__).parent.parent / "fixtures" / "extrinsic_refs.toml"
+    res = calibkit_cli("extrinsic", "--projector", "--show-refs", "--refs", refs,
+                       "--monitor", "1", "--radius", "12")
+    assert res.code == 0, res.err
+    (monitor, dots), closed = shown
+    assert monitor == 1 and closed == "closed"
+    assert len(dots.xy) == 16 + 5 and np.all(dots.radius_px == 12)
+    assert np.allclose(dots.xy[0], [128, 80])
+    line = _one_line_error(calibkit_cli("extrinsic", "--projector", "--show-refs", "--sim"))
+    assert "not with --sim" in line

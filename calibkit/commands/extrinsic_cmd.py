@@ -137,8 +137,9 @@ def register(app: typer.Typer) -> None:
             "--template", help="Write a reference-points file to fill in (the projector "
                                "pixels of the reference dots) and stop.")] = None,
         show_refs: Annotated[bool, typer.Option(
-            "--show-refs", help="Live: show the reference dots of --refs (or the template "
-                                "layout) until Enter, to measure them.")] = False,
+            "--show-refs", help="Light the reference dots of --refs (or of the template "
+                                "layout) on --monitor until Enter, to mark them, and stop.")]
+        = False,
         intrinsics: Annotated[Path | None, typer.Option(
             "--intrinsics", help="Rig file with every camera's intrinsics (poses are "
                                  "ignored).")] = None,
@@ -198,6 +199,13 @@ def register(app: typer.Typer) -> None:
                         "\nFor the table add [table] height_m and [[table.point]] entries."))
             typer.echo(f"wrote {template}: {len(layout)} floor reference dots to measure")
             return
+        if show_refs:
+            if sim:
+                raise UserError("--show-refs lights the real projector: not with --sim")
+            shown = ex.load_references(refs_path) if refs_path is not None else ex.References(
+                ex.reference_layout_px(proj_px), np.zeros((16, 2)), projector_size=proj_px)
+            _show_references(shown, monitor, radius)
+            return
         if out is None:
             raise UserError("--out RIG.toml is required")
         if samples < 1 or shifts < 1 or step <= 0 or radius <= 0:
@@ -221,8 +229,6 @@ def register(app: typer.Typer) -> None:
                                  m.get("table_px", np.zeros((0, 2))),
                                  m.get("table_xy_m", np.zeros((0, 2))),
                                  m.get("table_height_m"), projector_size=proj_px)
-            write_text_atomic(out.with_name(out.stem + ".refs.toml"), ex.references_toml(
-                refs, "simulated tape measurements (calibkit extrinsic --sim)"))
         else:
             if refs_path is None:
                 raise UserError("--refs REFS.toml is required (make one with --template "
@@ -233,6 +239,8 @@ def register(app: typer.Typer) -> None:
                 raise UserError("--intrinsics RIG.toml is required (from calibkit intrinsic)")
             intr = Rig.load(intrinsics)
         with_table = _sessions(refs, table)
+        if not sim and not camera:
+            raise UserError("live capture needs --camera once per camera (or --sim)")
         floor_map, table_map = ex.plane_maps(refs)
         if not with_table:
             table_map = None
@@ -247,8 +255,6 @@ def register(app: typer.Typer) -> None:
                            "off the others' fit: re-measure it", err=True)
         schedule = _schedule(proj_px, step, shifts, radius)
         tsched = ex.table_schedule(schedule, table_map) if table_map is not None else None
-        if show_refs and not sim:
-            _show_references(refs, monitor, radius)
         if sim and render:
             from calibkit import sim_projector as sp
 
@@ -277,8 +283,6 @@ def register(app: typer.Typer) -> None:
                                                shown=np.concatenate(tsched.layers))
                 frames += ex.capture_frames_estimate(tsched, lat, samples)
         else:
-            if not camera:
-                raise UserError("live capture needs --camera once per camera (or --sim)")
             floor_dots, table_dots, frames = _capture_live(intr, list(camera), monitor,
                                                            schedule, tsched, samples)
         names = truth.names if truth is not None else intr.names
@@ -302,6 +306,8 @@ def register(app: typer.Typer) -> None:
             from calibkit.compare import compare_rigs
 
             truth.save(truth_rig_path(out))
+            write_text_atomic(out.with_name(out.stem + ".refs.toml"), ex.references_toml(
+                refs, "simulated tape measurements (calibkit extrinsic --sim)"))
             cmp = compare_rigs(truth, result.rig, align=False)
             result.report["truth"] = {
                 "cameras": cmp["cameras"],
