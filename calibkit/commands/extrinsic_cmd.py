@@ -164,6 +164,8 @@ def register(app: typer.Typer) -> None:
         = True,
         ref_sigma_mm: Annotated[float, typer.Option(
             "--ref-sigma-mm", help="How well the reference points were measured.")] = 5.0,
+        height_sigma_mm: Annotated[float, typer.Option(
+            "--height-sigma-mm", help="How well the table height was measured.")] = 2.0,
         json_path: Annotated[Path | None, typer.Option(
             "--json", help="Write the figures as JSON.")] = None,
         sim: Annotated[bool, typer.Option(
@@ -210,8 +212,8 @@ def register(app: typer.Typer) -> None:
             raise UserError("--out RIG.toml is required")
         if samples < 1 or shifts < 1 or step <= 0 or radius <= 0:
             raise UserError("--samples and --shifts must be >= 1, --step and --radius > 0")
-        if ref_sigma_mm <= 0:
-            raise UserError(f"--ref-sigma-mm must be positive, got {ref_sigma_mm}")
+        if ref_sigma_mm <= 0 or height_sigma_mm <= 0:
+            raise UserError("--ref-sigma-mm and --height-sigma-mm must be positive")
         truth = None
         if sim:
             from calibkit import sim_projector as sp
@@ -287,7 +289,8 @@ def register(app: typer.Typer) -> None:
                                                            schedule, tsched, samples)
         names = truth.names if truth is not None else intr.names
         dots = ex.assemble(names, floor_dots, table_dots, schedule, floor_map, table_map)
-        opts = ex.SolveOptions(joint=joint, reference_sigma_m=ref_sigma_mm / 1000.0)
+        opts = ex.SolveOptions(joint=joint, reference_sigma_m=ref_sigma_mm / 1000.0,
+                               height_sigma_m=height_sigma_mm / 1000.0)
         result = ex.calibrate(intr, dots, floor_map, table_map, opts)
         result.report["capture"] = {"frames": frames, "seconds_at_30fps": frames / 30.0,
                                     "sessions": 1 + int(with_table),
