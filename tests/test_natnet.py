@@ -36,7 +36,7 @@ class Scene:
     """Moving bodies of the simulator; frame i is a FrameResult with body `occluded_id`
     hidden (invalid, its markers unseen) in frames where occluded(i), plus loose markers."""
 
-    def __init__(self, n_bodies=2, n_frames=400, seed=0, loose=3, pivot=None) -> None:
+    def __init__(self, n_bodies=2, n_frames=3000, seed=0, loose=3, pivot=None) -> None:
         _, self.bodies = sim.rigid_body_motion(n_bodies, n_frames, FPS, 3.0, 4, seed=seed)
         self.n = n_frames
         rng = np.random.default_rng(seed)
