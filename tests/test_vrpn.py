@@ -195,16 +195,16 @@ def test_raw_clients_over_tcp_and_connect_back_with_pings():
 
 
 def test_motioncapture_vrpn_clients_join_and_leave():
-    """libmotioncapture's VRPN client (UDP connect-back, pings, UDP poses): two clients, the
-    second joining late and leaving early; the first sees every body's pose, hidden bodies
-    drop out, the second changes nothing for it."""
+    """libmotioncapture's VRPN client: the first by UDP connect-back (poses over its UDP
+    port), the second by tcp:// (poses over TCP) joining late and leaving early; both see
+    every body's pose, hidden bodies drop out, the second changes nothing for the first."""
     scene = Scene()
     pub = vrpn.VrpnPublisher(scene.defs(), host="127.0.0.1", port=0)
     with Feeder(pub, scene) as feed:
         cfg = {"hostname": f"127.0.0.1:{pub.port}"}  # the port the server was given
         first = run_motioncapture("vrpn", cfg, 300)
         feed.wait_frames(80)
-        second = run_motioncapture("vrpn", cfg, 60)
+        second = run_motioncapture("vrpn", {"hostname": f"tcp://127.0.0.1:{pub.port}"}, 60)
         got_second = finish(second)
         got_first = finish(first)
         pongs = pub.pongs
