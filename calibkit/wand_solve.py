@@ -28,6 +28,7 @@ class WandCalibration:
     solved: dict  # wand_report.evaluate figures on the frames solved
     held: dict  # ... and on the frames held out
     bundle: bundle.BundleResult
+    held_frames: np.ndarray  # the frames kept out of the solve
 
 
 def _ordered_intrinsics(obs: Observations, intrinsics: Rig) -> Rig:
@@ -132,7 +133,7 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
             "world_frame": report["world_frame"]}
     rig = Rig(rig.cameras, quality, {**{k: v for k, v in intrinsics.meta.items()
                                         if k in ("volume_m",)}, **meta})
-    return WandCalibration(rig, report, wand, solved, held, result)
+    return WandCalibration(rig, report, wand, solved, held, result, held_frames)
 
 
 def calibrate_wand(observations: Observations, intrinsics_rig: Rig, wand_spacing_m,
