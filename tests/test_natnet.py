@@ -396,10 +396,11 @@ def test_motioncapture_natnet_multicast_with_a_late_second_client():
     m2 = match_poses(got_second, feed.handed, scene, atol=2e-6)
     assert len(m1) >= 140 and len(m2) >= 35
     assert any(scene.occluded(i) for i in m1) and any(not scene.occluded(i) for i in m1)
-    # the first client kept receiving while the second came and went (libmotioncapture
-    # skips to the newest datagram when it falls behind, so on a busy machine not all)
-    span = range(min(m2), max(m2) + 1)
-    assert len(m1 & set(span)) >= 0.8 * len(span)
+    # the first client kept receiving while the second came and went: no pause in what
+    # it got (libmotioncapture skips to the newest datagram when it falls behind, so on a
+    # busy machine it does not get every frame; a stall would show as a gap)
+    during = sorted(i for i in m1 if min(m2) - 5 <= i <= max(m2) + 5)
+    assert len(during) >= 0.5 * (max(m2) - min(m2)) and np.diff(during).max() <= 25
 
 
 def test_motioncapture_natnet_unicast():
