@@ -43,6 +43,11 @@ class MarkerSet:
     chiral_sign: np.ndarray = field(default_factory=lambda: np.zeros(0))        # (k,) +-1
     name: str = "markerset"
     subject_sd_m: np.ndarray | None = None   # (n, n) spread of the mean between takes
+    # swap witnesses: quads (i, j, a, b) whose signed volume flips when the close markers
+    # i and j swap labels (which their distances may not show), sign and typical size
+    pair_quads: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), int))
+    pair_sign: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    pair_volume: np.ndarray = field(default_factory=lambda: np.zeros(0))   # 6V, m^3
 
     def __post_init__(self) -> None:
         if self.subject_sd_m is None:
@@ -84,6 +89,10 @@ class MarkerSet:
                                                   for row in self.subject_sd_m]},
             "chiral": [{"markers": [self.labels[i] for i in q], "sign": int(s)}
                        for q, s in zip(self.chiral, self.chiral_sign, strict=True)],
+            "swap_witness": [{"markers": [self.labels[i] for i in q], "sign": int(s),
+                              "volume_cm3": round(1e6 * float(v), 4)}
+                             for q, s, v in zip(self.pair_quads, self.pair_sign,
+                                                self.pair_volume, strict=True)],
         }
         return tomli_w.dumps(doc)
 
@@ -115,6 +124,10 @@ class MarkerSet:
             chiral = np.array([[idx[m] for m in c["markers"]] for c in doc.get("chiral", [])],
                               int).reshape(-1, 4)
             sign = np.array([c["sign"] for c in doc.get("chiral", [])], float)
+            wit = doc.get("swap_witness", [])
+            pq = np.array([[idx[m] for m in c["markers"]] for c in wit], int).reshape(-1, 4)
+            ps = np.array([c["sign"] for c in wit], float)
+            pv = np.array([c["volume_cm3"] for c in wit], float) / 1e6
         except (KeyError, ValueError, TypeError) as exc:
             raise UserError(f"{path}: marker set is missing or has a bad entry ({exc}); "
                             f"write one with `mocapd markerset learn`") from None
@@ -128,7 +141,7 @@ class MarkerSet:
         if between.shape != (n, n):
             between = np.zeros((n, n))
         return MarkerSet(labels, mean, np.maximum(sd, MIN_SD_M), segs, chiral, sign,
-                         str(doc.get("name", path.stem)), between)
+                         str(doc.get("name", path.stem)), between, pq, ps, pv)
 
 
 # ---------------------------------------------------------------------- learning
@@ -257,8 +270,9 @@ def learn(takes: list, cut_m: float = SEGMENT_SPREAD_M, name: str = "markerset",
                 frontier.append(int(b))
 
     chiral, sign = _learn_chiral(allx, sd, n_chiral)
+    pq, ps, pv = _learn_swap_witnesses(allx, mean, sd)
     return MarkerSet(labels, mean, np.maximum(sd, MIN_SD_M), segs, chiral, sign, name,
-                     between)
+                     between, pq, ps, pv)
 
 
 def signed_volume(x: np.ndarray, quads: np.ndarray) -> np.ndarray:
@@ -288,3 +302,43 @@ def _learn_chiral(allx: np.ndarray, sd: np.ndarray, n_keep: int) -> tuple[np.nda
     order = np.argsort(-score)
     keep = [i for i in order[:n_keep] if score[i] > 0]
     return cand[keep].astype(int), np.sign(med[keep])
+
+
+def _learn_swap_witnesses(allx: np.ndarray, mean: np.ndarray, sd: np.ndarray,
+                          close_m: float = 0.25) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each pair of markers close enough to be confused, two steady neighbours a, b
+    such that the tetrahedron (i, j, a, b) keeps its handedness over the takes: swapping
+    i and j negates its volume, even where the distances are symmetric (a foot's toe and
+    fifth metatarsal seen from heel and ankle)."""
+    from itertools import combinations
+
+    n = len(mean)
+    step = max(1, len(allx) // 300)
+    x = allx[::step]
+    quads, signs, vols = [], [], []
+    s2 = sd.copy()
+    np.fill_diagonal(s2, np.inf)
+    for i in range(n):
+        for j in range(i + 1, n):
+            if mean[i, j] >= close_m:
+                continue
+            cand = [int(a) for a in np.argsort(s2[i] + s2[j])[:6] if a not in (i, j)]
+            best = None
+            for a, b in combinations(cand, 2):
+                q = np.array([[i, j, a, b]])
+                v = signed_volume(x, q)[:, 0]
+                v = v[np.isfinite(v)]
+                if len(v) < 10:
+                    continue
+                med = float(np.median(v))
+                if not (np.sign(v) == np.sign(med)).all():
+                    continue
+                margin = float(np.abs(v).min())
+                if best is None or margin > best[0]:
+                    best = (margin, [i, j, a, b], np.sign(med), abs(med))
+            if best is not None:
+                quads.append(best[1])
+                signs.append(best[2])
+                vols.append(best[3])
+    return (np.array(quads, int).reshape(-1, 4), np.array(signs, float),
+            np.array(vols, float))

@@ -1,0 +1,127 @@
+"""Labelling accuracy and speed on the real CMU takes, labels stripped, points shuffled.
+
+For each take: gap-free, and with 20 % of marker-frames hidden in spans of 0.1-1 s plus
+3 ghost points per frame (uniform in the body's bounding box grown by 0.1 m). Started
+from 10 labelled frames (--seed-frames 10) or from the marker set alone. Marker sets:
+the shipped cmu41 (learned from both takes, so the same subjects) and one learned from
+the *other* take only (another person: a harder, cross-subject case). The baseline is
+the third seed's approach, every frame labelled from scratch by matching segments by
+their distances (our `initial_labels`), on every 20th frame because it is slow.
+
+    python benchmarks/bench_label.py [--repeats 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from calibkit.clitools import print_table  # noqa: E402
+from daemon.c3dio import read_c3d  # noqa: E402
+from daemon.label import (  # noqa: E402
+    Labeller,
+    hide_spans,
+    initial_labels,
+    label_take,
+    points_with_ghosts,
+    score,
+)
+from daemon.markerset import MarkerSet, learn  # noqa: E402
+
+DATA = ROOT / "fixtures" / "cmu_c3d"
+
+
+def run(take, ms, hidden, ghosts, seed_frames, seed):
+    t = hide_spans(take, hidden, seed=seed) if hidden else take
+    pts, truth = points_with_ghosts(t, ghosts, seed=seed)
+    c0 = time.process_time()
+    _, _, labels = label_take(pts, ms, take.rate_hz, t if seed_frames else None, seed_frames)
+    cpu = time.process_time() - c0
+    s = score(pts, truth, labels, seed_frames)
+    return s["correct"], s["ghosts_rejected"], (take.n_frames - seed_frames) / cpu
+
+
+def baseline(take, ms, hidden, ghosts, seed, every=20):
+    """Every frame from scratch (the third seed's per-frame module matching)."""
+    t = hide_spans(take, hidden, seed=seed) if hidden else take
+    pts, truth = points_with_ghosts(t, ghosts, seed=seed)
+    frames, per = pts.split()
+    order = np.argsort(pts.frame, kind="stable")
+    tm = np.split(truth[order], np.unique(pts.frame[order], return_index=True)[1][1:])
+    good = total = 0
+    c0 = time.process_time()
+    n = 0
+    for i in range(0, len(frames), every):
+        lab = initial_labels(per[i], ms)
+        real = tm[i] >= 0
+        good += int((lab[real] == tm[i][real]).sum())
+        total += int(real.sum())
+        n += 1
+    cpu = time.process_time() - c0
+    return good / max(total, 1), n / cpu
+
+
+def speed(take, ms):
+    """Frames per second of CPU time of Labeller.update alone, gap-free."""
+    pts, _ = points_with_ghosts(take, 0, seed=0)
+    _, per = pts.split()
+    lab = Labeller(ms, take.rate_hz)
+    lab.seed_take(take.xyz_m[:10])
+    c0 = time.process_time()
+    for p in per[10:]:
+        lab.update(p)
+    return (len(per) - 10) / (time.process_time() - c0)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--repeats", type=int, default=3)
+    args = ap.parse_args()
+    warnings.simplefilter("ignore")
+    shipped = MarkerSet.load(ROOT / "daemon" / "markersets" / "cmu41.toml")
+    takes = {n: read_c3d(DATA / f"{n}.c3d").select(shipped.labels) for n in ("85_02", "01_01")}
+    other = {"85_02": learn([takes["01_01"]]), "01_01": learn([takes["85_02"]])}
+    rows = []
+    for name, take in takes.items():
+        for set_name, ms in (("cmu41", shipped), ("other", other[name])):
+            for hidden, ghosts in ((0.0, 0), (0.2, 3)):
+                for seed_frames in (10, 0):
+                    res = [run(take, ms, hidden, ghosts, seed_frames, s)
+                           for s in range(args.repeats)]
+                    c, g, fps = (np.median([r[i] for r in res]) for i in range(3))
+                    worst = min(r[0] for r in res)
+                    rows.append([name, set_name, f"{int(hidden * 100)}%/{ghosts}",
+                                 seed_frames, round(100 * c, 2), round(100 * worst, 2),
+                                 round(100 * g, 1), round(fps)])
+                    print(*rows[-1], flush=True, file=sys.stderr)
+    print_table(rows, ["take", "markerset", "hidden/ghosts", "seed_frames", "correct_%",
+                       "worst_%", "ghosts_rejected_%", "fps_cpu"])
+    print()
+    rows = []
+    for name, take in takes.items():
+        for hidden, ghosts in ((0.0, 0), (0.2, 3)):
+            acc, fps_b = baseline(take, shipped, hidden, ghosts, 0)
+            ours = run(take, shipped, hidden, ghosts, 0, 0)
+            rows.append([name, f"{int(hidden * 100)}%/{ghosts}", round(100 * acc, 2),
+                         round(fps_b, 1), round(100 * ours[0], 2), round(ours[2]),
+                         round(ours[2] / fps_b, 1)])
+    print("baseline: every frame from scratch (seed's method) vs tracking, cmu41, no seed")
+    print_table(rows, ["take", "hidden/ghosts", "baseline_%", "baseline_fps", "ours_%",
+                       "ours_fps", "speedup"])
+    print()
+    sp = [[name, round(np.median([speed(take, shipped) for _ in range(args.repeats)]))]
+          for name, take in takes.items()]
+    print("Labeller.update, gap-free, 41 markers (CPU time, one core)")
+    print_table(sp, ["take", "frames_per_s"])
+
+
+if __name__ == "__main__":
+    main()
