@@ -326,6 +326,9 @@ class NatNetPublisher(Publisher):
                 self.data_sock.sendto(data, (self.group, self.data_port))
             except (BlockingIOError, ConnectionRefusedError):
                 pass
+            except OSError as exc:  # no route for the group (set `interface`): keep serving
+                self._failed(f"multicast to {self.group}:{self.data_port}: "
+                             f"{exc.strerror or exc}")
         now = time.monotonic()
         with self._lock:
             gone = [a for a, t in self.subscribers.items()
