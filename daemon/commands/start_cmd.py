@@ -31,7 +31,10 @@ from daemon.config import (
 
 def setup_logging(verbose: bool) -> None:
     root = logging.getLogger("mocapd")
-    if not any(getattr(h, "_mocapd", False) for h in root.handlers):
+    ours = [h for h in root.handlers if getattr(h, "_mocapd", False)]
+    if ours:
+        ours[0].stream = sys.stderr  # the current stderr (test runners replace it)
+    else:
         handler = logging.StreamHandler(sys.stderr)
         handler.setFormatter(logging.Formatter("mocapd: %(message)s"))
         handler._mocapd = True
