@@ -784,20 +784,19 @@ def _measure_compiled(kernels, candidates: np.ndarray, tint, values: np.ndarray,
     (both contiguous): what _Runs.find, _Runs.regions and _measure do, compiled."""
     has_mask = mask is not None
     mask = np.ascontiguousarray(mask) if has_mask else _NO_MASK
-    owner = _owner_image(values.shape)
     hot = kernels.hot_chunks(candidates.reshape(-1), tint)
-    runs, run_label, area, bbox, peak = kernels.find_regions(candidates, tint, values, mask,
-                                                             has_mask, owner, hot)
-    try:
-        if len(area) == 0:
-            return Blobs.empty(threshold)
-        level, sigma = background()
-        uv, area, peak, bbox, roundness = kernels.measure(
-            values, mask, has_mask, owner, run_label, area, bbox, peak,
-            float(config.min_area), float(config.max_area), float(config.min_roundness),
-            int(config.window_margin_px), float(level), float(max(sigma, 0.5)))
-    finally:
-        kernels.clear_owner(owner, runs, values.shape[1])
+    found = kernels.find_regions(candidates, tint, values, mask, has_mask, hot, 2048)
+    if not found[-1]:  # more runs than the first guess: the bound for these hot chunks
+        found = kernels.find_regions(candidates, tint, values, mask, has_mask, hot,
+                                     kernels.max_runs(len(hot), values.shape[1]))
+    runs, run_label, area, bbox, peak, _ = found
+    if len(area) == 0:
+        return Blobs.empty(threshold)
+    level, sigma = background()
+    uv, area, peak, bbox, roundness = kernels.measure(
+        values, candidates, tint, mask, has_mask, runs, run_label, area, bbox, peak,
+        float(config.min_area), float(config.max_area), float(config.min_roundness),
+        int(config.window_margin_px), float(level), float(max(sigma, 0.5)))
     return Blobs(uv, area, peak, bbox, roundness, np.full(len(uv), label_value), threshold)
 
 

@@ -77,32 +77,34 @@ def _quantile(hist, target):
 
 
 @_jit
-def find_regions(image, tint, values, mask, has_mask, owner, hot):
+def find_regions(image, tint, values, mask, has_mask, hot, capacity):
     """8-connected regions of the pixels above `tint` (not masked), from horizontal runs.
 
     Only the chunks `hot` (from hot_chunks, of the image as one flat array: those holding a
     pixel above the threshold) are visited pixel by pixel: markers are sparse. Each run is
     linked to the touching runs of the row above as it closes (union-find, the smaller run
     index is the root), so a region's number is the raster order of its first pixel, as in
-    the numpy reference. owner (flat, zero on entry) gets run index + 1 on every region
-    pixel; clear_owner zeroes it again.
+    the numpy reference.
 
-    Returns the runs (rows of y, x0, x1, peak, parent) with the region of each, and per
-    region the area, bbox (x0, y0, x1, y1) and the peak of `values`.
+    Returns the runs (rows of y, x0, x1, peak, parent) with the region of each, per region
+    the area, bbox (x0, y0, x1, y1) and the peak of `values`; and False (with nothing else
+    done) if more than `capacity` runs might be needed: call again with max_runs(...).
     """
     h, w = image.shape
     flat = image.reshape(-1)
     vflat = values.reshape(-1)
     mflat = mask.reshape(-1)
     size = h * w
-    # Runs starting in a chunk: at most one per two pixels, plus one per row start in it.
-    runs = np.empty((len(hot) * (_CHUNK // 2 + _CHUNK // w + 2), 5), dtype=np.int64)
+    per_chunk = _runs_per_chunk(w)
+    runs = np.empty((capacity, 5), dtype=np.int64)
     rows = np.array([-2, 0, 0, 0])  # row of the last run, first run of it, of the row above, p
     n = 0
     open_run = False
     start = row_end = pk = 0
     chunk_end = 0
     for c in hot:
+        if n + per_chunk + 1 > capacity:
+            return runs[:0], runs[:0, 0], np.zeros(0), runs[:0, :4], np.zeros(0), False
         if open_run and c != chunk_end:  # the run reached the end of the previous hot chunk
             open_run = False
             _push(runs, n, start, chunk_end - 1, w, pk, rows)
@@ -129,7 +131,6 @@ def find_regions(image, tint, values, mask, has_mask, owner, hot):
                     start = i
                     row_end = (i // w + 1) * w
                     pk = v
-                owner[i] = n + 1
             elif open_run:
                 open_run = False
                 _push(runs, n, start, i - 1, w, pk, rows)
@@ -139,7 +140,19 @@ def find_regions(image, tint, values, mask, has_mask, owner, hot):
         n += 1
     runs = runs[:n]
     run_label, area, bbox, peak = _region_stats(runs)
-    return runs, run_label, area, bbox, peak
+    return runs, run_label, area, bbox, peak, True
+
+
+@_jit
+def _runs_per_chunk(w):
+    """Runs starting in a chunk: at most one per two pixels, plus one per row start in it."""
+    return _CHUNK // 2 + _CHUNK // w + 2
+
+
+@_jit
+def max_runs(n_hot, w):
+    """The most runs `n_hot` hot chunks of an image `w` pixels wide can hold."""
+    return n_hot * _runs_per_chunk(w) + 1
 
 
 @_jit
@@ -250,21 +263,13 @@ def _region_stats(runs):
     return run_label, area, bbox, peak
 
 
-@_jit
-def clear_owner(owner, runs, w):
-    """Zero the owner image where find_regions wrote it."""
-    for r in range(len(runs)):
-        base = runs[r, 0] * w
-        owner[base + runs[r, 1]:base + runs[r, 2] + 1] = 0
-
-
 # ---------------------------------------------------------------------------------------------
 # Windowed, background-subtracted moments
 
 
 @_jit
-def measure(values, mask, has_mask, owner, run_label, area, bbox, peak, min_area, max_area,
-            min_roundness, margin, level, sigma):
+def measure(values, candidates, tint, mask, has_mask, runs, run_label, area, bbox, peak,
+            min_area, max_area, min_roundness, margin, level, sigma):
     """calibkit.detect._measure for the single-threshold mode, one window at a time.
 
     Regions inside the area range are measured over their bounding box grown by `margin`;
@@ -287,8 +292,8 @@ def measure(values, mask, has_mask, owner, run_label, area, bbox, peak, min_area
     res = np.empty((nk, 5))
     acc = np.empty(21)
     for b in range(nk):
-        _window(values, mask, has_mask, owner, run_label, keep[b], area[keep[b]], box[b],
-                block[b], level, sigma, acc, res[b])
+        _window(values, candidates, tint, mask, has_mask, runs, run_label, keep[b],
+                area[keep[b]], box[b], block[b], level, sigma, acc, res[b])
     ok = np.flatnonzero((res[:, 2] > 0) & (res[:, 3] >= min_roundness))
     sel = keep[ok]
     return res[ok, :2], area[sel], peak[sel], bbox[sel], res[ok, 3]
@@ -318,8 +323,8 @@ def _block_sizes(box):
 
 
 @_jit
-def _window(values, mask, has_mask, owner, run_label, label, region_area, box, k, level,
-            sigma, acc, out):
+def _window(values, candidates, tint, mask, has_mask, runs, run_label, label, region_area,
+            box, k, level, sigma, acc, out):
     """Centroid, weight, roundness and background of one window into out (u, v, s0,
     roundness, b0): the background is the ring's mean, or its plane where it slopes.
 
@@ -337,30 +342,29 @@ def _window(values, mask, has_mask, owner, run_label, label, region_area, box, k
     iy0 = ay0 + 1 - (1 if ay0 == 0 else 0)
     iy1 = ay1 - 1 + (1 if ay1 == h - 1 else 0)
     acc[:] = 0.0
-    if _window_is_clean(owner, mask, has_mask, box, region_area, w):
+    if _window_is_clean(candidates, tint, mask, has_mask, box, region_area):
         _sums_clean(values, box, ox, oy, cx, cy, ix0, ix1, iy0, iy1, acc)
     else:
-        _sums_checked(values, mask, has_mask, owner, run_label, label, box, ox, oy, cx, cy,
-                      ix0, ix1, iy0, iy1, acc)
+        _sums_checked(values, candidates, tint, mask, has_mask, runs, run_label, label, box,
+                      ox, oy, cx, cy, ix0, ix1, iy0, iy1, acc)
     _background_and_moments(acc[0:6], acc[6:12], acc[12:15], acc[15:21], level, sigma, out)
     out[0] += ox + cx
     out[1] += oy + cy
 
 
 @_jit
-def _window_is_clean(owner, mask, has_mask, box, region_area, w):
+def _window_is_clean(candidates, tint, mask, has_mask, box, region_area):
     """No masked pixel and no pixel of another region in the window (the common case): the
-    window's region pixels are exactly its own region's area."""
-    owned = 0
+    window's candidate pixels are exactly its own region's."""
+    count = 0
     masked = False
     for y in range(box[1], box[3] + 1):
-        base = y * w
         for x in range(box[0], box[2] + 1):
-            owned += owner[base + x] != 0
+            count += candidates[y, x] > tint
         if has_mask:
             for x in range(box[0], box[2] + 1):
                 masked |= mask[y, x]
-    return owned == region_area and not masked
+    return count == region_area and not masked
 
 
 @_jit
@@ -411,11 +415,12 @@ def _sums_clean(values, box, ox, oy, cx, cy, ix0, ix1, iy0, iy1, acc):
 
 
 @_jit
-def _sums_checked(values, mask, has_mask, owner, run_label, label, box, ox, oy, cx, cy,
-                  ix0, ix1, iy0, iy1, acc):
+def _sums_checked(values, candidates, tint, mask, has_mask, runs, run_label, label, box, ox,
+                  oy, cx, cy, ix0, ix1, iy0, iy1, acc):
     """The window sums without masked pixels and pixels of other regions."""
     w = values.shape[1]
     ax0, ay0, ax1, ay1 = box[0], box[1], box[2], box[3]
+    first = runs[:, 0] * w + runs[:, 1]  # each run's first pixel: sorted
     for y in range(ay0, ay1 + 1):
         yc = float(y - oy) - cy
         a0 = a1 = a2 = c0 = c1 = c2 = 0.0
@@ -423,9 +428,12 @@ def _sums_checked(values, mask, has_mask, owner, run_label, label, box, ox, oy, 
         inner_row = iy0 <= y <= iy1
         base = y * w
         for x in range(ax0, ax1 + 1):
-            o = owner[base + x]
-            if (o != 0 and run_label[o - 1] != label) or (has_mask and mask[y, x]):
+            if has_mask and mask[y, x]:
                 continue
+            if candidates[y, x] > tint:  # a region pixel: whose?
+                r = np.searchsorted(first, base + x, side="right") - 1
+                if run_label[r] != label:
+                    continue
             xc = float(x - ox) - cx
             v = float(values[y, x])
             a0 += v

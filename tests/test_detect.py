@@ -370,6 +370,12 @@ def test_compiled_regions_equal_the_reference_on_noise_of_any_shape():
         config = DetectorConfig(threshold=float(rng.integers(0, 255)), min_area=0,
                                 max_area=1e9)
         assert_same_blobs(detect(img, config), detect_reference(img, config))
+    # Salt and pepper: thousands of runs, more than the first guess at the run table holds.
+    noise = rng.integers(0, 256, (200, 300)).astype(np.uint8)
+    config = DetectorConfig(threshold=200, min_area=0, max_area=1e9)
+    many = detect(noise, config)
+    assert len(many) > 3000  # regions, so more runs still
+    assert_same_blobs(many, detect_reference(noise, config))
     flat = np.full((30, 70), 9, np.uint8)  # nothing above the threshold
     assert len(detect(flat)) == len(detect_reference(flat)) == 0
     assert len(detect(np.full((8, 8), 255, np.uint8), DetectorConfig(threshold=255))) == 0
@@ -395,10 +401,10 @@ def test_compiled_hsv_ranges_equal_the_numpy_reference():
 
 
 def test_threads_detecting_at_once_get_their_own_results():
-    # Cameras detect in their own threads and the kernels release the GIL: each thread must
-    # keep its own scratch (the region-owner image), or windows would see other frames'
-    # blobs. The frames show the same dense spots shifted a little, so every window of one
-    # frame holds spots of the others.
+    # Cameras detect in their own threads and the kernels release the GIL: nothing may be
+    # shared between calls (a scratch image would let windows see other frames' blobs).
+    # The frames show the same dense spots shifted a little, so every window of one frame
+    # holds spots of the others.
     from concurrent.futures import ThreadPoolExecutor
 
     rng = np.random.default_rng(15)
