@@ -3,17 +3,16 @@
 from __future__ import annotations
 
 import os
-
-# One BLAS thread: on a small shared machine (CI has 2 cores) a multi-threaded BLAS
-# oversubscribes the cores and small matrix products get 100x slower. Set before numpy
-# loads its BLAS; .ci/run sets the same.
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
-
-import sys  # noqa: E402
+import sys
 from dataclasses import dataclass
 
 import pytest
+
+# One BLAS thread: on a small shared machine (CI has 2 cores) a multi-threaded BLAS
+# oversubscribes the cores and small matrix products get 100x slower. Set before numpy
+# loads its BLAS (nothing above imports numpy); .ci/run sets the same.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
 
 @dataclass
