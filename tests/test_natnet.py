@@ -566,3 +566,21 @@ def test_configuration_tables_and_their_errors():
                        ({"vrpn": [{"udp": "yes"}]}, "vrpn[0].udp")):
         with pytest.raises(UserError, match=words.replace("[", r"\[").replace("]", r"\]")):
             parse_config(bad)
+
+
+def test_flags_add_to_the_configuration():
+    from daemon.commands.start_cmd import command_line_additions
+    from daemon.config import parse_config
+
+    extend = command_line_additions([], [], [], None, None, natnet="127.0.0.1:2000",
+                                    natnet_up=None, vrpn=["4000", "127.0.0.1:4001"])
+    cfg = extend(parse_config({"natnet": {"multicast": False, "up_axis": "y"},
+                               "vrpn": [{"address": "127.0.0.1:3883"}]}))
+    n = cfg.natnet  # the flag's address and ports, the table's other settings
+    assert (n.interface, n.command_port, n.data_port, n.multicast, n.up_axis) == (
+        "127.0.0.1", 2000, 2001, False, "y")
+    assert [(v.host, v.port) for v in cfg.vrpn] == [("127.0.0.1", 3883), ("0.0.0.0", 4000),
+                                                   ("127.0.0.1", 4001)]
+    up = command_line_additions([], [], [], None, None, natnet_up="y")(parse_config({}))
+    assert (up.natnet.interface, up.natnet.command_port, up.natnet.up_axis) == (
+        "0.0.0.0", 1510, "y")

@@ -101,8 +101,10 @@ def command_line_additions(udp: list[str], serial: list[str], mavlink: list[str]
                     for d, b in outs_mav)
         cfg = replace(cfg, udp=cfg.udp + tuple(outs_udp), serial=cfg.serial + tuple(outs_serial),
                       mavlink=cfg.mavlink + mav, vrpn=cfg.vrpn + outs_vrpn)
-        if out_natnet is not None:
-            cfg = replace(cfg, natnet=out_natnet)
+        if out_natnet is not None:  # the flag's address and ports; the rest from [natnet]
+            cfg = replace(cfg, natnet=replace(
+                cfg.natnet or NatnetOut(), interface=out_natnet.interface,
+                command_port=out_natnet.command_port, data_port=out_natnet.data_port))
         if natnet_up is not None:
             cfg = replace(cfg, natnet=replace(cfg.natnet or NatnetOut(), up_axis=natnet_up))
         return cfg
