@@ -16,6 +16,8 @@ from pathlib import Path
 import natnet as natnet_client
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from calibkit import sim
 from daemon.config import SimConfig
@@ -584,3 +586,11 @@ def test_flags_add_to_the_configuration():
     up = command_line_additions([], [], [], None, None, natnet_up="y")(parse_config({}))
     assert (up.natnet.interface, up.natnet.command_port, up.natnet.up_axis) == (
         "0.0.0.0", 1510, "y")
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=80))
+def test_any_datagram_on_the_command_port_gets_an_answer_or_none(data):
+    pub = nn.NatNetPublisher(Scene(n_frames=2).defs(), command_port=0)
+    reply = pub.handle(data, ("127.0.0.1", 9))
+    assert reply is None or struct.unpack_from("<H", reply, 2)[0] == len(reply) - 4

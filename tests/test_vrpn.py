@@ -330,3 +330,23 @@ def test_bad_protocol_flags_are_one_line_errors(mocapd_cli):
         r = mocapd_cli("start", "--sim", "--frames", "1", *args)
         assert r.code == 2 and words in r.err and "Traceback" not in r.err
         assert len(r.err.strip().splitlines()) == 1
+
+
+def test_a_client_speaking_nonsense_is_dropped_alone():
+    scene = Scene()
+    pub = vrpn.VrpnPublisher(scene.defs(), host="127.0.0.1", port=0)
+    with Feeder(pub, scene) as feed:
+        good = RawClient(pub.port, lob=False)
+        bad = socket.create_connection(("127.0.0.1", pub.port))
+        bad.sendall(b"HTTP/1.1 GET /\r\n\r\n" + bytes(40))  # not a VRPN cookie
+        worse = RawClient(pub.port, lob=False, read=False)
+        worse.sock.sendall(struct.pack(">iiiiii", 7, 0, 0, 0, 0, 0))  # length < a header
+        deadline = time.monotonic() + 5
+        while len(pub.clients) > 1 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        n = len(good.poses)
+        feed.wait_frames(20)
+        assert len(pub.clients) == 1 and len(good.poses) > n
+        good.close()
+        worse.close()
+        bad.close()
