@@ -37,7 +37,8 @@ class Labeller:
     def __init__(self, markerset: MarkerSet, rate_hz: float = 120.0, gate_m: float = 0.04,
                  reacquire_gate_m: float = 0.12, noise_m: float = 0.003,
                  adapt: float = 0.02, smooth: float = 1.0, structure_limit: float = 2.0,
-                 candidate_limit: float = 1.0, ambiguity: float = 4.0) -> None:
+                 candidate_limit: float = 1.0, ambiguity: float = 4.0,
+                 witnesses: bool = False) -> None:
         self.ms = markerset
         n = markerset.n
         self.n = n
@@ -50,6 +51,7 @@ class Labeller:
         self.structure_limit = structure_limit
         self.candidate_limit = candidate_limit
         self.ambiguity = ambiguity
+        self.witnesses = witnesses
         sd = markerset.sd_m.copy()
         np.fill_diagonal(sd, np.inf)
         self.nb = np.argsort(sd, axis=1)[:, :K_NEIGHBOURS]          # steadiest neighbours
@@ -289,17 +291,49 @@ class Labeller:
                 np.minimum(self.age[lost[none]] + 1, 3)[:, None]
         return pred
 
+    def _witness_swaps(self, cur, point_of, marker_of, err, suspect) -> bool:
+        """Swap close markers i and j when a learned tetrahedron (i, j, a, b) has turned
+        inside out while its witnesses a and b fit their neighbours well."""
+        q = self.ms.pair_quads
+        if not len(q) or not self.witnesses:
+            return False
+        i, j, a, b = q.T
+        e = np.nan_to_num(err, nan=9.0)
+        use = (suspect[i] | suspect[j]) & (point_of[i] >= 0) & (point_of[j] >= 0) & \
+            (point_of[a] >= 0) & (point_of[b] >= 0) & (e[a] < 0.5) & (e[b] < 0.5)
+        if not use.any():
+            return False
+        v = signed_volume(cur, q[use])
+        wrong = (np.sign(v) != self.ms.pair_sign[use]) & \
+            (np.abs(v) > 0.3 * self.ms.pair_volume[use])
+        done = False
+        touched: set[int] = set()
+        for x, y in q[use][wrong][:, :2]:
+            x, y = int(x), int(y)
+            if x in touched or y in touched:
+                continue
+            touched.update((x, y))
+            px, py = point_of[x], point_of[y]
+            point_of[x], point_of[y] = py, px
+            marker_of[px], marker_of[py] = y, x
+            cur[[x, y]] = cur[[y, x]]
+            self.pos[[x, y]] = self.pos[[y, x]]
+            self.vel[[x, y]] = self.vel[[y, x]]
+            done = True
+        return done
+
     def _repair_swaps(self, cur: np.ndarray, point_of: np.ndarray, marker_of: np.ndarray,
                       err: np.ndarray) -> bool:
         """Swap two labelled markers when their distances to the other markers fit much
         better the other way round (a swap that tracking alone would carry on)."""
         i, j = self.swap_pairs[:, 0], self.swap_pairs[:, 1]
         suspect = (self.since_reacquired < 60) | (np.nan_to_num(err) > 0.5)
+        done = self._witness_swaps(cur, point_of, marker_of, err, suspect)
         if not suspect.any():
-            return False
+            return done
         ok = np.isfinite(cur[i]).all(1) & np.isfinite(cur[j]).all(1) & (suspect[i] | suspect[j])
         if not ok.any():
-            return False
+            return done
         i, j = i[ok], j[ok]
         x = np.nan_to_num(cur)
         seen = np.isfinite(cur).all(1)
@@ -313,7 +347,6 @@ class Labeller:
         keep = (wi * (di - mi) ** 2 + wj * (dj - mj) ** 2).sum(1)
         swap = (wi * (dj - mi) ** 2 + wj * (di - mj) ** 2).sum(1)
         better = (swap < 0.25 * keep) & (keep - swap > 25.0)
-        done = False
         for a, b in zip(i[better], j[better], strict=True):
             if point_of[a] < 0 or point_of[b] < 0:
                 continue

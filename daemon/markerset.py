@@ -333,7 +333,9 @@ def _learn_swap_witnesses(allx: np.ndarray, mean: np.ndarray, sd: np.ndarray,
                 med = float(np.median(v))
                 if not (np.sign(v) == np.sign(med)).all():
                     continue
-                margin = float(np.abs(v).min())
+                # a large volume with steady witnesses: far or loose ones flip by motion
+                spread = sd[i, a] + sd[i, b] + sd[j, a] + sd[j, b] + 0.01
+                margin = float(np.abs(v).min()) / spread
                 if best is None or margin > best[0]:
                     best = (margin, [i, j, a, b], np.sign(med), abs(med))
             if best is not None:
