@@ -231,6 +231,11 @@ def test_command_port_requests():
 
     assert command("Bitstream,4.1") == nn.message(nn.NAT_RESPONSE, struct.pack("<i", 0))
     assert command("Bitstream,4.2") == nn.message(nn.NAT_RESPONSE, struct.pack("<i", -1))
+    assert command("Bitstream") == nn.message(nn.NAT_RESPONSE, b"Bitstream,4.1\0")
+    # the NatNet SDK's connect carries "Ping" and the version it wants in 270 bytes
+    sdk_connect = b"Ping".ljust(265, b"\0") + bytes([4, 1, 0, 0]) + b"\0\0"
+    assert pub.handle(struct.pack("<HH", nn.NAT_CONNECT, 271) + sdk_connect,
+                      addr)[:2] == b"\x01\x00"
     assert command("TimelinePlay") == nn.message(nn.NAT_RESPONSE, struct.pack("<i", 0))
     assert command("SelfDestruct")[:2] == struct.pack("<H", nn.NAT_UNRECOGNIZED_REQUEST)
     assert pub.handle(struct.pack("<HH", 77, 0), addr)[:2] == struct.pack("<H", 100)

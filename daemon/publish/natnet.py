@@ -434,6 +434,8 @@ class NatNetPublisher(Publisher):
         word, _, arg = text.partition(",")
         word = word.strip().lower()
         if word == "bitstream":
+            if not arg.strip():  # a query: the SDK clients read the version from the text
+                return message(NAT_RESPONSE, b"Bitstream,%d.%d\0" % NATNET_VERSION[:2])
             ok = arg.strip() in ("4.1", "4.1.0", "4.1.0.0")
             return message(NAT_RESPONSE, struct.pack("<i", 0 if ok else -1))
         if word in _NOOP_COMMANDS:
