@@ -139,7 +139,10 @@ def parse_frame(data: bytes):
     msg_id, size = buf.read("<HH")
     assert msg_id == nn.NAT_FRAMEOFDATA and size == len(data) - 4
     frame = natnet_client.DataFrame.read_from_buffer(buf, natnet_client.Version(4, 1))
-    assert buf.pointer == len(data) - 4  # everything read but the end-of-data tag
+    # the natnet package stops 12 bytes short: it takes 4.1's precision timestamp (which
+    # the SDK's PacketClient reads; 0 here) for the params, and skips the rest: the real
+    # params and the end-of-data tag
+    assert buf.pointer == len(data) - 12 and data[-14:-6] == bytes(8) and data[-4:] == bytes(4)
     return frame
 
 
@@ -159,8 +162,11 @@ def test_frame_carries_bodies_markers_and_clock_ticks():
     scene = Scene()
     r = scene.frame(45)  # the last body is occluded in this frame
     assert scene.occluded(45)
-    f = parse_frame(nn.message(nn.NAT_FRAMEOFDATA, nn.frame_payload(
-        r, t0_ns=r.t_ns - 2_000_000_000, transmit_ns=r.arrival_ns + 500_000)))
+    data = nn.message(nn.NAT_FRAMEOFDATA, nn.frame_payload(
+        r, t0_ns=r.t_ns - 2_000_000_000, transmit_ns=r.arrival_ns + 500_000,
+        models_changed=True))
+    f = parse_frame(data)
+    assert struct.unpack_from("<h", data, len(data) - 6)[0] == 0x02  # params: models changed
     assert f.prefix.frame_number == 45
     p = r.poses
     assert [b.id_num for b in f.rigid_bodies] == list(p.ids)

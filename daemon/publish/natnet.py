@@ -147,7 +147,7 @@ def _records(*columns) -> bytes:
 
 
 _IDENTITY_Q = np.array([0.0, 0.0, 0.0, 1.0])
-_FIXED_BYTES = 4 + 8 * 8 + 46  # frame number, eight block headers, the suffix
+_FIXED_BYTES = 4 + 8 * 8 + 54  # frame number, eight block headers, the suffix
 _LABELLED = MARKER_PC_SOLVED | MARKER_HAS_MODEL
 _UNLABELLED = MARKER_PC_SOLVED | MARKER_UNLABELED
 
@@ -206,9 +206,13 @@ def frame_payload(result, up_axis: str = "z", legacy_unlabeled: bool = False,
                         zeros) if m else b""
 
     t_ns = int(result.t_ns)
-    suffix = struct.pack("<IIdQQQhi", 0, 0, (t_ns - t0_ns) * 1e-9, t_ns, int(result.arrival_ns),
+    # timecode, subframe, timestamp (s), the three ticks, the precision (PTP) timestamp
+    # seconds and fraction that 4.1 added (0: none), params (bit 1: models changed), and
+    # the end-of-data tag
+    suffix = struct.pack("<IIdQQQIIhi", 0, 0, (t_ns - t0_ns) * 1e-9, t_ns,
+                         int(result.arrival_ns),
                          int(transmit_ns if transmit_ns is not None else time.monotonic_ns()),
-                         0x02 if models_changed else 0, 0)
+                         0, 0, 0x02 if models_changed else 0, 0)
     head = struct.pack("<i", int(result.frame) & 0x7FFFFFFF)
     body = (head
             + _block(0, b"")  # marker sets
