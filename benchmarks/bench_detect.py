@@ -5,9 +5,10 @@ noise 2 DN plus shot noise, and two static reflections (a lamp and a glint) that
 built from an empty frame hides. Markers do not touch one another (rims >= 4 px apart) nor
 the mask (a spot half under the mask is measured from its visible half only).
 
-Each detector runs single-threaded (cv2.setNumThreads(1)) on every frame `--repeats` times;
-the time is the median per frame. Accuracy is scored against the true centres: a detection
-within 1.5 px of a true centre (mutual nearest) is a hit; anything else is a false blob.
+Each detector runs single-threaded (cv2.setNumThreads(1)) on every frame `--repeats` times,
+the passes of all detectors interleaved; the time is the median per frame. Accuracy is
+scored against the true centres: a detection within 1.5 px of a true centre (mutual
+nearest) is a hit; anything else is a false blob.
 
 The baseline is what a plain OpenCV pipeline gives: cv2.threshold at the same level, the
 mask applied, cv2.connectedComponentsWithStats, its (binary) centroids, the same area range.
@@ -124,18 +125,25 @@ def same_as_reference(frames, configs) -> dict:
     return {"same_blobs": same, "max_centroid_diff_px": diff}
 
 
-def time_per_frame(fn, frames, repeats: int) -> tuple[float, list[np.ndarray]]:
-    """Median seconds per frame over `repeats` passes; and the last pass's results."""
-    times = np.empty((repeats, len(frames)))
-    results: list[np.ndarray] = []
-    for r in range(repeats):
-        results = []
-        for i, (img, _) in enumerate(frames):
-            t0 = time.perf_counter()
-            out = fn(img)
-            times[r, i] = time.perf_counter() - t0
-            results.append(out)
-    return float(np.median(times)), results
+def time_per_frame(runs: dict, frames, repeats: dict) -> dict:
+    """Per detector: median seconds per frame over its passes, and its last pass's results.
+
+    The passes are interleaved (pass 1 of every detector, then pass 2, ...) so that a
+    change in the machine's load during the run weighs on all detectors alike."""
+    times: dict = {name: [] for name in runs}
+    results: dict = {}
+    for r in range(max(repeats.values())):
+        for name, fn in runs.items():
+            if r >= repeats[name]:
+                continue
+            found = []
+            for img, _ in frames:
+                t0 = time.perf_counter()
+                out = fn(img)
+                times[name].append(time.perf_counter() - t0)
+                found.append(out)
+            results[name] = found
+    return {name: (float(np.median(times[name])), results[name]) for name in runs}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -169,9 +177,9 @@ def main(argv: list[str] | None = None) -> int:
                                                                  auto.min_area, 400),
     }
     figures = {}
-    for name, fn in runs.items():
-        repeats = max(1, args.repeats // 5) if "multi" in name else args.repeats
-        t, found = time_per_frame(fn, frames, repeats)
+    repeats = {name: max(1, args.repeats // 5) if "multi" in name else args.repeats
+               for name in runs}
+    for name, (t, found) in time_per_frame(runs, frames, repeats).items():
         figures[name] = {"ms_per_frame": 1e3 * t, **score(found, frames, mask)}
     base = figures["cv2.connectedComponentsWithStats"]
     rows = []

@@ -744,6 +744,11 @@ def _detect(image: np.ndarray, config: DetectorConfig, kernels) -> Blobs:
     if image.ndim == 3:
         code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
         image = cv2.cvtColor(image, code)
+    maxima = None
+    if kernels is not None and config.mode == "threshold" and image.dtype in (np.uint8,
+                                                                              np.uint16):
+        image = np.ascontiguousarray(image)
+        maxima = kernels.chunk_maxima(image.reshape(-1))  # reads the frame into the cache
     if config.threshold == "auto":
         level, sigma = _background_level(image, mask, kernels)
         threshold = level + max(config.auto_k * sigma, config.min_contrast)
@@ -755,9 +760,8 @@ def _detect(image: np.ndarray, config: DetectorConfig, kernels) -> Blobs:
 
         def background() -> tuple[float, float]:
             return _background_level(image, mask, kernels)
-    if (kernels is not None and config.mode == "threshold"
-            and image.dtype in (np.uint8, np.uint16)):
-        return _detect_compiled(kernels, image, threshold, config, mask, background)
+    if maxima is not None:
+        return _detect_compiled(kernels, image, maxima, threshold, config, mask, background)
     pix = _bright_pixels(image, threshold, mask)
     if config.mode == "multi":
         return _detect_multi(image, pix, threshold, config, mask, background)
@@ -765,26 +769,29 @@ def _detect(image: np.ndarray, config: DetectorConfig, kernels) -> Blobs:
     return _measure(image, regions, config, threshold, mask, background)
 
 
-def _detect_compiled(kernels, image: np.ndarray, threshold: float, config: DetectorConfig,
-                     mask: np.ndarray | None,
+def _detect_compiled(kernels, image: np.ndarray, maxima: np.ndarray, threshold: float,
+                     config: DetectorConfig, mask: np.ndarray | None,
                      background: Callable[[], tuple[float, float]]) -> Blobs:
-    """The single-threshold mode with the compiled kernels: same blobs as the numpy path."""
+    """The single-threshold mode with the compiled kernels: same blobs as the numpy path.
+    `maxima`: the image's chunk maxima (kernels.chunk_maxima)."""
     if threshold >= np.iinfo(image.dtype).max:
         return Blobs.empty(threshold)
-    image = np.ascontiguousarray(image)
     tint = image.dtype.type(max(int(np.floor(threshold)), 0))  # v > t <=> v > floor(t)
-    return _measure_compiled(kernels, image, tint, image, config, threshold, mask, background)
+    return _measure_compiled(kernels, image, tint, image, config, threshold, mask, background,
+                             maxima=maxima)
 
 
 def _measure_compiled(kernels, candidates: np.ndarray, tint, values: np.ndarray,
                       config: DetectorConfig, threshold: float, mask: np.ndarray | None,
                       background: Callable[[], tuple[float, float]],
-                      label_value: int = 0) -> Blobs:
+                      label_value: int = 0, maxima: np.ndarray | None = None) -> Blobs:
     """Regions of the pixels of `candidates` above `tint` (not masked), measured on `values`
     (both contiguous): what _Runs.find, _Runs.regions and _measure do, compiled."""
     has_mask = mask is not None
     mask = np.ascontiguousarray(mask) if has_mask else _NO_MASK
-    hot = kernels.hot_chunks(candidates.reshape(-1), tint)
+    if maxima is None:
+        maxima = kernels.chunk_maxima(candidates.reshape(-1))
+    hot = kernels.hot_chunks(maxima, tint)
     found = kernels.find_regions(candidates, tint, values, mask, has_mask, hot, 2048)
     if not found[-1]:  # more runs than the first guess: the bound for these hot chunks
         found = kernels.find_regions(candidates, tint, values, mask, has_mask, hot,
