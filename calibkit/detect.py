@@ -733,6 +733,8 @@ def _detect(image: np.ndarray, config: DetectorConfig, kernels) -> Blobs:
     if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] not in (3, 4)):
         raise UserError(f"expected a grayscale or BGR image, got an array of shape "
                         f"{image.shape}")
+    if image.shape[0] == 0 or image.shape[1] == 0:  # an empty crop: nothing to find
+        return Blobs.empty()
     mask = config.mask
     if mask is not None and mask.shape != image.shape[:2]:
         raise UserError(f"the mask is {mask.shape[1]}x{mask.shape[0]} but the image is "

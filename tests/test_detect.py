@@ -223,6 +223,8 @@ def test_spots_at_the_image_border_and_tiny_images():
     det, tru = match_to_truth(blobs.uv, [[20.0, 15.0]])
     assert len(det) == 1 and np.abs(blobs.uv[det[0]] - [20.0, 15.0]).max() < 0.06
     assert len(detect(np.zeros((5, 7), np.uint8))) == 0
+    for empty in (np.zeros((5, 0), np.uint8), np.zeros((0, 5), np.uint8)):
+        assert len(detect(empty)) == len(detect(empty, DetectorConfig(threshold=3))) == 0
     one = render_spots((9, 9), [[4.2, 3.9]], 2.0, noise_sigma=0.0, shot_gain=0.0)
     b = detect(one, DetectorConfig(threshold=40))  # the window fills the image
     assert len(b) == 1 and np.abs(b.uv[0] - [4.2, 3.9]).max() < 0.05
