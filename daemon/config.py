@@ -22,7 +22,7 @@ opens. docs/daemon.md documents every key.
     [[serial]]  device, baud, rate_hz, bodies
     [[mavlink]] device, baud, body, message, frame, rate_hz, system_id, component_id
     [natnet]    interface, command_port, data_port, multicast, group, up_axis, ttl, rate_hz,
-                legacy_unlabeled                  (docs/natnet.md)
+                legacy_unlabeled, marker_sets     (docs/natnet.md)
     [[vrpn]]    address = "HOST:PORT", rate_hz, udp                           (docs/vrpn.md)
 """
 
@@ -118,6 +118,7 @@ class NatnetOut:
     ttl: int = 1
     rate_hz: float = 0.0
     legacy_unlabeled: bool = False
+    marker_sets: bool = True
 
 
 @dataclass(frozen=True)
@@ -444,7 +445,8 @@ def _natnet(w, t, p) -> NatnetOut:
                      _string(w, t, "up_axis", p, d.up_axis, ("z", "y")),
                      _number(w, t, "ttl", p, d.ttl, int, 0, 255),
                      _number(w, t, "rate_hz", p, d.rate_hz, lo=0),
-                     _bool(w, t, "legacy_unlabeled", p, d.legacy_unlabeled))
+                     _bool(w, t, "legacy_unlabeled", p, d.legacy_unlabeled),
+                     _bool(w, t, "marker_sets", p, d.marker_sets))
 
 
 def _ipv4(text: str) -> bool:

@@ -203,7 +203,8 @@ def make_publishers(config: Config, bodies=()) -> list:
         n = config.natnet
         pubs.append(NatNetPublisher(bodies, n.interface, n.command_port, n.data_port,
                                     n.multicast, n.group, n.up_axis, n.ttl, n.rate_hz,
-                                    n.legacy_unlabeled, name=f"natnet:{n.interface}"))
+                                    n.legacy_unlabeled, name=f"natnet:{n.interface}",
+                                    marker_sets=n.marker_sets))
     for v in config.vrpn:
         pubs.append(VrpnPublisher(bodies, v.host, v.port, v.rate_hz, v.udp,
                                   name=f"vrpn:{v.host}:{v.port}"))

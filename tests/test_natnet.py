@@ -560,13 +560,15 @@ def test_configuration_tables_and_their_errors():
     from daemon.service import make_publishers
 
     cfg = parse_config({"natnet": {"interface": "127.0.0.1", "up_axis": "y",
-                                   "multicast": False, "command_port": 1600},
+                                   "multicast": False, "command_port": 1600,
+                                   "marker_sets": False},
                         "vrpn": [{"address": "127.0.0.1:4000", "udp": False}, {}]})
     pubs = make_publishers(cfg, Scene().defs())
     natnet_pub, v1, v2 = pubs
     assert (natnet_pub.interface, natnet_pub.command_port, natnet_pub.data_port,
             natnet_pub.multicast, natnet_pub.up_axis) == ("127.0.0.1", 1600, 1511, False, "y")
     assert [b.name for b in natnet_pub.bodies] == ["body0", "body1"]
+    assert natnet_pub._marker_model is None
     assert (v1.host, v1.port, v1.use_udp, v2.host, v2.port) == ("127.0.0.1", 4000, False,
                                                                 "0.0.0.0", 3883)
     assert v2.body_names == ["body0", "body1"]
@@ -607,3 +609,28 @@ _FUZZED = nn.NatNetPublisher([BodyDef("b", 1, np.eye(3), np.zeros(3))], command_
 def test_any_datagram_on_the_command_port_gets_an_answer_or_none(data):
     reply = _FUZZED.handle(data, ("127.0.0.1", 9))
     assert reply is None or struct.unpack_from("<H", reply, 2)[0] == len(reply) - 4
+
+
+def test_marker_sets_per_body_and_all():
+    """Motive's marker sets: each body's markers (the track when seen, the fitted pose's
+    place when not, zeros while the body is lost) and `all`; named in the definitions."""
+    scene = Scene()
+    defs = scene.defs()
+    r = scene.frame(45)  # body1 occluded
+    true_xyz = r.tracks.xyz[:4].copy()
+    r.tracks.seen[1] = False  # body0's second marker unseen: its (stale) track position is
+    r.tracks.xyz[1] += 1.0    # not used, the fitted pose's place for it is
+    data = nn.message(nn.NAT_FRAMEOFDATA, nn.frame_payload(
+        r, marker_model=nn.MarkerModel(defs)))
+    f = parse_frame(data)
+    assert [m.model_name for m in f.marker_sets] == ["body0", "body1", "all"]
+    np.testing.assert_allclose(f.marker_sets[0].marker_pos_list, true_xyz, atol=1e-6)
+    assert np.all(np.array(f.marker_sets[1].marker_pos_list) == 0)
+    assert f.marker_sets[2].marker_pos_list == (f.marker_sets[0].marker_pos_list
+                                                + f.marker_sets[1].marker_pos_list)
+    buf = natnet_client.PacketBuffer(nn.model_definitions(defs)[4:])
+    d = natnet_client.DataDescriptions.read_from_buffer(buf, natnet_client.Version(4, 1))
+    assert [(m.name, len(m.marker_names)) for m in d.marker_sets] == [
+        ("body0", 4), ("body1", 4), ("all", 8)]
+    assert d.marker_sets[2].marker_names[4] == "body1_Marker1"
+    assert [b.name for b in d.rigid_bodies] == ["body0", "body1"]

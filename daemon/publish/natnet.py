@@ -115,13 +115,27 @@ def rotate_quaternion(q: np.ndarray, M: np.ndarray) -> np.ndarray:
     return out
 
 
-def model_definitions(bodies, up_axis: str = "z") -> bytes:
-    """NAT_MODELDEF for the rigid bodies (BodyDef: name, id, markers in the body frame).
+def marker_set_names(bodies) -> list[tuple[str, list[str]]]:
+    """Motive's marker sets: one per rigid body (its markers, `Marker1`...) and `all`."""
+    sets = [(b.name, [f"Marker{j + 1}" for j in range(len(b.markers))]) for b in bodies]
+    if sets:
+        sets.append(("all", [f"{name}_{m}" for name, ms in sets for m in ms]))
+    return sets
+
+
+def model_definitions(bodies, up_axis: str = "z", marker_sets: bool = True) -> bytes:
+    """NAT_MODELDEF: the marker sets (unless turned off), then the rigid bodies (BodyDef:
+    name, id, markers in the body frame).
 
     Offsets are zero and the markers are given relative to the body's pivot, because
     clients (libmotioncapture) add the offset to every reported position."""
     M = axes(up_axis)
-    parts = [struct.pack("<i", len(bodies))]
+    sets = marker_set_names(bodies) if marker_sets else []
+    parts = [struct.pack("<i", len(sets) + len(bodies))]
+    for name, names in sets:
+        desc = (name.encode("utf-8") + b"\0" + struct.pack("<i", len(names))
+                + b"".join(m.encode("utf-8") + b"\0" for m in names))
+        parts.append(struct.pack("<ii", 0, len(desc)) + desc)  # type 0: marker set
     for b in bodies:
         markers = (np.asarray(b.markers, float) - np.asarray(b.pivot, float)) @ M.T
         k = len(markers)
@@ -152,10 +166,55 @@ _LABELLED = MARKER_PC_SOLVED | MARKER_HAS_MODEL
 _UNLABELLED = MARKER_PC_SOLVED | MARKER_UNLABELED
 
 
+class MarkerModel:
+    """The bodies' markers relative to their pivots, padded to (B, K, 3), for the frames'
+    marker sets."""
+
+    def __init__(self, bodies) -> None:
+        self.ids = np.array([int(b.id) for b in bodies], np.int64)
+        self.names = [b.name.encode("utf-8") + b"\0" for b in bodies]
+        self.counts = np.array([len(b.markers) for b in bodies], np.int64)
+        k = int(self.counts.max(initial=0))
+        self.local = np.zeros((len(bodies), k, 3))
+        for i, b in enumerate(bodies):
+            self.local[i, :len(b.markers)] = np.asarray(b.markers, float) - b.pivot
+
+
+def marker_sets_block(result, model: MarkerModel, M: np.ndarray | None) -> tuple[int, bytes]:
+    """The frame's marker sets: each body's markers where it is tracked (the track's
+    position when seen, else where the fitted pose puts it), zeros when it is not; then
+    `all`. Nothing when the frame's bodies are not the model's."""
+    p = result.poses
+    if not len(model.ids) or not np.array_equal(np.asarray(p.ids), model.ids):
+        return 0, b""
+    valid = np.asarray(p.valid, bool)
+    k = model.local.shape[1]
+    xyz = np.einsum("bij,bkj->bki", np.asarray(p.rotation, float), model.local)
+    xyz += np.asarray(p.position, float)[:, None, :]
+    tracks = np.asarray(p.tracks)[:, :k]
+    tr = result.tracks
+    ids = np.asarray(tr.ids)
+    if len(ids) and (tracks >= 0).any():
+        at = np.minimum(np.searchsorted(ids, tracks), len(ids) - 1)  # track ids are sorted
+        hit = (tracks >= 0) & (ids[at] == tracks) & np.asarray(tr.seen, bool)[at]
+        xyz[hit] = np.asarray(tr.xyz)[at[hit]]
+    xyz[~valid] = 0.0
+    if M is not None:
+        xyz = xyz @ M.T
+    xyz = np.nan_to_num(xyz).astype("<f4")
+    parts = [name + struct.pack("<i", c) + xyz[i, :c].tobytes()
+             for i, (name, c) in enumerate(zip(model.names, model.counts, strict=True))]
+    everything = np.concatenate([xyz[i, :c] for i, c in enumerate(model.counts)])
+    parts.append(b"all\0" + struct.pack("<i", len(everything)) + everything.tobytes())
+    return len(parts), b"".join(parts)
+
+
 def frame_payload(result, up_axis: str = "z", legacy_unlabeled: bool = False,
                   t0_ns: int = 0, transmit_ns: int | None = None,
-                  models_changed: bool = False) -> bytes:
-    """The NAT_FRAMEOFDATA payload for a FrameResult (daemon.pipeline)."""
+                  models_changed: bool = False, marker_model: MarkerModel | None = None
+                  ) -> bytes:
+    """The NAT_FRAMEOFDATA payload for a FrameResult (daemon.pipeline); with a
+    MarkerModel, the bodies' marker sets too."""
     M = axes(up_axis)
     turn = up_axis != "z"
     p = result.poses
@@ -192,11 +251,13 @@ def frame_payload(result, up_axis: str = "z", legacy_unlabeled: bool = False,
         labels[at[hit]] = member[held][hit]
         is_label[at[hit]] = True
     legacy = xyz[~is_label].astype("<f4") if legacy_unlabeled else np.zeros((0, 3), "<f4")
+    n_sets, sets = (marker_sets_block(result, marker_model, M if turn else None)
+                    if marker_model is not None else (0, b""))
     # the size field is 16 bits: past ~2000 markers, send the bodies' markers first and as
-    # many others as fit (the bodies themselves always go)
-    room = (MAX_PAYLOAD - _FIXED_BYTES - 38 * n) // 2
-    legacy = legacy[:max(0, room // 12)]
-    fit = max(0, (MAX_PAYLOAD - _FIXED_BYTES - 38 * n - 12 * len(legacy)) // 26)
+    # many others as fit (the bodies and marker sets always go)
+    fixed = _FIXED_BYTES + 38 * n + len(sets)
+    legacy = legacy[:max(0, (MAX_PAYLOAD - fixed) // 2 // 12)]
+    fit = max(0, (MAX_PAYLOAD - fixed - 12 * len(legacy)) // 26)
     if m > fit:
         keep = np.sort(np.argsort(~is_label, kind="stable")[:fit])
         labels, xyz, is_label, m = labels[keep], xyz[keep], is_label[keep], fit
@@ -215,7 +276,7 @@ def frame_payload(result, up_axis: str = "z", legacy_unlabeled: bool = False,
                          0, 0, 0x02 if models_changed else 0, 0)
     head = struct.pack("<i", int(result.frame) & 0x7FFFFFFF)
     body = (head
-            + _block(0, b"")  # marker sets
+            + _block(n_sets, sets)
             + _block(len(legacy), legacy.tobytes())  # legacy unlabelled markers
             + _block(n, rigid)
             + _block(0, b"")  # skeletons
@@ -234,7 +295,8 @@ class NatNetPublisher(Publisher):
                  data_port: int = 1511, multicast: bool = True,
                  group: str = "239.255.42.99", up_axis: str = "z", ttl: int = 1,
                  rate_hz: float = 0.0, legacy_unlabeled: bool = False,
-                 keepalive_timeout_s: float = 10.0, name: str = "natnet") -> None:
+                 keepalive_timeout_s: float = 10.0, name: str = "natnet",
+                 marker_sets: bool = True) -> None:
         # a reload starts the new server while the old one still holds the port: retry
         # soon, so the stream pauses for a fraction of a second, not a whole one
         super().__init__(rate_hz=rate_hz, retry_s=0.1)
@@ -257,7 +319,8 @@ class NatNetPublisher(Publisher):
         self._lock = threading.Lock()
         self._cmd_thread: threading.Thread | None = None
         self._cmd_stop = threading.Event()
-        self._modeldef = model_definitions(self.bodies, up_axis)
+        self._modeldef = model_definitions(self.bodies, up_axis, marker_sets)
+        self._marker_model = MarkerModel(self.bodies) if marker_sets else None
         self._info = server_info(data_port, multicast, group)
 
     # ---- lifecycle: the command port is open from start, not from the first frame ---------
@@ -323,7 +386,8 @@ class NatNetPublisher(Publisher):
         if first:
             self.t0_ns = int(result.t_ns)
         data = message(NAT_FRAMEOFDATA, frame_payload(
-            result, self.up_axis, self.legacy_unlabeled, self.t0_ns, models_changed=first))
+            result, self.up_axis, self.legacy_unlabeled, self.t0_ns, models_changed=first,
+            marker_model=self._marker_model))
         self.latest = data
         if self.multicast:
             try:
