@@ -9,19 +9,20 @@ with uint16 message id and uint16 payload size):
 
 - command port (UDP, default 1510): a client sends NAT_CONNECT and gets NAT_SERVERINFO
   (application name, versions, the clock frequency of the frame's tick stamps, the data
-  port, whether data is multicast, the group); NAT_REQUEST_MODELDEF gets NAT_MODELDEF (the
-  rigid bodies: name, id, parent, offset, marker positions); NAT_KEEPALIVE subscribes the
+  port, whether data is multicast, the group); NAT_REQUEST_MODELDEF gets NAT_MODELDEF (a
+  marker set per body and "all", then the rigid bodies: name, id, parent, offset, marker
+  positions); NAT_KEEPALIVE subscribes the
   sending address to unicast frames for `keepalive_timeout_s`; NAT_REQUEST_FRAMEOFDATA gets
   the latest frame; NAT_DISCONNECT unsubscribes.
 - frames (NAT_FRAMEOFDATA) go to the multicast group on the data port (default
   239.255.42.99:1511) and to every subscribed unicast address. With multicast off they
   also go to the data port of each connected client's address, where libmotioncapture
-  listens without sending keep-alives (dropped when that port refuses them). Each carries the frame
-  number, rigid bodies (id, position, quaternion x y z w, mean marker error, tracking-valid
-  flag), labelled markers (a body's markers as (body id << 16 | member), the others flagged
-  unlabelled with their track id), a timestamp and three clock ticks (mid-exposure, data
-  received, transmit; nanoseconds of the monotonic clock, frequency 1e9) from which clients
-  compute camera-to-client latency.
+  listens without sending keep-alives (dropped when that port refuses them). Each carries
+  the frame number, the marker sets, rigid bodies (id, position, quaternion x y z w, mean
+  marker error, tracking-valid flag), labelled markers (a body's markers as (body id << 16
+  | member), the others flagged unlabelled with their track id), a timestamp and three
+  clock ticks (mid-exposure, data received, transmit; nanoseconds of the monotonic clock,
+  frequency 1e9) from which clients compute camera-to-client latency.
 
 Bodies that are not tracked are sent with the valid flag cleared and a zero pose: clients
 (libmotioncapture, the NatNet SDK) then drop them rather than reuse a stale pose.
