@@ -254,6 +254,12 @@ def label_pixels(pix: np.ndarray, width: int) -> tuple[np.ndarray, int]:
 
     Labels are numbered in raster order of each region's first pixel.
     """
+    return _label_pixels(pix, width, _kernels())
+
+
+def _label_pixels(pix: np.ndarray, width: int, kernels) -> tuple[np.ndarray, int]:
+    if kernels is not None:
+        return kernels.label_sorted(np.asarray(pix, dtype=np.int64), int(width))
     runs = _Runs.find(pix, width)
     return runs.pixel_labels(), runs.n
 
@@ -766,7 +772,7 @@ def _detect(image: np.ndarray, config: DetectorConfig, kernels) -> Blobs:
         return _detect_compiled(kernels, image, maxima, threshold, config, mask, background)
     pix = _bright_pixels(image, threshold, mask)
     if config.mode == "multi":
-        return _detect_multi(image, pix, threshold, config, mask, background)
+        return _detect_multi(image, pix, threshold, config, mask, background, kernels)
     regions = _Runs.find(pix, image.shape[1]).regions(image)
     return _measure(image, regions, config, threshold, mask, background)
 
@@ -865,7 +871,7 @@ def _detect_hsv(bgr: np.ndarray, config: DetectorConfig, mask: np.ndarray | None
 
 def _detect_multi(image: np.ndarray, base_pix: np.ndarray, threshold: float,
                   config: DetectorConfig, mask: np.ndarray | None,
-                  background: Callable[[], tuple[float, float]]) -> Blobs:
+                  background: Callable[[], tuple[float, float]], kernels) -> Blobs:
     """Falling thresholds; keep each maximum's largest region that is alone and in range.
 
     From the brightest level down, a region with no region of the level above inside it is
@@ -894,7 +900,7 @@ def _detect_multi(image: np.ndarray, base_pix: np.ndarray, threshold: float,
     for li, t in enumerate(levels):
         sel = vals > t
         pix = base_pix[sel]
-        lab, nreg = label_pixels(pix, w)
+        lab, nreg = _label_pixels(pix, w, kernels)
         per_level.append((pix, lab))
         area = np.bincount(lab, minlength=nreg)
         if prev_pix is None or len(prev_pix) == 0:

@@ -198,6 +198,34 @@ def hot_chunks(maxima, tint):
 
 
 @_jit
+def label_sorted(pix, w):
+    """8-connected regions of the pixels with sorted flat indices `pix` in an image `w`
+    wide -> (region of each pixel, number of regions), numbered in raster order of each
+    region's first pixel: calibkit.detect.label_pixels."""
+    runs = np.empty((len(pix), 5), dtype=np.int64)  # at most one run per pixel
+    rows = np.array([-2, 0, 0, 0])
+    n = 0
+    i = 0
+    while i < len(pix):
+        row_end = (pix[i] // w + 1) * w
+        j = i + 1
+        while j < len(pix) and pix[j] == pix[j - 1] + 1 and pix[j] < row_end:
+            j += 1
+        _push(runs, n, pix[i], pix[j - 1], w, 0, rows)
+        n += 1
+        i = j
+    runs = runs[:n]
+    run_label, area, _, _ = _region_stats(runs)
+    labels = np.empty(len(pix), dtype=np.int64)
+    k = 0
+    for r in range(n):
+        for _ in range(runs[r, 2] - runs[r, 1] + 1):
+            labels[k] = run_label[r]
+            k += 1
+    return labels, len(area)
+
+
+@_jit
 def _push(runs, n, first, last, w, pk, rows):
     """Store run n (flat pixel indices first..last of one row) and join it to the runs of
     the row above that it touches (8-connectivity: columns x0 - 1 .. x1 + 1). `rows`

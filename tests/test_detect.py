@@ -10,6 +10,7 @@ from calibkit.detect import (
     Blobs,
     DetectorConfig,
     _background_level,
+    _label_pixels,
     background_level,
     detect,
     detect_reference,
@@ -255,6 +256,24 @@ def test_labelling_matches_opencv_on_random_shapes():
         # Labels are numbered in raster order of each region's first pixel.
         first = [labels[np.flatnonzero(labels == k)[0]] for k in range(n)]
         assert first == sorted(first)
+
+
+def test_compiled_labelling_equals_the_numpy_reference():
+    rng = np.random.default_rng(16)
+    for _ in range(40):
+        h, w = int(rng.integers(1, 50)), int(rng.integers(1, 90))
+        pix = np.flatnonzero(rng.random((h, w)) < rng.uniform(0.05, 0.7))
+        labels, n = label_pixels(pix, w)
+        ref_labels, ref_n = _label_pixels(pix, w, None)
+        assert n == ref_n and np.array_equal(labels, ref_labels)
+
+
+def test_compiled_multi_threshold_equals_the_numpy_reference():
+    rng = np.random.default_rng(17)
+    for _ in range(6):
+        img, mask = random_scene(rng)
+        for config in (DetectorConfig(mode="multi"), DetectorConfig(mode="multi", mask=mask)):
+            assert_same_blobs(detect(img, config), detect_reference(img, config))
 
 
 def test_u_shapes_and_spirals_are_one_region():
