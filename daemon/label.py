@@ -38,7 +38,8 @@ class Labeller:
                  reacquire_gate_m: float = 0.12, noise_m: float = 0.003,
                  adapt: float = 0.02, smooth: float = 1.0, structure_limit: float = 2.0,
                  candidate_limit: float = 1.0, ambiguity: float = 4.0,
-                 witnesses: bool = False) -> None:
+                 witnesses: bool = False, spread_gain: float = 2.0,
+                 fresh_margin: float = 4.0) -> None:
         self.ms = markerset
         n = markerset.n
         self.n = n
@@ -52,6 +53,9 @@ class Labeller:
         self.candidate_limit = candidate_limit
         self.ambiguity = ambiguity
         self.witnesses = witnesses
+        self.spread_gain = spread_gain
+        self.fresh_margin = fresh_margin
+        self._support_spread = np.zeros(0)
         sd = markerset.sd_m.copy()
         np.fill_diagonal(sd, np.inf)
         self.nb = np.argsort(sd, axis=1)[:, :K_NEIGHBOURS]          # steadiest neighbours
@@ -77,6 +81,7 @@ class Labeller:
         self.since_reacquired = np.zeros(n, int)
         self.known_frames = np.zeros(n, int)    # frames whose distances this take taught
         self.adapt_tol = _tolerance(markerset, noise_m)
+        self.template_tol = _tolerance(markerset, noise_m)
         self.pos = np.full((n, 3), np.nan)
         self.vel = np.zeros((n, 3))
         self.age = np.full(n, 10 ** 6)
@@ -201,20 +206,23 @@ class Labeller:
         free = np.nonzero(marker_of < 0)[0]
         if len(lost) and len(free):
             pred = self._predict_from_neighbours(lost, cur)
+            spread = self._support_spread
             dist = np.linalg.norm(pred[:, None] - P[free][None], axis=2)
             dist[~np.isfinite(dist)] = BIG
             age = np.minimum(self.age[lost], 120)
             gate = self.reacquire_gate_m + 0.002 * age
-            sigma = 0.012 + 0.0005 * age
+            sigma = 0.012 + 0.0005 * age + self.spread_gain * spread
             # distances to labelled neighbours must also fit
             cerr, cnum = self._candidate_error(lost, P[free], cur)
             cost = (dist / sigma[:, None]) ** 2 + 4.0 * cerr ** 2
             cost[(dist > gate[:, None]) | (cerr > self.candidate_limit)] = BIG
             # never seen since the start: found by distances alone, from >= 3 neighbours
             fresh = ~np.isfinite(self.snap[lost, lost]).all(1)
+            # long lost and nothing near its prediction: the prediction may be stale (a
+            # ghost once taken for it); find it by its distances to everyone instead
+            fresh |= (self.age[lost] > 20) & (cost >= BIG).all(1)
             if fresh.any():
-                cost[fresh] = np.where((cnum[fresh] >= 3) & (cerr[fresh] <= 0.5),
-                                       4.0 * cerr[fresh] ** 2 + 4.0, BIG)
+                cost[fresh] = self._fresh_cost(lost[fresh], P[free], cur)
             r, c = linear_sum_assignment(cost)
             good = cost[r, c] < BIG
             # ambiguous: another lost marker fits the same point almost as well
@@ -250,6 +258,27 @@ class Labeller:
         mean = np.where(ok, np.minimum(e, 3.0), 0.0).sum(1) / np.maximum(num, 1)
         return np.where(num > 0, mean, np.nan)
 
+    def _fresh_cost(self, markers: np.ndarray, P: np.ndarray, cur: np.ndarray) -> np.ndarray:
+        """Cost of each point for markers never seen yet: their distances to every labelled
+        marker against the marker set, weighted by steadiness (as when a take starts from
+        the template); only a clear winner (4 units better than the runner-up) counts."""
+        done = np.nonzero(np.isfinite(cur).all(1))[0]
+        if len(done) < 3:
+            return np.full((len(markers), len(P)), BIG)
+        tol = self.adapt_tol[np.ix_(markers, done)]
+        w = 1.0 / tol ** 2
+        mu = self.mean_all[np.ix_(markers, done)]
+        diff = P[:, None] - cur[done][None]
+        d = np.sqrt(np.einsum("pli,pli->pl", diff, diff))                 # (k, L)
+        e2 = np.minimum((d[None] - mu[:, None]) ** 2 * w[:, None] * 9.0, 16.0)
+        cost = (e2 * w[:, None]).sum(2) / w.sum(1)[:, None]              # (M, k)
+        cost = np.where(cost < 1.0, cost, BIG)
+        if cost.shape[1] >= 2:
+            part = np.partition(cost, 1, axis=1)
+            unclear = part[:, 1] < part[:, 0] + self.fresh_margin
+            cost[unclear] = BIG
+        return cost
+
     def _candidate_error(self, markers: np.ndarray, P: np.ndarray, cur: np.ndarray
                          ) -> np.ndarray:
         """(len(markers), len(P)): neighbour-distance error if marker took that point."""
@@ -282,6 +311,9 @@ class Labeller:
         D[:, 2] = d
         R = np.einsum("lji,lj,lkj->lik", Vt, D, U)               # V D U^T
         support = (w > 0.05 * self.pred_w[lost].max(1, keepdims=True)).sum(1)
+        # how loosely the markers used keep their distance to the lost one (weighted SD)
+        sd2 = self.ms.sd_m[lost] ** 2
+        self._support_spread = np.sqrt((w * sd2).sum(1) / np.maximum(sw, 1e-12))
         R[(support < 3) | (S[:, 1] <= 1e-12 * np.maximum(S[:, 0], 1e-30))] = np.eye(3)
         last = A[np.arange(len(lost)), lost]                     # (L, 3)
         pred = np.einsum("lij,lj->li", R, last - ca) + cb
