@@ -634,3 +634,37 @@ def test_marker_sets_per_body_and_all():
         ("body0", 4), ("body1", 4), ("all", 8)]
     assert d.marker_sets[2].marker_names[4] == "body1_Marker1"
     assert [b.name for b in d.rigid_bodies] == ["body0", "body1"]
+
+
+def test_a_reload_keeps_unicast_clients_that_send_no_keep_alives():
+    """libmotioncapture connects once and listens on the data port of its address; the
+    server a reload starts in place of the old one goes on sending there."""
+    scene = Scene(n_bodies=1)
+    old = loopback_publisher(scene, multicast=False)
+    listener = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)  # the client's data port
+    listener.bind(("127.0.0.1", old.data_port))
+    listener.settimeout(2.0)
+    old.start()
+    hello = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    hello.settimeout(2.0)
+    hello.sendto(struct.pack("<HH", nn.NAT_CONNECT, 0), ("127.0.0.1", old.command_port))
+    assert hello.recv(1024)[:2] == b"\x01\x00"
+    old.submit(scene.frame(1))
+    assert struct.unpack_from("<i", listener.recv(65536), 4)[0] == 1
+    new = nn.NatNetPublisher(scene.defs(), interface="127.0.0.1", multicast=False,
+                             command_port=old.command_port, data_port=old.data_port)
+    new.start()  # the port is still the old one's: it retries
+    old.stop()
+    deadline = time.monotonic() + 3
+    got = None
+    while got is None and time.monotonic() < deadline:
+        new.submit(scene.frame(2))
+        try:
+            listener.settimeout(0.2)
+            got = listener.recv(65536)
+        except TimeoutError:
+            pass
+    new.stop()
+    for s in (listener, hello):
+        s.close()
+    assert got is not None and struct.unpack_from("<i", got, 4)[0] == 2

@@ -292,6 +292,10 @@ def frame_payload(result, up_axis: str = "z", legacy_unlabeled: bool = False,
 class NatNetPublisher(Publisher):
     """Serves NatNet: answers the command port, sends frames by multicast and unicast."""
 
+    # unicast clients without keep-alives (libmotioncapture) never connect again: a reload's
+    # new server takes them over from the old one, by (interface, command port, data port)
+    _carried: dict[tuple, list[str]] = {}
+
     def __init__(self, bodies=(), interface: str = "0.0.0.0", command_port: int = 1510,
                  data_port: int = 1511, multicast: bool = True,
                  group: str = "239.255.42.99", up_axis: str = "z", ttl: int = 1,
@@ -357,6 +361,9 @@ class NatNetPublisher(Publisher):
         self._cmd_thread = threading.Thread(target=self._serve, name=f"{self.name}-cmd",
                                             daemon=True)
         self._cmd_thread.start()
+        if not self.multicast:  # clients without keep-alives that the server before us had
+            for ip in NatNetPublisher._carried.pop(self._key(), []):
+                self._direct(ip)
         log.info("%s: NatNet %d.%d on %s:%d, data %s%s:%d", self.name, *NATNET_VERSION[:2],
                  self.interface, self.command_port,
                  "multicast " if self.multicast else "unicast ",
@@ -368,11 +375,16 @@ class NatNetPublisher(Publisher):
             self._cmd_thread.join(1.0)
             self._cmd_thread = None
         with self._lock:
+            if self.direct:  # for the server a reload starts in our place
+                NatNetPublisher._carried[self._key()] = list(self.direct)
             direct, self.direct = [d[0] for d in self.direct.values()], {}
         for s in (self.cmd_sock, self.data_sock, *direct):
             if s is not None:
                 s.close()
         self.cmd_sock = self.data_sock = None
+
+    def _key(self) -> tuple:
+        return self.interface, self.command_port, self.data_port
 
     def status(self) -> dict:
         st = super().status()
