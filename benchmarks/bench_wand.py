@@ -1,0 +1,282 @@
+"""Wand calibration from nothing: solve time and accuracy against the simulator's truth, and a
+scipy least_squares baseline on the same model.
+
+Scenes (sim.make_rig, 4 m volume, 640x480 webcams): 3000 wand frames in the solve (3333
+simulated, 10 % held out), from nothing (essential matrix, PnP, wand scale, then the GTSAM
+bundle adjustment with outlier rejection):
+
+  A  8 cameras, 0.1 px noise
+  B  8 cameras, 0.5 px noise, 5 % outlier blobs: stray blobs (5 % of all blobs) and 5 % of
+     the wand's own blobs thrown 1-4 px off (a merged reflection), which often still pass
+     identification and must be caught by the solve
+  C  16 cameras, 0.1 px noise
+
+Figures, each the median over `--repeats` runs with different seeds:
+  solve_s       the bundle adjustment (graph building, LM, re-solve), one core
+  total_s       everything: identification, initialisation, solve, evaluation, marginals
+  rms/noise     per-axis RMS of the solve's inlier residuals over the injected noise
+  rms/true      the same RMS over the one the true rig gives on the same frames
+  len_bias_mm   mean wand-length error on held-out frames (what the scale got wrong)
+  len_rms_mm    per-frame wand-length error RMS on held-out frames, and /true: over the
+                same figure with the true rig (the noise floor of single-frame triangulation)
+  grid_mm       calibkit.compare.compare_rigs(true, solved)["grid_rms_mm"] (similarity-aligned)
+  scale_ppm     the aligning similarity's scale error
+
+Baseline (scene A, same seed, same start and same model: poses and points, Huber loss, the
+wand's distances, the reference camera held): scipy.optimize.least_squares, method 'trf',
+Jacobian by finite differences with its sparsity given, as open projects do.
+
+    python benchmarks/bench_wand.py [--repeats 3] [--scenes ABC] [--no-baseline] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.sparse import lil_matrix
+from scipy.spatial.transform import Rotation
+
+from calibkit import bundle, sim
+from calibkit.camera import Rig
+from calibkit.clitools import print_table, write_json
+from calibkit.compare import compare_rigs
+from calibkit.geometry import RigArrays
+from calibkit.wand_report import evaluate
+from calibkit.wand_solve import calibrate
+
+SPACING = (0.0, 0.2, 0.5)
+SCENES = {
+    "A": dict(cameras=8, noise=0.1, outliers=0.0),
+    "B": dict(cameras=8, noise=0.5, outliers=0.05),
+    "C": dict(cameras=16, noise=0.1, outliers=0.0),
+}
+
+
+def make_scene(cameras: int, noise: float, outliers: float, seed: int, frames: int = 3333):
+    rig = sim.make_rig(cameras, 4.0, seed=seed)
+    truth = sim.wand_motion(frames, 100.0, 4.0, SPACING, seed)
+    ghosts = outliers * 3.0 / max(1e-9, 1.0 - outliers)  # 5 % of blobs are strays
+    obs = sim.observe(rig, truth, noise_px=noise, ghosts_per_camera=ghosts, seed=seed)
+    if outliers > 0:
+        rng = np.random.default_rng(seed + 99)
+        hit = (obs.marker >= 0) & (rng.random(len(obs)) < outliers)
+        angle = rng.uniform(0, 2 * np.pi, hit.sum())
+        obs.uv[hit] += rng.uniform(1, 4, hit.sum())[:, None] * np.stack(
+            [np.cos(angle), np.sin(angle)], axis=1)
+    return rig, obs
+
+
+def run(scene: str, seed: int) -> tuple[dict, object]:
+    cfg = SCENES[scene]
+    rig, obs = make_scene(cfg["cameras"], cfg["noise"], cfg["outliers"], seed)
+    start = time.perf_counter()
+    cal = calibrate(obs, rig, SPACING, holdout=0.1, seed=seed,
+                    options=bundle.BundleOptions(noise_px=max(0.5, cfg["noise"])))
+    total = time.perf_counter() - start
+    res = cal.bundle
+    inl = res.residual_px[res.inlier]
+    rms = float(np.sqrt(np.mean(inl**2)))
+    # the same frames and observations with the true rig (the best any calibration can do)
+    camera_of = np.array([rig.index(n) for n in obs.camera_names])
+    held_frames = cal.held_frames
+    true_held = evaluate(rig, cal.wand, _spec(), held_frames, camera_of)
+    true_rms = _true_rms(rig, res)
+    cmp = compare_rigs(rig, cal.rig, align=True)
+    s = float(cmp["alignment"]["scale"]) if "scale" in cmp.get("alignment", {}) else np.nan
+    h = cal.report["held_out"]
+    return {
+        "scene": scene, "seed": seed, "cameras": cfg["cameras"], "noise_px": cfg["noise"],
+        "solve_s": res.time_s, "total_s": total, "iterations": res.iterations,
+        "rms_px": rms, "rms_over_noise": rms / cfg["noise"], "rms_over_true": rms / true_rms,
+        "len_bias_mm": h["wand_length_error_mean_mm"], "len_rms_mm": h["wand_length_error_rms_mm"],
+        "len_rms_over_true": h["wand_length_error_rms_mm"] / true_held["wand_length_error_rms_mm"],
+        "grid_mm": cmp["grid_rms_mm"], "scale_ppm": (s - 1.0) * 1e6,
+        "max_camera_mm": max(c["position_mm"] for c in cmp["cameras"]),
+        "outliers_dropped": int(np.sum(~res.inlier)), "grade": cal.report["grade"],
+    }, (rig, cal)
+
+
+def _spec():
+    from calibkit.wand import WandSpec
+
+    return WandSpec(SPACING)
+
+
+def _true_rms(rig: Rig, res) -> float:
+    """Per-axis RMS of the same inlier observations, points re-triangulated with the true rig
+    (k3-free measurements, as the solve saw them)."""
+    from calibkit.geometry import triangulate
+
+    data = res.data
+    names = [c.name for c in res.rig]
+    true = Rig(tuple(rig[n].replace(dist=rig[n].dist * [1, 1, 1, 1, 0]) for n in names))
+    m = res.inlier
+    tri = triangulate(true, data.obs_point[m], data.obs_camera[m], data.obs_uv[m],
+                      n_points=len(data.xyz), ray_distance=False)
+    proj, _ = RigArrays.from_rig(true).project(data.obs_camera[m], tri.xyz[data.obs_point[m]])
+    r = data.obs_uv[m] - proj
+    return float(np.sqrt(np.nanmean(r**2)))
+
+
+# ---- the scipy baseline ----------------------------------------------------------------------
+
+def scipy_baseline(data: bundle.BundleData, options: bundle.BundleOptions,
+                   use: np.ndarray, max_nfev: int | None = 500) -> tuple[Rig, bool, int]:
+    """least_squares on the same model as the GTSAM graph (fixed intrinsics)."""
+    rig = data.rig
+    n_cams = len(rig)
+    ref = options.reference_camera
+    free = [c for c in range(n_cams) if c != ref]
+    pt, cam, uv = data.obs_point[use], data.obs_camera[use], data.obs_uv[use]
+    n_seen = np.bincount(pt, minlength=len(data.xyz))
+    active = np.flatnonzero(n_seen >= 2)
+    local = np.full(len(data.xyz), -1)
+    local[active] = np.arange(len(active))
+    keep = local[pt] >= 0
+    pt, cam, uv = local[pt[keep]], cam[keep], uv[keep]
+    ek = (local[data.edge[:, 0]] >= 0) & (local[data.edge[:, 1]] >= 0)
+    e0, e1 = local[data.edge[ek, 0]], local[data.edge[ek, 1]]
+    elen = data.edge_length_m[ek]
+    arrays = RigArrays.from_rig(rig)
+    n_free = len(free)
+    slot = np.full(n_cams, -1)
+    slot[free] = np.arange(n_free)
+    x0 = np.concatenate([np.concatenate([[*rig[c].rvec, *rig[c].t] for c in free]),
+                         data.xyz[active].ravel()])
+    sigma_px, sigma_len = options.noise_px, options.length_sigma_m
+
+    def unpack(x):
+        R = arrays.R.copy()
+        t = arrays.t.copy()
+        p = x[: 6 * n_free].reshape(-1, 6)
+        R[free] = Rotation.from_rotvec(p[:, :3]).as_matrix()
+        t[free] = p[:, 3:]
+        return R, t, x[6 * n_free:].reshape(-1, 3)
+
+    def fun(x):
+        R, t, xyz = unpack(x)
+        ra = RigArrays(R, t, arrays.centre, arrays.fx, arrays.fy, arrays.cx, arrays.cy,
+                       arrays.skew, arrays.dist)
+        proj, _ = ra.project(cam, xyz[pt])
+        r_px = ((proj - uv) / sigma_px).ravel()
+        r_len = (np.linalg.norm(xyz[e0] - xyz[e1], axis=1) - elen) / sigma_len
+        return np.concatenate([r_px, r_len])
+
+    m_px, m_len = 2 * len(pt), len(e0)
+    sparsity = lil_matrix((m_px + m_len, len(x0)), dtype=np.int8)
+    rows = np.arange(len(pt))
+    for k in range(2):
+        r = 2 * rows + k
+        has = slot[cam] >= 0
+        for j in range(6):
+            sparsity[r[has], 6 * slot[cam[has]] + j] = 1
+        for j in range(3):
+            sparsity[r, 6 * n_free + 3 * pt + j] = 1
+    er = m_px + np.arange(m_len)
+    for j in range(3):
+        sparsity[er, 6 * n_free + 3 * e0 + j] = 1
+        sparsity[er, 6 * n_free + 3 * e1 + j] = 1
+    sol = least_squares(fun, x0, jac_sparsity=sparsity.tocsr(), method="trf", loss="huber",
+                        f_scale=options.huber_k, x_scale="jac", max_nfev=max_nfev)
+    R, t, _ = unpack(sol.x)
+    cams = tuple(c.replace(R=R[k], t=t[k]) for k, c in enumerate(rig))
+    return Rig(cams, meta=dict(rig.meta)), bool(sol.status > 0), int(sol.nfev)
+
+
+def _sse(rig: Rig, data: bundle.BundleData) -> float:
+    """Sum of squared reprojection errors with every point re-triangulated by `rig`: the
+    same yardstick for both solvers (lower is a better optimum of the same model)."""
+    from calibkit.geometry import triangulate
+
+    tri = triangulate(rig, data.obs_point, data.obs_camera, data.obs_uv,
+                      n_points=len(data.xyz), ray_distance=False)
+    proj, _ = RigArrays.from_rig(rig).project(data.obs_camera, tri.xyz[data.obs_point])
+    return float(np.nansum((proj - data.obs_uv) ** 2))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--scenes", default="ABC")
+    ap.add_argument("--no-baseline", action="store_true")
+    ap.add_argument("--baseline-frames", type=int, default=150,
+                    help="wand frames in the baseline comparison (scipy is slow)")
+    ap.add_argument("--json")
+    args = ap.parse_args()
+    rows, results = [], []
+    baseline = None
+    for scene in args.scenes:
+        runs = []
+        for k in range(args.repeats):
+            fig, (rig, cal) = run(scene, seed=k)
+            print(f"scene {scene} seed {k}: " + ", ".join(
+                f"{key}={val:.4g}" if isinstance(val, float) else f"{key}={val}"
+                for key, val in fig.items()), file=sys.stderr, flush=True)
+            runs.append(fig)
+            results.append(fig)
+            if scene == "A" and k == 0 and not args.no_baseline:
+                baseline = _baseline(rig, cal, args.baseline_frames)
+        med = {key: float(np.median([r[key] for r in runs])) for key in runs[0]
+               if isinstance(runs[0][key], (int, float)) and key not in ("seed",)}
+        rows.append([scene, int(med["cameras"]), med["noise_px"], med["solve_s"],
+                     med["total_s"], med["rms_over_noise"], med["rms_over_true"],
+                     med["len_bias_mm"], med["len_rms_mm"], med["len_rms_over_true"],
+                     med["grid_mm"], med["scale_ppm"], int(med["outliers_dropped"])])
+    print_table(rows, ["scene", "cams", "noise_px", "solve_s", "total_s", "rms/noise",
+                       "rms/true", "len_bias_mm", "len_rms_mm", "len/true", "grid_mm",
+                       "scale_ppm", "dropped"])
+    if baseline is not None:
+        print()
+        b = baseline
+        print_table([["gtsam LM", b["gtsam_s"], b["gtsam_grid_mm"], b["gtsam_sse_px2"], 1.0,
+                      1.0, "yes"],
+                     ["scipy least_squares", b["scipy_s"], b["scipy_grid_mm"],
+                      b["scipy_sse_px2"], b["scipy_s"] / b["gtsam_s"],
+                      b["scipy_grid_mm"] / b["gtsam_grid_mm"],
+                      f"{'yes' if b['scipy_converged'] else 'no'} ({b['scipy_nfev']} evals)"]],
+                    [f"scene A, seed 0, {b['frames']} frames", "solve_s", "grid_mm", "sse_px2",
+                     "time ratio", "grid ratio", "converged"])
+    if args.json:
+        write_json(args.json, {"runs": results, "baseline": baseline})
+
+
+def _baseline(rig: Rig, cal, n_frames: int) -> dict:
+    """The same problem (same start, same inlier rows of the first `n_frames` frames, one
+    round) solved by GTSAM and by scipy."""
+    from calibkit.wand import point_index
+
+    data = cal.bundle.data
+    opts = bundle.BundleOptions(noise_px=cal.bundle.noise_px, rounds=1,
+                                reference_camera=cal.bundle.options.reference_camera)
+    solved = cal.wand.select(~np.isin(cal.wand.frame, cal.held_frames))
+    _, pinfo = point_index(solved.select(np.isin(solved.camera, np.flatnonzero(
+        np.isin(cal.wand.camera_names, [c.name for c in cal.bundle.rig])))), 3)
+    frames = np.unique(pinfo[:, 0])[:n_frames]
+    use = cal.bundle.inlier & np.isin(pinfo[data.obs_point, 0], frames)
+    clean = bundle.BundleData(**{**data.__dict__, "obs_point": data.obs_point[use],
+                                 "obs_camera": data.obs_camera[use],
+                                 "obs_uv": data.obs_uv[use]})
+    t0 = time.perf_counter()
+    g = bundle.solve(clean, opts)
+    gtsam_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    s_rig, converged, nfev = scipy_baseline(clean, opts,
+                                            np.ones(len(clean.obs_point), dtype=bool))
+    scipy_s = time.perf_counter() - t0
+    names = [c.name for c in g.rig]
+    true = Rig(tuple(rig[n] for n in names), meta=dict(rig.meta))
+    s_rig = Rig(tuple(c.replace(dist=t.dist) for c, t in zip(s_rig, true, strict=True)),
+                meta=dict(rig.meta))
+    return {"frames": int(len(frames)), "gtsam_s": gtsam_s, "scipy_s": scipy_s,
+            "scipy_nfev": nfev, "scipy_converged": converged,
+            "gtsam_sse_px2": _sse(g.rig, clean), "scipy_sse_px2": _sse(s_rig, clean),
+            "gtsam_grid_mm": compare_rigs(true, g.rig)["grid_rms_mm"],
+            "scipy_grid_mm": compare_rigs(true, s_rig)["grid_rms_mm"]}
+
+
+if __name__ == "__main__":
+    main()
