@@ -39,7 +39,7 @@ class Labeller:
                  adapt: float = 0.02, smooth: float = 1.0, structure_limit: float = 2.0,
                  candidate_limit: float = 1.0, ambiguity: float = 4.0,
                  witnesses: bool = False, spread_gain: float = 2.0,
-                 fresh_margin: float = 4.0) -> None:
+                 fresh_margin: float = 4.0, shape_check: bool = False) -> None:
         self.ms = markerset
         n = markerset.n
         self.n = n
@@ -81,6 +81,12 @@ class Labeller:
         self.since_reacquired = np.zeros(n, int)
         self.known_frames = np.zeros(n, int)    # frames whose distances this take taught
         self.adapt_tol = _tolerance(markerset, noise_m)
+        # segment shapes for the order check: the marker set's, replaced by this take's
+        from itertools import permutations
+        self.seg_checks = [(np.array(sg.markers), sg.shape_m.copy(),
+                            np.array(list(permutations(range(len(sg.markers))))))
+                           for sg in markerset.segments if 3 <= len(sg.markers) <= 5]
+        self.shape_check = shape_check
         self.template_tol = _tolerance(markerset, noise_m)
         self.pos = np.full((n, 3), np.nan)
         self.vel = np.zeros((n, 3))
@@ -133,6 +139,11 @@ class Labeller:
         self.adapt_tol = 3.0 * np.sqrt(self.ms.sd_m ** 2 + 2 * self.noise_m ** 2) + 0.004
         self.nb_mean = self.mean_all[np.arange(self.n)[:, None], self.nb]
         self.adapted = True
+        for k, (idx, _, perms) in enumerate(self.seg_checks):
+            full = np.isfinite(xyz[:, idx]).all(axis=(1, 2))
+            if full.any():
+                shape = xyz[np.nonzero(full)[0][-1]][idx]
+                self.seg_checks[k] = (idx, shape - shape.mean(0), perms)
         if len(xyz) >= 2:
             self.seed(xyz[-2])
             self.update_labelled(xyz[-1])
@@ -323,6 +334,39 @@ class Labeller:
                 np.minimum(self.age[lost[none]] + 1, 3)[:, None]
         return pred
 
+    def _check_segment_order(self, cur, point_of, marker_of, suspect) -> bool:
+        """Within a segment of 3-5 markers where one was just found again: the order of
+        its points that fits the segment's shape best by a proper rigid motion. Labels
+        rotated around a foot keep most distances but not the shape and its handedness."""
+        if not self.shape_check:
+            return False
+        done = False
+        for idx, shape, perms in self.seg_checks:
+            if not suspect[idx].any() or (point_of[idx] < 0).any():
+                continue
+            B = cur[idx][perms]                                        # (p, k, 3)
+            cb = B.mean(1)
+            H = np.einsum("ki,pkj->pij", shape, B - cb[:, None])
+            U, _, Vt = np.linalg.svd(H)
+            d = np.sign(np.linalg.det(np.einsum("pji,pkj->pik", Vt, U)))
+            D = np.ones((len(perms), 3))
+            D[:, 2] = d
+            R = np.einsum("pji,pj,pkj->pik", Vt, D, U)
+            fit = np.einsum("pij,kj->pki", R, shape) + cb[:, None]
+            res = ((fit - B) ** 2).sum((1, 2))
+            best = int(np.argmin(res))
+            if best == 0 or res[best] > 0.25 * res[0] or res[0] < len(idx) * 0.005 ** 2:
+                continue
+            new_pts = point_of[idx][perms[best]]
+            point_of[idx] = new_pts
+            marker_of[new_pts] = idx
+            old_pos, old_vel = self.pos[idx].copy(), self.vel[idx].copy()
+            cur[idx] = cur[idx][perms[best]]
+            self.pos[idx] = old_pos[perms[best]]
+            self.vel[idx] = old_vel[perms[best]]
+            done = True
+        return done
+
     def _witness_swaps(self, cur, point_of, marker_of, err, suspect) -> bool:
         """Swap close markers i and j when a learned tetrahedron (i, j, a, b) has turned
         inside out while its witnesses a and b fit their neighbours well."""
@@ -361,6 +405,7 @@ class Labeller:
         i, j = self.swap_pairs[:, 0], self.swap_pairs[:, 1]
         suspect = (self.since_reacquired < 60) | (np.nan_to_num(err) > 0.5)
         done = self._witness_swaps(cur, point_of, marker_of, err, suspect)
+        done |= self._check_segment_order(cur, point_of, marker_of, suspect)
         if not suspect.any():
             return done
         ok = np.isfinite(cur[i]).all(1) & np.isfinite(cur[j]).all(1) & (suspect[i] | suspect[j])
