@@ -331,7 +331,7 @@ class Pipeline:
         else:
             camera, uv, marker = np.zeros(0, np.int64), np.zeros((0, 2)), None
         tracks = self.tracker.update(camera, uv, fs.t_ns)
-        poses = self.rigid.update(tracks)
+        poses = self.rigid.update(tracks, uv, self.tracker.cams)
         scene_frame = samples[0].scene_frame if samples else -1
         result = FrameResult(fs.index, fs.t_ns, fs.arrival_ns, time.monotonic_ns(), camera, uv,
                              tracks, poses, marker, scene_frame, samples)
