@@ -17,6 +17,7 @@ from test_natnet import Feeder, Scene, finish, run_motioncapture  # shared scene
 
 from daemon.config import SimConfig
 from daemon.publish import packet, vrpn
+from daemon.rigid import BodyDef
 from daemon.sources import SimScene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -350,3 +351,32 @@ def test_a_client_speaking_nonsense_is_dropped_alone():
         good.close()
         worse.close()
         bad.close()
+
+
+def test_a_reload_keeps_the_clients_connected():
+    """The server a reload starts takes over the old one's sockets and clients: they stay
+    connected (a VRPN client would otherwise take seconds to connect again), hear the new
+    tracker list, and receive the new server's poses."""
+    scene = Scene()
+    old = vrpn.VrpnPublisher(scene.defs(), host="127.0.0.1", port=0)
+    old.start()
+    direct = RawClient(old.port, lob=False)
+    back = RawClient(old.port, lob=True, udp=True)
+    deadline = time.monotonic() + 5
+    while sum(c.connected for c in old.clients) < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    renamed = [BodyDef("rover", 1, scene.bodies[0].markers_body, np.zeros(3))]
+    new = vrpn.VrpnPublisher(renamed, host="127.0.0.1", port=old.port)
+    new.start()
+    assert old.handed_over and new.status()["clients"] == 2
+    old.stop()
+    with Feeder(new, scene, start=False) as feed:  # started above
+        feed.wait_frames(30)
+        deadline = time.monotonic() + 3
+        while time.monotonic() < deadline and not all(
+                any(n == "rover" for n, _ in c.poses) for c in (direct, back)):
+            time.sleep(0.02)
+    for c in (direct, back):
+        assert c.senders[0] == "rover"  # described again by the new server
+        assert any(n == "rover" for n, _ in c.poses)
+        c.close()

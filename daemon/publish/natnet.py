@@ -292,9 +292,12 @@ def frame_payload(result, up_axis: str = "z", legacy_unlabeled: bool = False,
 class NatNetPublisher(Publisher):
     """Serves NatNet: answers the command port, sends frames by multicast and unicast."""
 
-    # unicast clients without keep-alives (libmotioncapture) never connect again: a reload's
-    # new server takes them over from the old one, by (interface, command port, data port)
-    _carried: dict[tuple, list[str]] = {}
+    # open servers by (interface, command port). A reload starts the new publisher while
+    # the old one still runs (daemon.pipeline): the new one takes over the old one's command
+    # socket and clients, so no request goes unanswered and no client has to connect again
+    # (libmotioncapture never does)
+    _live: dict[tuple, NatNetPublisher] = {}
+    _live_lock = threading.Lock()
 
     def __init__(self, bodies=(), interface: str = "0.0.0.0", command_port: int = 1510,
                  data_port: int = 1511, multicast: bool = True,
@@ -302,8 +305,7 @@ class NatNetPublisher(Publisher):
                  rate_hz: float = 0.0, legacy_unlabeled: bool = False,
                  keepalive_timeout_s: float = 10.0, name: str = "natnet",
                  marker_sets: bool = True) -> None:
-        # a reload starts the new server while the old one still holds the port: retry
-        # soon, so the stream pauses for a fraction of a second, not a whole one
+        # if the port is taken (another program; a server of another process), retry soon
         super().__init__(rate_hz=rate_hz, retry_s=0.1)
         axes(up_axis)
         self.bodies = list(bodies)
@@ -322,6 +324,7 @@ class NatNetPublisher(Publisher):
         self.latest: bytes | None = None
         self.t0_ns: int | None = None
         self._lock = threading.Lock()
+        self.handed_over = False
         self._cmd_thread: threading.Thread | None = None
         self._cmd_stop = threading.Event()
         self._modeldef = model_definitions(self.bodies, up_axis, marker_sets)
@@ -339,12 +342,23 @@ class NatNetPublisher(Publisher):
         super().start()
 
     def open(self) -> None:
-        cmd = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            cmd.bind((self.interface, self.command_port))
-        except OSError:
-            cmd.close()
-            raise
+        if self.handed_over:
+            raise OSError("handed over to the server that replaced this one")
+        with NatNetPublisher._live_lock:
+            old = NatNetPublisher._live.get((self.interface, self.command_port))
+            taken = old._hand_over() if old is not None and old is not self else None
+            if taken is not None:
+                cmd, subscribers, direct_ips = taken
+            else:
+                cmd, subscribers, direct_ips = socket.socket(socket.AF_INET,
+                                                             socket.SOCK_DGRAM), {}, []
+                try:
+                    cmd.bind((self.interface, self.command_port))
+                except OSError:
+                    cmd.close()
+                    raise
+            self.command_port = cmd.getsockname()[1]
+            NatNetPublisher._live[(self.interface, self.command_port)] = self
         data = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         data.setblocking(False)
         if self.multicast:
@@ -355,36 +369,54 @@ class NatNetPublisher(Publisher):
                                 socket.inet_aton(self.interface))
         cmd.settimeout(0.2)
         self.cmd_sock, self.data_sock = cmd, data
-        if self.command_port == 0:
-            self.command_port = cmd.getsockname()[1]
+        with self._lock:
+            self.subscribers.update(subscribers)
+        if not self.multicast:
+            for ip in direct_ips:
+                self._direct(ip)
         self._cmd_stop.clear()
         self._cmd_thread = threading.Thread(target=self._serve, name=f"{self.name}-cmd",
                                             daemon=True)
         self._cmd_thread.start()
-        if not self.multicast:  # clients without keep-alives that the server before us had
-            for ip in NatNetPublisher._carried.pop(self._key(), []):
-                self._direct(ip)
-        log.info("%s: NatNet %d.%d on %s:%d, data %s%s:%d", self.name, *NATNET_VERSION[:2],
+        log.info("%s: NatNet %d.%d on %s:%d, data %s%s:%d%s", self.name, *NATNET_VERSION[:2],
                  self.interface, self.command_port,
                  "multicast " if self.multicast else "unicast ",
-                 self.group if self.multicast else "", self.data_port)
+                 self.group if self.multicast else "", self.data_port,
+                 " (taken over)" if taken is not None else "")
+
+    def _hand_over(self):
+        """Give the command socket and the unicast clients to the server replacing this one;
+        this one stops serving (its frames go nowhere) and never opens again."""
+        self.handed_over = True
+        self._cmd_stop.set()
+        if self._cmd_thread is not None:
+            self._cmd_thread.join(1.0)
+            self._cmd_thread = None
+        with self._lock:
+            cmd, self.cmd_sock = self.cmd_sock, None
+            subscribers, self.subscribers = self.subscribers, {}
+            direct, self.direct = self.direct, {}
+        for sock, _since in direct.values():
+            sock.close()
+        if cmd is None:
+            return None
+        return cmd, subscribers, list(direct)
 
     def close(self) -> None:
         self._cmd_stop.set()
         if self._cmd_thread is not None:
             self._cmd_thread.join(1.0)
             self._cmd_thread = None
+        with NatNetPublisher._live_lock:
+            if NatNetPublisher._live.get((self.interface, self.command_port)) is self:
+                del NatNetPublisher._live[(self.interface, self.command_port)]
         with self._lock:
-            if self.direct:  # for the server a reload starts in our place
-                NatNetPublisher._carried[self._key()] = list(self.direct)
             direct, self.direct = [d[0] for d in self.direct.values()], {}
-        for s in (self.cmd_sock, self.data_sock, *direct):
+            cmd, self.cmd_sock = self.cmd_sock, None
+        for s in (cmd, self.data_sock, *direct):
             if s is not None:
                 s.close()
-        self.cmd_sock = self.data_sock = None
-
-    def _key(self) -> tuple:
-        return self.interface, self.command_port, self.data_port
+        self.data_sock = None
 
     def status(self) -> dict:
         st = super().status()
@@ -395,6 +427,9 @@ class NatNetPublisher(Publisher):
     # ---- frames ----------------------------------------------------------------------------
 
     def send(self, result) -> None:
+        cmd = self.cmd_sock
+        if cmd is None:  # handed over to the server that replaced this one
+            return
         first = self.t0_ns is None
         if first:
             self.t0_ns = int(result.t_ns)
@@ -420,7 +455,7 @@ class NatNetPublisher(Publisher):
             direct = list(self.direct.items())
         for addr in targets:
             try:
-                self.cmd_sock.sendto(data, addr)
+                cmd.sendto(data, addr)
             except OSError:  # a client gone (ICMP refused): it expires with its keep-alives
                 pass
         for ip, (sock, since) in direct:

@@ -168,11 +168,16 @@ class _Client:
 class VrpnPublisher(Publisher):
     """A VRPN server with one tracker per rigid body."""
 
+    # open servers by (host, port): a reload's new server takes over the old one's sockets
+    # and connected clients (daemon.pipeline starts it before stopping the old one), so
+    # clients stay connected instead of reconnecting seconds later
+    _live: dict[tuple, VrpnPublisher] = {}
+    _live_lock = threading.Lock()
+
     def __init__(self, bodies=(), host: str = "0.0.0.0", port: int = 3883,
                  rate_hz: float = 0.0, udp: bool = True, max_backlog_bytes: int = 1 << 20,
                  name: str = "vrpn") -> None:
-        # a reload starts the new server while the old one still holds the port: retry
-        # soon, so the stream pauses for a fraction of a second, not a whole one
+        # if the port is taken (another program, another process), retry soon
         super().__init__(rate_hz=rate_hz, retry_s=0.1)
         self.bodies = list(bodies)
         self.host, self.port = host, port
@@ -184,6 +189,7 @@ class VrpnPublisher(Publisher):
         self.listen_sock: socket.socket | None = None
         self.udp_sock: socket.socket | None = None
         self.clients: list[_Client] = []
+        self.handed_over = False
         self.pongs = 0
         self._lock = threading.Lock()
         self._srv_thread: threading.Thread | None = None
@@ -204,45 +210,100 @@ class VrpnPublisher(Publisher):
         super().start()
 
     def open(self) -> None:
-        tcp = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        tcp.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            tcp.bind((self.host, self.port))
+        if self.handed_over:
+            raise OSError("handed over to the server that replaced this one")
+        with VrpnPublisher._live_lock:
+            old = VrpnPublisher._live.get((self.host, self.port)) if self.port else None
+            taken = old._hand_over() if old is not None and old is not self else None
+            if taken is not None:
+                tcp, udp, clients = taken
+            else:
+                tcp, udp, clients = self._bind(), None, []
+                udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                try:
+                    udp.bind((self.host, tcp.getsockname()[1]))
+                except OSError:
+                    tcp.close()
+                    udp.close()
+                    raise
             self.port = tcp.getsockname()[1]
-            udp.bind((self.host, self.port))
-            tcp.listen(8)
-        except OSError:
-            tcp.close()
-            udp.close()
-            raise
+            VrpnPublisher._live[(self.host, self.port)] = self
         tcp.setblocking(False)
         udp.setblocking(False)
         self.listen_sock, self.udp_sock = tcp, udp
+        with self._lock:
+            self.clients = clients
+        for c in clients:  # taken over: tell them our trackers (names may have changed)
+            if c.connected:
+                try:
+                    c.write(self._hello(), self.max_backlog)
+                except OSError:
+                    self._drop(c)
         self._wall_offset_ns = time.time_ns() - time.monotonic_ns()
         self._srv_stop.clear()
         self._srv_thread = threading.Thread(target=self._serve, name=f"{self.name}-srv",
                                             daemon=True)
         self._srv_thread.start()
-        log.info("%s: VRPN trackers %s on %s:%d", self.name, ", ".join(self.body_names) or "-",
-                 self.host, self.port)
+        log.info("%s: VRPN trackers %s on %s:%d%s", self.name,
+                 ", ".join(self.body_names) or "-", self.host, self.port,
+                 f" (taken over with {len(clients)} clients)" if taken is not None else "")
+
+    def _bind(self) -> socket.socket:
+        tcp = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        tcp.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            tcp.bind((self.host, self.port))
+            tcp.listen(8)
+        except OSError:
+            tcp.close()
+            raise
+        return tcp
+
+    def _hand_over(self):
+        """Give the sockets and the connected clients to the server replacing this one (a
+        reload), which keeps them connected; this one stops and never opens again."""
+        self.handed_over = True
+        self._srv_stop.set()
+        if self._srv_thread is not None:
+            self._srv_thread.join(1.0)
+            self._srv_thread = None
+        with self._lock:
+            tcp, udp, clients = self.listen_sock, self.udp_sock, self.clients
+            self.listen_sock = self.udp_sock = None
+            self.clients = []
+        for sock in self._calling:
+            sock.close()
+        self._calling.clear()
+        if tcp is None or udp is None:
+            return None
+        return tcp, udp, clients
+
+    def _hello(self) -> bytes:
+        """Our sender (one per body) and type descriptions."""
+        return (b"".join(describe(SENDER_DESCRIPTION, i, n)
+                         for i, n in enumerate(self.body_names))
+                + b"".join(describe(TYPE_DESCRIPTION, i, n) for i, n in enumerate(OUR_TYPES)))
 
     def close(self) -> None:
         self._srv_stop.set()
         if self._srv_thread is not None:
             self._srv_thread.join(1.0)
             self._srv_thread = None
+        with VrpnPublisher._live_lock:
+            if VrpnPublisher._live.get((self.host, self.port)) is self:
+                del VrpnPublisher._live[(self.host, self.port)]
         with self._lock:
             clients, self.clients = self.clients, []
+            socks = (self.listen_sock, self.udp_sock)
+            self.listen_sock = self.udp_sock = None
         for c in clients:
             c.sock.close()
         for sock in self._calling:
             sock.close()
         self._calling.clear()
-        for s in (self.listen_sock, self.udp_sock):
+        for s in socks:
             if s is not None:
                 s.close()
-        self.listen_sock = self.udp_sock = None
 
     def status(self) -> dict:
         st = super().status()
@@ -263,14 +324,15 @@ class VrpnPublisher(Publisher):
             return
         with self._lock:
             clients = [c for c in self.clients if c.connected]
+            udp = self.udp_sock
         per_datagram = max(1, UDP_MAX // POSE_MESSAGE.itemsize)
         for c in clients:
             msgs["seq"] = np.arange(c.seq, c.seq + len(msgs))
             c.seq += len(msgs)
             try:
-                if c.udp is not None and self.use_udp:
+                if c.udp is not None and self.use_udp and udp is not None:
                     for k in range(0, len(msgs), per_datagram):
-                        self.udp_sock.sendto(msgs[k:k + per_datagram].tobytes(), c.udp)
+                        udp.sendto(msgs[k:k + per_datagram].tobytes(), c.udp)
                 else:
                     c.write(msgs.tobytes(), self.max_backlog)
             except OSError as exc:
@@ -390,10 +452,7 @@ class VrpnPublisher(Publisher):
                 raise ValueError(f"not a VRPN {MAGIC_MAJOR.decode()}xx client "
                                  f"(cookie {bytes(c.inbuf[:16])!r})")
             del c.inbuf[:COOKIE_SIZE]
-            hello = b"".join(describe(SENDER_DESCRIPTION, i, n)
-                             for i, n in enumerate(self.body_names))
-            hello += b"".join(describe(TYPE_DESCRIPTION, i, n) for i, n in enumerate(OUR_TYPES))
-            c.write(hello, self.max_backlog)
+            c.write(self._hello(), self.max_backlog)
             c.connected = True
         for sender, type_id, payload, _t in unpack_messages(c.inbuf):
             self._message(c, sender, type_id, payload)
