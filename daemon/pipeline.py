@@ -209,7 +209,7 @@ class Multiplexer:
                 vel = np.where(near[:, None], (uv - prev.uv[j]) / (cur.t_ns - prev.t_ns), 0.0)
                 uv = uv + vel * (t - cur.t_ns)
             out.append(CameraSample(cur.camera, newest.index, t, cur.arrival_ns, uv, cur.area,
-                                    cur.peak, cur.marker, cur.scene_frame))
+                                    cur.peak, cur.marker, newest.scene_frame))
         return FrameSet(newest.index, t, newest.arrival_ns, out)
 
     def next(self, timeout_s: float = 0.2) -> FrameSet | None:

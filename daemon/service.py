@@ -328,9 +328,16 @@ class Daemon:
     def install_signals(self) -> None:
         if threading.current_thread() is not threading.main_thread():
             return
-        signal.signal(signal.SIGTERM, lambda *_: self.stop_event.set())
-        signal.signal(signal.SIGINT, lambda *_: self.stop_event.set())
-        signal.signal(signal.SIGHUP, lambda *_: self.reload_event.set())
+        self._old_signals = {
+            signal.SIGTERM: signal.signal(signal.SIGTERM, lambda *_: self.stop_event.set()),
+            signal.SIGINT: signal.signal(signal.SIGINT, lambda *_: self.stop_event.set()),
+            signal.SIGHUP: signal.signal(signal.SIGHUP, lambda *_: self.reload_event.set())}
+
+    def restore_signals(self) -> None:
+        """Put back the handlers there were before (a daemon run inside another program)."""
+        for sig, handler in getattr(self, "_old_signals", {}).items():
+            signal.signal(sig, handler)
+        self._old_signals = {}
 
     def run(self, frames: int | None = None, duration_s: float | None = None,
             progress=None) -> dict:
@@ -466,6 +473,8 @@ class Daemon:
             self.recorder.stop()
         if self.control is not None:
             self.control.close()
+        if threading.current_thread() is threading.main_thread():
+            self.restore_signals()
 
     # ---- control requests ------------------------------------------------------------------
 
