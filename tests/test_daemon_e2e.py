@@ -86,7 +86,7 @@ def test_live_daemon_outputs_control_reload_and_stop(tmp_path, mocapd_cli):
     cfg.write_text(base)
     proc = _start(["--config", cfg, "--serial", f"{os.ttyname(ser_s)}:115200",
                    "--runtime-dir", rt, "--json", tmp_path / "run.json"],
-                  {"NOTIFY_SOCKET": str(tmp_path / "notify")})
+                  {"NOTIFY_SOCKET": str(tmp_path / "notify"), "WATCHDOG_USEC": "1000000"})
     got, got2, ser, mav, notes = [], [], bytearray(), bytearray(), []
 
     def poll():
@@ -131,6 +131,8 @@ def test_live_daemon_outputs_control_reload_and_stop(tmp_path, mocapd_cli):
             os.close(fd)
     assert proc.returncode == 0, err.decode()
     assert "STOPPING=1" in notes
+    assert "WATCHDOG=1" in notes  # at half WATCHDOG_USEC from the frame loop
+    assert any(n.startswith("STATUS=") and "fps" in n for n in notes)
     assert not (rt / "mocapd.sock").exists()
     assert len(got) > n_before
 
