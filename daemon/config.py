@@ -85,6 +85,7 @@ class UdpOut:
     rate_hz: float = 0.0
     ttl: int = 1
     bodies: tuple[int, ...] | None = None
+    interface: str | None = None  # local address multicast leaves from
 
 
 @dataclass(frozen=True)
@@ -400,13 +401,21 @@ def _camera(w, t, p, base: Path) -> CameraIn:
 
 
 def _udp(w, t, p) -> UdpOut:
-    _check_keys(w, t, {"address", "rate_hz", "ttl", "bodies"}, p)
+    _check_keys(w, t, {"address", "rate_hz", "ttl", "bodies", "interface"}, p)
     try:
         host, port = parse_address(_string(w, t, "address", p))
     except ValueError as exc:
         w.fail(p + "address", str(exc))
+    interface = t.get("interface")
+    if interface is not None:
+        try:
+            if not isinstance(interface, str):
+                raise ValueError
+            ipaddress.IPv4Address(interface)
+        except ValueError:
+            w.fail(p + "interface", f"expected a local IPv4 address, got {interface!r}")
     return UdpOut(host, port, _number(w, t, "rate_hz", p, 0.0, lo=0),
-                  _number(w, t, "ttl", p, 1, int, 0, 255), _ids(w, t, "bodies", p))
+                  _number(w, t, "ttl", p, 1, int, 0, 255), _ids(w, t, "bodies", p), interface)
 
 
 def _serial(w, t, p) -> SerialOut:

@@ -193,7 +193,8 @@ def make_publishers(config: Config, bodies=()) -> list:
     pubs = []
     for u in config.udp:
         pubs.append(UdpPublisher([(u.host, u.port)], ttl=u.ttl, rate_hz=u.rate_hz,
-                                 bodies=u.bodies, name=f"udp:{u.host}:{u.port}"))
+                                 bodies=u.bodies, name=f"udp:{u.host}:{u.port}",
+                                 interface=u.interface))
     for s in config.serial:
         pubs.append(SerialPublisher(s.device, s.baud, s.rate_hz, s.bodies))
     for m in config.mavlink:

@@ -183,6 +183,24 @@ def test_udp_publisher_sends_decodable_packets():
     np.testing.assert_allclose(p.position, b["position"][1:3], atol=1e-6)
 
 
+def test_udp_publisher_multicast_on_loopback():
+    group = "239.255.77.2"
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    rx.bind(("", 0))
+    rx.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP,
+                  socket.inet_aton(group) + socket.inet_aton("127.0.0.1"))
+    rx.settimeout(2.0)
+    pub = UdpPublisher([(group, rx.getsockname()[1])], ttl=0, interface="127.0.0.1")
+    pub.start()
+    b = _bodies(2, np.random.default_rng(6))
+    pub.submit(_Result(9, b))
+    p = packet.decode(rx.recv(2048))
+    pub.stop()
+    rx.close()
+    assert p.frame == 9 and p.ids.tolist() == [1, 2]
+
+
 class _Stuck(Publisher):
     name = "stuck"
 

@@ -23,10 +23,13 @@ class UdpPublisher(Publisher):
     """One socket sending each frame's packet to every target (HOST, PORT)."""
 
     def __init__(self, targets: list[tuple[str, int]], ttl: int = 1, rate_hz: float = 0.0,
-                 bodies: list[int] | None = None, name: str = "udp") -> None:
+                 bodies: list[int] | None = None, name: str = "udp",
+                 interface: str | None = None) -> None:
+        """`interface`: the local address multicast leaves from (default: the route's)."""
         super().__init__(rate_hz=rate_hz)
         self.targets = list(targets)
         self.ttl = ttl
+        self.interface = interface
         self.bodies = bodies
         self.name = name
         self.sock: socket.socket | None = None
@@ -37,6 +40,9 @@ class UdpPublisher(Publisher):
         if any(ipaddress.ip_address(socket.gethostbyname(h)).is_multicast
                for h, _ in self.targets):
             sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, self.ttl)
+            if self.interface:
+                sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF,
+                                socket.inet_aton(self.interface))
         self.sock = sock
 
     def send(self, result) -> None:
