@@ -88,6 +88,7 @@ class Labeller:
                            for sg in markerset.segments if 3 <= len(sg.markers) <= 5]
         self.shape_check = shape_check
         self.template_tol = _tolerance(markerset, noise_m)
+        self.anchors = np.argsort(sd, axis=1)[:, :-1]     # all others, steadiest first
         self.pos = np.full((n, 3), np.nan)
         self.vel = np.zeros((n, 3))
         self.age = np.full(n, 10 ** 6)
@@ -273,16 +274,20 @@ class Labeller:
         """Cost of each point for markers never seen yet: their distances to every labelled
         marker against the marker set, weighted by steadiness (as when a take starts from
         the template); only a clear winner (4 units better than the runner-up) counts."""
-        done = np.nonzero(np.isfinite(cur).all(1))[0]
-        if len(done) < 3:
+        seen = np.isfinite(cur).all(1)
+        if seen.sum() < 3:
             return np.full((len(markers), len(P)), BIG)
-        tol = self.adapt_tol[np.ix_(markers, done)]
-        w = 1.0 / tol ** 2
-        mu = self.mean_all[np.ix_(markers, done)]
-        diff = P[:, None] - cur[done][None]
-        d = np.sqrt(np.einsum("pli,pli->pl", diff, diff))                 # (k, L)
-        e2 = np.minimum((d[None] - mu[:, None]) ** 2 * w[:, None] * 9.0, 16.0)
-        cost = (e2 * w[:, None]).sum(2) / w.sum(1)[:, None]              # (M, k)
+        anchors = self.anchors[markers]                                  # (M, A)
+        ok = seen[anchors]
+        tol = self.adapt_tol[markers[:, None], anchors]
+        w = np.where(ok, 1.0 / tol ** 2, 0.0)
+        mu = self.mean_all[markers[:, None], anchors]
+        x = np.where(ok[:, :, None], cur[anchors], 0.0)                  # (M, A, 3)
+        diff = P[None, :, None] - x[:, None]                             # (M, k, A, 3)
+        d = np.sqrt(np.einsum("mkai,mkai->mka", diff, diff))
+        e2 = np.minimum((d - mu[:, None]) ** 2 * w[:, None] * 9.0, 16.0)
+        cost = (e2 * w[:, None]).sum(2) / np.maximum(w.sum(1), 1e-12)[:, None]
+        cost[ok.sum(1) < 3] = BIG
         cost = np.where(cost < 1.0, cost, BIG)
         if cost.shape[1] >= 2:
             part = np.partition(cost, 1, axis=1)
@@ -310,8 +315,8 @@ class Labeller:
         A = self.snap[lost]                                     # (L, n, 3) then
         B = cur                                                 # (n, 3) now
         w = self.pred_w[lost] * (np.isfinite(A).all(2) & np.isfinite(B).all(1)[None])
-        A0 = np.nan_to_num(A)
-        B0 = np.nan_to_num(B)
+        A0 = np.where(np.isnan(A), 0.0, A)
+        B0 = np.where(np.isnan(B), 0.0, B)
         sw = w.sum(1)
         ca = np.einsum("ln,lni->li", w, A0) / np.maximum(sw, 1e-12)[:, None]
         cb = (w @ B0) / np.maximum(sw, 1e-12)[:, None]
