@@ -18,26 +18,19 @@ form written there (indexing by k * _CHUNK made it 15x slower); bench_detect.py 
 
 from __future__ import annotations
 
-import numba
 import numpy as np
+
+from calibkit.jit import jit
 
 _CHUNK = 64  # pixels tested at once for "any pixel above the threshold" (one SIMD reduction)
 _SLOPE_CHI2 = 13.8  # as calibkit.detect: chi-square (2 dof, p = 0.001) for a sloping ring
-
-
-def _jit(fn):
-    """njit with an on-disk cache where one can be written, in memory otherwise."""
-    try:
-        return numba.njit(cache=True, nogil=True)(fn)
-    except RuntimeError:  # numba found no writable cache directory
-        return numba.njit(nogil=True)(fn)
 
 
 # ---------------------------------------------------------------------------------------------
 # Background level
 
 
-@_jit
+@jit
 def background_u8(image, mask, has_mask, sy, sx):
     """(level, noise sigma) of an 8-bit image: calibkit.detect.background_level's estimate.
 
@@ -64,7 +57,7 @@ def background_u8(image, mask, has_mask, sy, sx):
     return level, (q75 - q25) / (1.349 * np.sqrt(2.0))
 
 
-@_jit
+@jit
 def _quantile(hist, target):
     """The histogram's value at cumulative count `target`, interpolated within its bin."""
     below = 0
@@ -80,7 +73,7 @@ def _quantile(hist, target):
 # Runs and regions
 
 
-@_jit
+@jit
 def find_regions(image, tint, values, mask, has_mask, hot, capacity):
     """8-connected regions of the pixels above `tint` (not masked), from horizontal runs.
 
@@ -147,19 +140,19 @@ def find_regions(image, tint, values, mask, has_mask, hot, capacity):
     return runs, run_label, area, bbox, peak, True
 
 
-@_jit
+@jit
 def _runs_per_chunk(w):
     """Runs starting in a chunk: at most one per two pixels, plus one per row start in it."""
     return _CHUNK // 2 + _CHUNK // w + 2
 
 
-@_jit
+@jit
 def max_runs(n_hot, w):
     """The most runs `n_hot` hot chunks of an image `w` pixels wide can hold."""
     return n_hot * _runs_per_chunk(w) + 1
 
 
-@_jit
+@jit
 def chunk_maxima(flat):
     """The largest value of each chunk of `flat` (the last chunk may be short).
 
@@ -189,7 +182,7 @@ def chunk_maxima(flat):
     return out
 
 
-@_jit
+@jit
 def hot_chunks(maxima, tint):
     """Starts (flat pixel indices) of the chunks whose maximum is above `tint`."""
     hot = np.empty(len(maxima), dtype=np.int64)
@@ -201,7 +194,7 @@ def hot_chunks(maxima, tint):
     return hot[:k]
 
 
-@_jit
+@jit
 def label_sorted(pix, w):
     """8-connected regions of the pixels with sorted flat indices `pix` in an image `w`
     wide -> (region of each pixel, number of regions), numbered in raster order of each
@@ -229,7 +222,7 @@ def label_sorted(pix, w):
     return labels, len(area)
 
 
-@_jit
+@jit
 def _push(runs, n, first, last, w, pk, rows):
     """Store run n (flat pixel indices first..last of one row) and join it to the runs of
     the row above that it touches (8-connectivity: columns x0 - 1 .. x1 + 1). `rows`
@@ -267,7 +260,7 @@ def _push(runs, n, first, last, w, pk, rows):
         q += 1
 
 
-@_jit
+@jit
 def _root(parent, i):
     while parent[i] != i:
         parent[i] = parent[parent[i]]  # path halving
@@ -275,7 +268,7 @@ def _root(parent, i):
     return i
 
 
-@_jit
+@jit
 def _region_stats(runs):
     """Region of each run (numbered by first run) and per region area, bbox and peak."""
     n = len(runs)
@@ -310,7 +303,7 @@ def _region_stats(runs):
 # Windowed, background-subtracted moments
 
 
-@_jit
+@jit
 def measure(values, candidates, tint, mask, has_mask, runs, run_label, area, bbox, peak,
             min_area, max_area, min_roundness, margin, level, sigma):
     """calibkit.detect._measure for the single-threshold mode, one window at a time.
@@ -342,7 +335,7 @@ def measure(values, candidates, tint, mask, has_mask, runs, run_label, area, bbo
     return res[ok, :2], area[sel], peak[sel], bbox[sel], res[ok, 3]
 
 
-@_jit
+@jit
 def _block_sizes(box):
     """The reference's block size per window: windows up to 24 px share the size of the
     largest of them (at least 3); bigger ones round up to a power of two."""
@@ -365,7 +358,7 @@ def _block_sizes(box):
     return block
 
 
-@_jit
+@jit
 def _window(values, candidates, tint, mask, has_mask, runs, run_label, label, region_area,
             box, k, level, sigma, acc, out):
     """Centroid, weight, roundness and background of one window into out (u, v, s0,
@@ -395,7 +388,7 @@ def _window(values, candidates, tint, mask, has_mask, runs, run_label, label, re
     out[1] += oy + cy
 
 
-@_jit
+@jit
 def _window_is_clean(candidates, tint, mask, has_mask, box, region_area):
     """No masked pixel and no pixel of another region in the window (the common case): the
     window's candidate pixels are exactly its own region's."""
@@ -410,7 +403,7 @@ def _window_is_clean(candidates, tint, mask, has_mask, box, region_area):
     return count == region_area and not masked
 
 
-@_jit
+@jit
 def _sums_clean(values, box, ox, oy, cx, cy, ix0, ix1, iy0, iy1, acc):
     """The window sums where every pixel counts: a row's interior sums are its window sums
     less the end pixels that lie on the ring."""
@@ -457,7 +450,7 @@ def _sums_clean(values, box, ox, oy, cx, cy, ix0, ix1, iy0, iy1, acc):
             _add_inner_row(acc, yc, i0, i1, j0, j1, j2)
 
 
-@_jit
+@jit
 def _sums_checked(values, candidates, tint, mask, has_mask, runs, run_label, label, box, ox,
                   oy, cx, cy, ix0, ix1, iy0, iy1, acc):
     """The window sums without masked pixels and pixels of other regions."""
@@ -496,7 +489,7 @@ def _sums_checked(values, candidates, tint, mask, has_mask, runs, run_label, lab
             _add_inner_row(acc, yc, i0, i1, j0, j1, j2)
 
 
-@_jit
+@jit
 def _add_row(acc, yc, a0, a1, a2, c0, c1, c2):
     """Add one row's window sums (of v and of 1 times 1, x, x^2) to the 2D sums."""
     y2 = yc * yc
@@ -514,7 +507,7 @@ def _add_row(acc, yc, a0, a1, a2, c0, c1, c2):
     acc[11] += y2 * c0
 
 
-@_jit
+@jit
 def _add_inner_row(acc, yc, i0, i1, j0, j1, j2):
     """Add one row's interior sums (v times 1, x; 1, x, x^2) to the 2D interior sums."""
     acc[12] += i0
@@ -528,7 +521,7 @@ def _add_inner_row(acc, yc, i0, i1, j0, j1, j2):
     acc[20] += yc * yc * j0
 
 
-@_jit
+@jit
 def _background_and_moments(s, n, si, ni, level, sigma, out):
     """The reference's ring background (constant, or a plane where it slopes beyond the
     noise) subtracted from the window sums; out: mean x, mean y (about the block centre),

@@ -11,10 +11,11 @@ t (C,3), intrinsics fx fy cx cy skew (C,), dist (C,5) OpenCV k1 k2 p1 p2 k3).
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from calibkit.jit import jit
 
 
-@njit(cache=True, inline="always")
+@jit(inline="always")
 def _project_jacobian(R, t, fx, fy, cx, cy, skew, dist, c, X, out_uv, out_J):
     """Project world point X with camera c; pixel in out_uv (2,), d pixel / d X in out_J
     (2,3). Returns the depth."""
@@ -52,7 +53,7 @@ def _project_jacobian(R, t, fx, fy, cx, cy, skew, dist, c, X, out_uv, out_J):
     return pc2
 
 
-@njit(cache=True, inline="always")
+@jit(inline="always")
 def _solve3(H, g, out):
     """out = H^-1 g for a 3x3 H; False when singular."""
     a, b, c = H[0, 0], H[0, 1], H[0, 2]
@@ -75,7 +76,7 @@ def _solve3(H, g, out):
     return True
 
 
-@njit(cache=True)
+@jit
 def triangulate_points(starts, camera, uv, origins, dirs, xyz0, iterations,
                        R, t, fx, fy, cx, cy, skew, dist):
     """Triangulate points whose observations are rows starts[p]:starts[p+1] (sorted by point).
@@ -138,7 +139,7 @@ def triangulate_points(starts, camera, uv, origins, dirs, xyz0, iterations,
     return xyz, reproj
 
 
-@njit(cache=True)
+@jit
 def epipolar_pairs(block_start, block_camera, block_group, lines, homog, origins, dirs,
                    tol_px, capacity):
     """Blob pairs (a, b) of one group in different cameras whose epipolar distances are
@@ -193,7 +194,7 @@ def epipolar_pairs(block_start, block_camera, block_group, lines, homog, origins
     return n, pa, pb, ss, uu
 
 
-@njit(cache=True)
+@jit
 def mean_ray_distances(starts, origins, dirs):
     """Mean distance between every pair of each point's rays (rows starts[p]:starts[p+1]);
     NaN for points with fewer than two rays. Nearly parallel rays use the distance of one
