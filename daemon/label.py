@@ -151,6 +151,14 @@ class Labeller:
         else:
             self.seed(xyz[-1])
 
+    def start(self, points: np.ndarray, labels: np.ndarray) -> None:
+        """Start from one frame's points and their labels (-1 = none)."""
+        P = np.asarray(points, float).reshape(-1, 3)
+        cur = np.full((self.n, 3), np.nan)
+        got = labels >= 0
+        cur[labels[got]] = P[got]
+        self._commit(cur, np.isfinite(cur).all(1))
+
     def update_labelled(self, xyz: np.ndarray) -> None:
         """Advance the tracker with a frame whose labels are known (seed frames)."""
         ok = np.isfinite(xyz).all(1)
@@ -511,7 +519,7 @@ def _match_segment(P: np.ndarray, D: np.ndarray, members: list[int], ms: MarkerS
 
 
 def initial_labels(P: np.ndarray, ms: MarkerSet, n_hypotheses: int = 24,
-                   n_segments: int = 2) -> np.ndarray:
+                   n_segments: int = 2, return_cost: bool = False):
     """Label one frame from the marker set alone: the steadiest multi-marker segment is
     matched by its distances (every fitting assignment is a hypothesis), the others grow
     from it by their distances to labelled markers, and the handedness checks (signed
@@ -521,7 +529,7 @@ def initial_labels(P: np.ndarray, ms: MarkerSet, n_hypotheses: int = 24,
     k = len(P)
     lab = np.full(k, -1)
     if k < 3:
-        return lab
+        return (lab, np.inf) if return_cost else lab
     D = np.linalg.norm(P[:, None] - P[None], axis=2)
     tol = _tolerance(ms)
     order = sorted([s for s in ms.segments if len(s.markers) >= 3],
@@ -540,11 +548,11 @@ def initial_labels(P: np.ndarray, ms: MarkerSet, n_hypotheses: int = 24,
             if best is None or total < best[0]:
                 best = (total, marker_point)
     if best is None:
-        return lab
+        return (lab, np.inf) if return_cost else lab
     mp = best[1]
     got = mp >= 0
     lab[mp[got]] = np.nonzero(got)[0]
-    return lab
+    return (lab, best[0]) if return_cost else lab
 
 
 def _grow(P: np.ndarray, D: np.ndarray, ms: MarkerSet, tol: np.ndarray,
@@ -604,7 +612,8 @@ def _chirality(P: np.ndarray, ms: MarkerSet, marker_point: np.ndarray) -> int:
 
 def label_take(points: Points, ms: MarkerSet, rate_hz: float = 120.0,
                seed: Take | None = None, seed_frames: int = 0, progress=None,
-               options: dict | None = None) -> tuple[Take, np.ndarray, np.ndarray]:
+               options: dict | None = None, start_frames: int = 10
+               ) -> tuple[Take, np.ndarray, np.ndarray]:
     """Label every frame of `points`. Returns the labelled take, per-frame confidence
     (mean over labelled markers) and the per-point labels (aligned with points rows after
     sorting by frame, see `Points.split`)."""
@@ -628,16 +637,43 @@ def label_take(points: Points, ms: MarkerSet, rate_hz: float = 120.0,
         start = int(np.searchsorted(frames, s.first_frame + use))
         for f in range(start):
             labels_out.append(np.full(len(per_frame[f]), -2))
+    order = list(range(start, len(frames)))
+    backward: list[int] = []
+    started: tuple[int, np.ndarray] | None = None
+    if start == 0 and len(frames) and start_frames > 1:
+        # from the template alone: start at the frame among the first few that the
+        # marker set explains best, track forward from it and backward to the start
+        tries = list(range(0, min(len(frames), start_frames * 10), 10))
+        results = [initial_labels(per_frame[i], ms, return_cost=True) for i in tries]
+        best = int(np.argmin([r[1] for r in results]))
+        f0 = tries[best]
+        lab.start(per_frame[f0], results[best][0])
+        started = (f0, results[best][0])
+        order = list(range(f0, len(frames)))
+        backward = list(range(f0 - 1, -1, -1))
+    out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    for n_done, i in enumerate(order):
+        if started is not None and i == started[0]:
+            m = started[1]
+            c = np.where(m >= 0, 0.5, 0.0)
+        else:
+            m, c = lab.update(per_frame[i])
+        out[i] = (m, c)
+        if progress is not None and n_done % 200 == 0:
+            progress.update(n_done)
+    if backward:
+        back = Labeller(ms, rate_hz, **(options or {}))
+        back.start(per_frame[order[0]], out[order[0]][0])
+        for i in backward:
+            out[i] = back.update(per_frame[i])
     for i in range(start, len(frames)):
         P = per_frame[i]
-        m, c = lab.update(P)
+        m, c = out[i]
         fi = int(frames[i] - first)
         got = m >= 0
         xyz[fi, m[got]] = P[got]
         conf[fi] = float(c[got].mean()) if got.any() else 0.0
         labels_out.append(m)
-        if progress is not None and i % 200 == 0:
-            progress.update(i)
     take = Take(list(ms.labels), xyz, rate_hz, first)
     return take, conf, labels_out
 
