@@ -138,12 +138,14 @@ def read_c3d(path: str | Path, strip_prefix: bool = True) -> Take:
             n_frames = int(reader.last_frame) - int(reader.first_frame) + 1
             labels_raw = list(reader.point_labels)[:n_points]
             xyz = np.full((max(n_frames, 0), n_points, 3), np.nan)
+            filled = np.zeros((max(n_frames, 0), n_points), bool)
             i = -1
             for i, (_, pts, _) in enumerate(reader.read_frames(copy=False)):
                 if i >= n_frames:
                     break
                 ok = pts[:, 3] >= 0
                 xyz[i, ok] = pts[ok, :3]
+                filled[i] = pts[:, 3] == 0      # C3D: a residual of 0 marks a made-up sample
             units = "mm"
             try:
                 units = reader.get_string("POINT:UNITS").strip().lower() or "mm"
@@ -164,15 +166,19 @@ def read_c3d(path: str | Path, strip_prefix: bool = True) -> Take:
     labels = [_clean_label(s) if strip_prefix else s.strip() for s in labels_raw]
     xyz *= scale
     # C3D files mark missing samples with a negative residual; some writers use zeros.
-    xyz[(xyz == 0).all(axis=2)] = np.nan
-    return Take(labels, xyz, rate, first, meta={"source": str(path)})
+    zero = (xyz == 0).all(axis=2)
+    xyz[zero] = np.nan
+    filled &= ~zero
+    if filled.sum() == np.isfinite(xyz).all(axis=2).sum():
+        filled[:] = False    # every residual 0: the writer kept no residuals (85_02)
+    return Take(labels, xyz, rate, first, filled, meta={"source": str(path)})
 
 
 def write_c3d(path: str | Path, take: Take) -> None:
     """Write a take as a float C3D in millimetres; missing samples get residual -1.
 
-    Filled samples are written with residual 0 (valid) and the filled mask is not kept in
-    the file; the CSV export carries it.
+    Measured samples get residual 1 (the residual is unknown here), filled ones 0: the
+    C3D convention for interpolated samples, which read_c3d turns back into `filled`.
     """
     import c3d
 
@@ -187,6 +193,7 @@ def write_c3d(path: str | Path, take: Take) -> None:
         pts = np.zeros((n, 5), dtype=np.float32)
         ok = np.isfinite(mm[f]).all(axis=1)
         pts[ok, :3] = mm[f, ok]
+        pts[ok, 3] = np.where(take.filled[f, ok], 0.0, 1.0)
         pts[~ok, 3] = -1.0
         pts[~ok, 4] = -1.0
         frames.append((pts, no_analog))

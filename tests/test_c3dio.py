@@ -79,10 +79,12 @@ def test_truncated_and_foreign_files_give_user_errors(tmp_path):
 def test_c3d_round_trip_keeps_gaps(tmp_path, take_85):
     t = Take(take_85.labels, take_85.xyz_m[:50].copy(), take_85.rate_hz, 1)
     t.xyz_m[10:20, 3] = np.nan
+    t.filled[30:35, 5] = True                 # made-up samples: residual 0 in the file
     write_c3d(tmp_path / "a.c3d", t)
     back = read_c3d(tmp_path / "a.c3d")
     assert back.labels == t.labels and back.rate_hz == t.rate_hz
     assert np.array_equal(back.visible, t.visible)
+    assert np.array_equal(back.filled, t.filled)
     # float32 millimetres: ~1e-4 mm rounding at metre scale
     assert np.nanmax(np.abs(back.xyz_m - t.xyz_m)) < 1e-6
 
