@@ -6,7 +6,11 @@ queue (dropping the oldest frame when it is full, since a pose consumer wants th
 and the worker logs the failure and retries opening the output, at most once a second.
 
 A protocol is one file with one subclass that implements `open`, `send(result)` and
-`close`; `rate_hz` throttles what it is handed. NatNet, VRPN and friends plug in the same way.
+`close`; `rate_hz` throttles what it is handed. An output whose send can never block (UDP
+on a non-blocking socket) may set `inline`: while it is open and its queue empty, frames
+are sent on the frame loop itself, saving a thread hand-off of latency; any failure goes
+to the queue and the worker, as for every other output. NatNet, VRPN and friends plug in
+the same way.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ class Publisher:
     """Base class: subclasses set `name` and implement open/send/close."""
 
     name = "publisher"
+    inline = False  # send on the caller's thread while healthy (only for sends that never block)
 
     def __init__(self, rate_hz: float = 0.0, queue_size: int = 8, retry_s: float = 1.0) -> None:
         self.rate_hz = float(rate_hz)
@@ -64,6 +69,14 @@ class Publisher:
             if now < self._next_due:
                 return
             self._next_due = max(self._next_due + 1.0 / self.rate_hz, now - 0.5 / self.rate_hz)
+        if self.inline and self.connected and not self._queue:
+            try:
+                self.send(result)
+                self.sent += 1
+                self.send_ns.append((result.arrival_ns, time.monotonic_ns()))
+                return
+            except Exception:  # noqa: BLE001 - the worker logs it and reopens
+                pass
         with self._cond:
             if len(self._queue) == self._queue.maxlen:
                 self.dropped += 1

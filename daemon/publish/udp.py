@@ -22,6 +22,8 @@ def result_packet(result, body_ids=None) -> bytes:
 class UdpPublisher(Publisher):
     """One socket sending each frame's packet to every target (HOST, PORT)."""
 
+    inline = True  # a non-blocking sendto never waits: no thread hand-off on the way out
+
     def __init__(self, targets: list[tuple[str, int]], ttl: int = 1, rate_hz: float = 0.0,
                  bodies: list[int] | None = None, name: str = "udp",
                  interface: str | None = None) -> None:
