@@ -120,20 +120,21 @@ def _camera(cam: Camera, pose: gtsam.Pose3, cal: gtsam.Cal3DS2 | None) -> Camera
 
 
 def remove_k3(rig: Rig, camera: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Pixels as the same camera without k3 would have seen them."""
+    """Pixels as the same camera without k3 would have seen them: undistorted with the full
+    model, distorted again with k1, k2, p1, p2 only."""
     arrays = RigArrays.from_rig(rig)
-    k3 = arrays.dist[camera, 4]
+    k1, k2, p1, p2, k3 = arrays.dist[camera].T
     if not np.any(k3):
         return uv
     n = arrays.undistort(camera, uv)
-    no_k3 = RigArrays(arrays.R, arrays.t, arrays.centre, arrays.fx, arrays.fy, arrays.cx,
-                      arrays.cy, arrays.skew, arrays.dist * [1, 1, 1, 1, 0])
-    fake = np.concatenate([n, np.ones((len(n), 1))], axis=1)
-    # project the camera-frame ray with identity pose: R^T R = I, t = 0 for this purpose
-    proj, _ = RigArrays(np.broadcast_to(np.eye(3), arrays.R.shape), np.zeros_like(arrays.t),
-                        arrays.centre, no_k3.fx, no_k3.fy, no_k3.cx, no_k3.cy, no_k3.skew,
-                        no_k3.dist).project(camera, fake)
-    return np.where((k3 != 0)[:, None], proj, uv)
+    x, y = n[:, 0], n[:, 1]
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * k2)
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    out = np.stack([arrays.fx[camera] * xd + arrays.skew[camera] * yd + arrays.cx[camera],
+                    arrays.fy[camera] * yd + arrays.cy[camera]], axis=1)
+    return np.where((k3 != 0)[:, None], out, uv)
 
 
 def residuals(rig: Rig, data: BundleData, xyz: np.ndarray) -> np.ndarray:

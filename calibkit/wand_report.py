@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from calibkit.camera import Rig
-from calibkit.geometry import triangulate
+from calibkit.geometry import RigArrays, triangulate
 from calibkit.wand import WandObservations, WandSpec, point_index
 
 # Grade thresholds, on the held-out frames (docs/wand.md explains them).
@@ -40,8 +40,6 @@ def evaluate(rig: Rig, wand: WandObservations, spec: WandSpec, frames: np.ndarra
     cam = cam[sel]
     pidx, pinfo = point_index(w, spec.n_markers)
     tri = triangulate(rig, pidx, cam, w.uv, n_points=len(pinfo))
-    from calibkit.geometry import RigArrays
-
     proj, z = RigArrays.from_rig(rig).project(cam, tri.xyz[pidx])
     r = w.uv - proj
     ok = np.isfinite(r[:, 0])
