@@ -8,6 +8,7 @@ true marker within 10 mm), 3D error RMS of the rest.
 
 Runs, single-threaded, each `--repeats` times (median time):
 - calibkit match_frames: unlabelled blobs, frames matched in batches (the offline path);
+- the same with the numpy reference implementation instead of the compiled kernels;
 - calibkit match_frame, one frame at a time (what a live caller pays per frame);
 - oracle + calibkit triangulate: the true blob labels given, only triangulation (the
   lower bound on error a correspondence method can reach);
@@ -29,7 +30,7 @@ import numpy as np
 
 from calibkit import sim
 from calibkit.clitools import print_table, write_json
-from calibkit.correspondence import match_frame, match_frames
+from calibkit.correspondence import CorrespondenceConfig, match_frame, match_frames
 from calibkit.geometry import RigArrays, triangulate
 from calibkit.observations import Truth
 from calibkit.truthcheck import score_points
@@ -120,6 +121,8 @@ def main(argv=None) -> int:
     runs = {
         "calibkit match_frames (batched)": lambda: (lambda p: (p.frame, p.xyz))(
             match_frames(rig, obs)),
+        "calibkit match_frames, numpy reference": lambda: (lambda p: (p.frame, p.xyz))(
+            match_frames(rig, obs, CorrespondenceConfig(compiled=False))),
         "calibkit match_frame (per frame)": lambda: per_frame(rig, obs),
         "oracle labels + calibkit triangulate": lambda: oracle_ours(rig, obs),
         "oracle labels + cv2.triangulatePoints": lambda: oracle_opencv(rig, obs),

@@ -27,6 +27,7 @@ class CorrespondenceConfig:
     max_reproj_px: float = 1.5  # a cluster whose rays do not meet this well is a ghost
     min_cameras: int = 3
     two_camera: bool = True  # also accept unambiguous pairs
+    compiled: bool = True  # numba kernels; False runs the numpy reference implementation
 
 
 @dataclass(eq=False)
@@ -275,7 +276,8 @@ def _prune(rig: Rig, arrays: RigArrays, table: np.ndarray, camera: np.ndarray, u
         point, cam = np.nonzero(sub >= 0)
         blob = sub[point, cam]
         part = triangulate(rig, point, cam, uv[blob], iterations=1, n_points=len(sub),
-                           ray_distance=False, rays=(origins[blob], dirs[blob]))
+                           ray_distance=False, rays=(origins[blob], dirs[blob]),
+                           compiled=cfg.compiled)
         if tri is None:
             tri = part
         else:
@@ -302,7 +304,7 @@ def _cluster_pass(rig: Rig, arrays: RigArrays, group: np.ndarray, camera: np.nda
     n_cams_rig = len(rig)
     sub = np.flatnonzero(available)
     pa, pb, s, u = _pairs(arrays, group[sub], camera[sub], n[sub], origins[sub],
-                             dirs[sub], cfg.epipolar_px)
+                          dirs[sub], cfg.epipolar_px, cfg.compiled)
     pa, pb = sub[pa], sub[pb]
     none = np.zeros((0, n_cams_rig), dtype=np.int64)
     if not len(pa) or cfg.min_cameras > n_cams_rig:
@@ -401,7 +403,8 @@ def match_groups(rig: Rig, group: np.ndarray, camera: np.ndarray, uv: np.ndarray
     point, cam = np.nonzero(table >= 0)
     blob = table[point, cam]
     tri = triangulate(rig, point, cam, uv[blob], iterations=1, n_points=len(table),
-                      rays=(origins[blob], dirs[blob]), start=np.concatenate(starts))
+                      rays=(origins[blob], dirs[blob]), start=np.concatenate(starts),
+                      compiled=cfg.compiled)
     ok = np.isfinite(tri.reproj_px) & (tri.reproj_px <= cfg.max_reproj_px)
     two = np.sum(table >= 0, axis=1) == 2
     if np.any(two & ok):
