@@ -194,9 +194,15 @@ def _two_marker_labels(wand: WandObservations, rig: Rig, camera_of: np.ndarray
 
 def _report(rig, spec, result, solved, held, cov, found, grade, reason, warnings, left_out,
             wand, intr, floor_given) -> dict:
+    from calibkit.wand import CaptureMonitor
+
+    monitor = CaptureMonitor(intr.names, [c.size for c in intr])
+    monitor.add(wand)
+    coverage = dict(zip(intr.names, monitor.coverage.tolist(), strict=True))
     cams = []
     for k, cam in enumerate(rig):
         row = {"name": cam.name, "observations": int(solved["camera_observations"][k]),
+               "coverage": coverage[cam.name],
                "reprojection_rms_px": float(solved["camera_rms_px"][k]),
                "held_out_rms_px": float(held["camera_rms_px"][k]),
                "centre_m": cam.centre.tolist()}

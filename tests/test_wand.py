@@ -241,3 +241,21 @@ def test_one_marker_wand_needs_initial_poses_for_its_scale():
     std_mm = np.array([c["position_std_mm"] for c in cal.report["cameras"]])
     assert std_mm.max() < 50
     assert err_mm.max() < 3 * std_mm.max()
+
+
+def test_capture_keeps_what_it_has_on_ctrl_c(scene):
+    from calibkit.clitools import Progress
+    from calibkit.commands.wand_cmd import capture
+
+    rig, _truth, obs = scene
+
+    def batches():
+        yield obs.select(obs.frame < 50)
+        yield obs.select((obs.frame >= 50) & (obs.frame < 100))
+        raise KeyboardInterrupt
+
+    monitor = CaptureMonitor(rig.names, [c.size for c in rig], min_samples=10**6)
+    got = capture(batches(), WandSpec(SPACING), rig, monitor, None,
+                  Progress("capture", enabled=False))
+    assert got is not None and list(got.frames()) == list(range(100))
+    assert monitor.samples.sum() > 0 and not monitor.done()

@@ -214,10 +214,12 @@ def register(app: typer.Typer) -> None:
 
 
 def _print(report: dict) -> None:
-    rows = [[c["name"], c["observations"], c["reprojection_rms_px"], c["held_out_rms_px"],
+    rows = [[c["name"], c["observations"], round(100 * c["coverage"], 1),
+             c["reprojection_rms_px"], c["held_out_rms_px"],
              c.get("position_std_mm", math.nan), c.get("orientation_std_deg", math.nan)]
             for c in report["cameras"]]
-    print_table(rows, ["camera", "obs", "rms_px", "held_out_px", "pos_sd_mm", "rot_sd_deg"])
+    print_table(rows, ["camera", "obs", "coverage_%", "rms_px", "held_out_px", "pos_sd_mm",
+                       "rot_sd_deg"])
     s, h = report["solve"], report["held_out"]
     typer.echo("")
     print_table([
