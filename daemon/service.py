@@ -300,7 +300,13 @@ class Daemon:
         """Run the correspondence once on a frame's blobs before READY: its compiled kernels
         load on first use (about a second), which would otherwise stall the first frames."""
         from calibkit.correspondence import match_frame
+        from daemon.tracker import Tracker
 
+        # the tracker's kernel: one track in front of the rig, one blob per camera
+        warm = Tracker(self.rig, self.config.tracker)
+        warm.ids, warm.xyz = np.array([1]), self.rig.centres().mean(axis=0)[None] * 0.0
+        warm.vel, warm.missing = np.zeros((1, 3)), np.zeros(1, dtype=np.int64)
+        warm.update(np.arange(len(self.rig)), np.zeros((len(self.rig), 2)) + 100.0, 0)
         if self.scene is None:  # live cameras: detection has compiled kernels too
             from calibkit.detect import detect
 

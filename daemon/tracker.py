@@ -18,6 +18,7 @@ import numpy as np
 from calibkit.camera import Rig
 from calibkit.correspondence import CorrespondenceConfig, match_frame
 from calibkit.geometry import RigArrays
+from daemon.tracker_kernel import gate_and_solve
 
 
 @dataclass(frozen=True)
@@ -32,6 +33,7 @@ class TrackerConfig:
     revive_m: float = 0.03  # a new point this close to a coasting track revives it
     velocity_alpha: float = 0.7  # weight of the newest velocity estimate
     new_tracks_every: int = 4  # look for new markers every N frames (every frame if none)
+    compiled: bool = True  # the numba kernel for gating and triangulation (else numpy)
     correspondence: CorrespondenceConfig = field(
         default_factory=lambda: CorrespondenceConfig(two_camera=False))
 
@@ -139,7 +141,20 @@ class Tracker:
         n_cams = np.zeros(n_tracks, dtype=np.int64)
         new_xyz = pred.copy()
         self.sigma = np.full(n_tracks, np.inf)
-        if n_tracks and n_blobs:
+        if n_tracks and n_blobs and cfg.compiled:
+            a = self.arrays
+            order = np.argsort(camera, kind="stable")
+            starts = np.searchsorted(camera[order], np.arange(n_cameras + 1))
+            gate = cfg.gate_px + cfg.gate_growth_px * np.minimum(self.missing, 4)
+            need = np.where(self.missing > 0, 3, 2)
+            blobs, explained, xyz, ok, n_used, sigma = gate_and_solve(
+                pred, gate.astype(np.float64), need, a.R, a.t, a.fx, a.fy, a.cx, a.cy, a.skew,
+                a.dist, order, starts, uv, cfg.outlier_px, cfg.two_view_px)
+            self.sigma = sigma
+            seen = ok
+            n_cams = n_used
+            new_xyz[ok] = xyz[ok]
+        elif n_tracks and n_blobs:
             proj, z, J = self.cams.project(pred)
             blobs, explained = self._associate(proj, z > 0, camera, uv)
             ok, xyz, n_used, blobs = self._triangulate(pred, proj, J, uv, blobs)

@@ -115,3 +115,18 @@ def test_a_marker_gone_for_longer_than_max_missing_is_dropped():
         m = obs.frame == f
         fr = tr.update(obs.camera[m], obs.uv[m], int(f * 1e9 / FPS))
     assert len(fr) == 0
+
+
+def test_compiled_kernel_matches_the_numpy_reference(scene):
+    rig, truth = scene
+    obs = sim.observe(rig, truth, noise_px=0.3, dropout=0.1, ghosts_per_camera=1.0, fps=FPS,
+                      seed=9)
+    a = _run(rig, obs, 120, TrackerConfig(compiled=True), drop_camera=1, drop=range(30, 50))
+    b = _run(rig, obs, 120, TrackerConfig(compiled=False), drop_camera=1, drop=range(30, 50))
+    for (_, fa), (_, fb) in zip(a, b, strict=True):
+        np.testing.assert_array_equal(fa.ids, fb.ids)
+        np.testing.assert_array_equal(fa.seen, fb.seen)
+        np.testing.assert_array_equal(fa.blobs, fb.blobs)
+        np.testing.assert_allclose(fa.xyz, fb.xyz, atol=1e-9)
+        s = fa.seen
+        np.testing.assert_allclose(fa.sigma_m[s], fb.sigma_m[s], rtol=1e-6)

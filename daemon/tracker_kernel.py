@@ -1,0 +1,171 @@
+"""Compiled (numba) gating and triangulation of tracks: the tracker's per-frame hot path.
+
+Why: per frame the tracker does a few hundred flops per (track, camera) pair; as numpy
+array operations most of the time goes to call overheads (about sixty calls a frame). This
+kernel does the same steps as Tracker._associate and Tracker._triangulate in one pass
+(tests compare the two): reproject every prediction into every camera, take the blob that
+is alone within the gate both ways, one Gauss-Newton step linearised at the prediction,
+drop the worst observation when it does not fit and solve again.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def _project(R, t, fx, fy, cx, cy, skew, dist, c, X, J):
+    """Pixel (u, v) and depth of X in camera c; d pixel / d X into J (2, 3)."""
+    pc0 = R[c, 0, 0] * X[0] + R[c, 0, 1] * X[1] + R[c, 0, 2] * X[2] + t[c, 0]
+    pc1 = R[c, 1, 0] * X[0] + R[c, 1, 1] * X[1] + R[c, 1, 2] * X[2] + t[c, 1]
+    pc2 = R[c, 2, 0] * X[0] + R[c, 2, 1] * X[1] + R[c, 2, 2] * X[2] + t[c, 2]
+    z = pc2 if abs(pc2) > 1e-12 else 1e-12
+    iz = 1.0 / z
+    x = pc0 * iz
+    y = pc1 * iz
+    k1, k2, p1, p2, k3 = dist[c, 0], dist[c, 1], dist[c, 2], dist[c, 3], dist[c, 4]
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    u = fx[c] * xd + skew[c] * yd + cx[c]
+    v = fy[c] * yd + cy[c]
+    dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+    j11 = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x
+    j12 = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y
+    j22 = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
+    a11 = (fx[c] * j11 + skew[c] * j12) * iz
+    a12 = (fx[c] * j12 + skew[c] * j22) * iz
+    a21 = fy[c] * j12 * iz
+    a22 = fy[c] * j22 * iz
+    b13 = -(a11 * x + a12 * y)
+    b23 = -(a21 * x + a22 * y)
+    for k in range(3):
+        J[0, k] = a11 * R[c, 0, k] + a12 * R[c, 1, k] + b13 * R[c, 2, k]
+        J[1, k] = a21 * R[c, 0, k] + a22 * R[c, 1, k] + b23 * R[c, 2, k]
+    return u, v, pc2
+
+
+@njit(cache=True)
+def _solve(H, g, out):
+    """out = H^-1 g for a symmetric 3x3 H; returns trace(H^-1), or -1 if singular."""
+    a, b, c = H[0, 0], H[0, 1], H[0, 2]
+    d, e, f = H[1, 1], H[1, 2], H[2, 2]
+    A = d * f - e * e
+    B = c * e - b * f
+    C = b * e - c * d
+    det = a * A + b * B + c * C
+    if abs(det) < 1e-30:
+        return -1.0
+    D = a * f - c * c
+    E = b * c - a * e
+    F = a * d - b * b
+    inv = 1.0 / det
+    out[0] = (A * g[0] + B * g[1] + C * g[2]) * inv
+    out[1] = (B * g[0] + D * g[1] + E * g[2]) * inv
+    out[2] = (C * g[0] + E * g[1] + F * g[2]) * inv
+    return (A + D + F) * inv
+
+
+@njit(cache=True)
+def gate_and_solve(pred, gate, need, R, t, fx, fy, cx, cy, skew, dist, order, starts, uv,
+                   outlier_px, two_view_px):
+    """Tracks (pred (T, 3), gate_px (T,), cameras needed (T,)) against the frame's blobs
+    (uv (M, 2); `order` sorts them by camera, `starts` (C + 1) bound each camera's run).
+
+    -> blobs (T, C) index or -1, explained (M,) bool, xyz (T, 3), ok (T,), n_used (T,),
+       sigma (T,) position std per pixel of noise."""
+    T = pred.shape[0]
+    C = starts.shape[0] - 1
+    M = uv.shape[0]
+    blobs = np.full((T, C), -1, np.int64)
+    near = np.full((T, C), -1, np.int64)
+    count = np.zeros((T, C), np.int64)
+    per_blob = np.zeros(M, np.int64)
+    Js = np.zeros((T, C, 2, 3))
+    res = np.zeros((T, C, 2))
+    J = np.zeros((2, 3))
+    for i in range(T):
+        g2 = gate[i] * gate[i]
+        for c in range(C):
+            u, v, z = _project(R, t, fx, fy, cx, cy, skew, dist, c, pred[i], J)
+            if z <= 0 or starts[c] == starts[c + 1]:
+                continue
+            best, best_d = -1, np.inf
+            n = 0
+            for k in range(starts[c], starts[c + 1]):
+                m = order[k]
+                du = u - uv[m, 0]
+                dv = v - uv[m, 1]
+                d2 = du * du + dv * dv
+                if d2 <= g2:
+                    n += 1
+                    per_blob[m] += 1
+                    if d2 < best_d:
+                        best_d, best = d2, m
+            count[i, c] = n
+            near[i, c] = best
+            if best >= 0:
+                Js[i, c] = J
+                res[i, c, 0] = u - uv[best, 0]
+                res[i, c, 1] = v - uv[best, 1]
+    explained = per_blob > 0
+    xyz = pred.copy()
+    ok = np.zeros(T, np.bool_)
+    n_used = np.zeros(T, np.int64)
+    sigma = np.full(T, np.inf)
+    H = np.zeros((3, 3))
+    g = np.zeros(3)
+    step = np.zeros(3)
+    e = np.zeros(C)
+    for i in range(T):
+        for c in range(C):
+            if count[i, c] == 1 and per_blob[near[i, c]] == 1:
+                blobs[i, c] = near[i, c]
+        for attempt in range(2):
+            H[:, :] = 0.0
+            g[:] = 0.0
+            n = 0
+            for c in range(C):
+                if blobs[i, c] < 0:
+                    continue
+                n += 1
+                for a in range(3):
+                    g[a] += Js[i, c, 0, a] * res[i, c, 0] + Js[i, c, 1, a] * res[i, c, 1]
+                    for b in range(3):
+                        H[a, b] += Js[i, c, 0, a] * Js[i, c, 0, b] + Js[i, c, 1, a] * Js[i, c, 1, b]
+            for a in range(3):
+                H[a, a] += 1e-9
+            tr = _solve(H, g, step)
+            if tr < 0:
+                n = 0
+                break
+            worst, worst_e = -1, -1.0
+            for c in range(C):
+                if blobs[i, c] < 0:
+                    continue
+                r0 = res[i, c, 0] - (Js[i, c, 0, 0] * step[0] + Js[i, c, 0, 1] * step[1]
+                                     + Js[i, c, 0, 2] * step[2])
+                r1 = res[i, c, 1] - (Js[i, c, 1, 0] * step[0] + Js[i, c, 1, 1] * step[1]
+                                     + Js[i, c, 1, 2] * step[2])
+                e[c] = np.sqrt(r0 * r0 + r1 * r1)
+                if e[c] > worst_e:
+                    worst_e, worst = e[c], c
+            if attempt == 0 and worst_e > outlier_px and n > 2:
+                blobs[i, worst] = -1
+                continue
+            break
+        n_used[i] = n
+        if n == 0:
+            continue
+        limit = min(outlier_px, two_view_px) if n == 2 else outlier_px
+        good = n >= need[i]
+        for c in range(C):
+            if blobs[i, c] >= 0 and e[c] > limit:
+                good = False
+        for a in range(3):
+            xyz[i, a] = pred[i, a] - step[a]
+        ok[i] = good
+        sigma[i] = np.sqrt(max(tr, 0.0) / 3.0)
+    return blobs, explained, xyz, ok, n_used, sigma
