@@ -273,7 +273,8 @@ def _with_pose(cam: Camera, R: np.ndarray, t: np.ndarray) -> Camera:
 
 
 def initial_poses(wand: WandObservations, intrinsics: Rig, spec: WandSpec,
-                  min_points: int = 12, candidates: int = 4) -> tuple[Rig, list[str]]:
+                  min_points: int = 12, candidates: int = 4,
+                  unscaled: bool = False) -> tuple[Rig, list[str]]:
     """Poses for every camera that sees enough of the wand, from nothing.
 
     A well-connected pair gives a relative pose from its essential matrix; the wand's
@@ -282,9 +283,10 @@ def initial_poses(wand: WandObservations, intrinsics: Rig, spec: WandSpec,
     parallax, a near-critical configuration), so the `candidates` best-connected pairs are
     each grown into a whole rig and the one whose markers reproject best is kept. The
     frame is the first camera of the pair's. Returns the rig of the cameras placed and the
-    names of those that could not be.
+    names of those that could not be. `unscaled`: a 1-marker spec is accepted and the
+    baseline of the first pair is 1 (the caller scales the rig).
     """
-    if spec.n_markers < 2:
+    if spec.n_markers < 2 and not unscaled:
         raise UserError("a 1-marker wand gives no scale: give --rig with initial poses")
     n_cams = len(intrinsics)
     counts = _pair_counts(wand, n_cams)
@@ -341,7 +343,7 @@ def _grow(wand, intrinsics, spec, a, b, norm, pidx, pinfo, min_points):
                                b: _with_pose(intrinsics[b], R, t)}
     # scale from the wand's length
     xyz = _triangulate_placed(wand, cams, pidx, n_points)
-    scale = _scale_from_length(xyz, pinfo, spec)
+    scale = _scale_from_length(xyz, pinfo, spec) if spec.n_markers > 1 else 1.0
     cams[b] = _with_pose(intrinsics[b], R, t * scale)
     missing: list[str] = []
     while len(cams) + len(missing) < n_cams:
@@ -382,7 +384,7 @@ def _grow(wand, intrinsics, spec, a, b, norm, pidx, pinfo, min_points):
                                               cams[c].rvec.copy(), cams[c].t.copy())
             cams[c] = cams[c].replace(rvec=rvec.ravel(), t=tvec.ravel())
         scale = _scale_from_length(_triangulate_placed(wand, cams, pidx, n_points), pinfo,
-                                   spec)
+                                   spec) if spec.n_markers > 1 else 1.0
         cams = {c: cam.replace(t=cam.t * scale) for c, cam in cams.items()}
     placed = Rig(tuple(cams[c] for c in sorted(cams)), meta=dict(intrinsics.meta))
     return placed, missing

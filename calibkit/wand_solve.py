@@ -88,6 +88,8 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
         start = Rig(tuple(sub[n].replace(rvec=initial[n].rvec, t=initial[n].t)
                           for n in sub.names))
         missing: list[str] = []
+    elif spec.n_markers == 2:
+        start, missing = _two_marker_start(_renumber(train, keep_cams, len(intr)), sub, spec)
     else:
         local_wand = _renumber(train, keep_cams, len(intr))
         start, missing = initial_poses(local_wand, sub, spec)
@@ -97,19 +99,25 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
     camera_of = np.full(len(intr), -1)
     for k, name in enumerate(start.names):
         camera_of[intr.index(name)] = k
-    if spec.n_markers == 2:
-        wand = _two_marker_labels(wand, start, camera_of)
-        train = wand.select(~np.isin(wand.frame, held_frames))
-    tw = train.select(camera_of[train.camera] >= 0)
-    cam = camera_of[tw.camera]
-    pidx, pinfo = point_index(tw, spec.n_markers)
-    tri = triangulate(start, pidx, cam, tw.uv, n_points=len(pinfo), ray_distance=False)
-    edge, length = _edges(pinfo, spec) if spec.n_markers > 1 else (np.zeros((0, 2)), [])
-    data = bundle.BundleData(start, pidx, cam, tw.uv, tri.xyz, edge, length)
-    opts = options or bundle.BundleOptions(refine_intrinsics=refine_intrinsics,
-                                           reference_camera=int(np.argmax(
-                                               np.bincount(cam, minlength=len(start)))))
-    result = bundle.solve(data, opts, progress)
+    raw = wand
+    # a 2-marker wand started from midpoints is labelled again with the solved poses and
+    # solved once more: the start's labels are wrong where its poses were a little off
+    passes = 2 if spec.n_markers == 2 and initial is None else 1
+    for _ in range(passes):
+        if spec.n_markers == 2:
+            wand = _two_marker_labels(raw, start, camera_of)
+            train = wand.select(~np.isin(wand.frame, held_frames))
+        tw = train.select(camera_of[train.camera] >= 0)
+        cam = camera_of[tw.camera]
+        pidx, pinfo = point_index(tw, spec.n_markers)
+        tri = triangulate(start, pidx, cam, tw.uv, n_points=len(pinfo), ray_distance=False)
+        edge, length = _edges(pinfo, spec) if spec.n_markers > 1 else (np.zeros((0, 2)), [])
+        data = bundle.BundleData(start, pidx, cam, tw.uv, tri.xyz, edge, length)
+        opts = options or bundle.BundleOptions(refine_intrinsics=refine_intrinsics,
+                                               reference_camera=int(np.argmax(
+                                                   np.bincount(cam, minlength=len(start)))))
+        result = bundle.solve(data, opts, progress)
+        start = result.rig
     # the world frame
     A, b = (world or floor.frame_from_cameras)(result.rig, result.xyz)
     rig = floor.transform_rig(result.rig, A, b)
@@ -150,6 +158,33 @@ def calibrate_wand(observations: Observations, intrinsics_rig: Rig, wand_spacing
     cal = calibrate(observations, intrinsics_rig, wand_spacing_m, initial_rig,
                     refine_intrinsics, holdout, seed, world)
     return cal.rig, cal.report
+
+
+def _two_marker_start(wand: WandObservations, sub: Rig, spec: WandSpec
+                      ) -> tuple[Rig, list[str]]:
+    """Initial poses for a 2-marker wand, whose ends look alike: the image midpoint of the
+    two blobs (nearly the image of the wand's middle) is the same point whichever end is
+    which, so the poses come from the midpoints; then the ends are labelled with those
+    poses and the wand's length gives the scale."""
+    pairs = wand.select(np.lexsort((wand.marker, wand.camera, wand.frame)))
+    mid = WandObservations(pairs.camera_names, pairs.camera_sizes, pairs.frame[0::2],
+                           pairs.camera[0::2], np.zeros(len(pairs) // 2, dtype=np.int32),
+                           0.5 * (pairs.uv[0::2] + pairs.uv[1::2]))
+    start, missing = initial_poses(mid, sub, WandSpec((0.0,)), unscaled=True)
+    camera_of = np.array([start.names.index(n) if n in start.names else -1
+                          for n in sub.names])
+    labelled = _two_marker_labels(pairs, start, camera_of)
+    pidx, pinfo = point_index(labelled, 2)
+    xyz = triangulate(start, pidx, camera_of[labelled.camera], labelled.uv,
+                      n_points=len(pinfo), ray_distance=False).xyz
+    from calibkit.wand import wand_lengths
+
+    lengths = wand_lengths(xyz, pinfo, spec)
+    lengths = lengths[np.isfinite(lengths)]
+    if len(lengths) < 5:
+        raise UserError("too few 2-marker wand frames seen by two cameras to find the scale")
+    scale = spec.length_m / float(np.median(lengths))
+    return Rig(tuple(c.replace(t=c.t * scale) for c in start)), missing
 
 
 def _renumber(wand: WandObservations, keep: list[int], n: int) -> WandObservations:
