@@ -168,3 +168,24 @@ def test_live_capture_from_camera_image_folders(calibkit_cli, tmp_path):
     assert all(n > 40 for n in seen.values()), seen
     # rendered spots detected to a few hundredths of a pixel: a tight fit
     assert report["solve"]["reprojection_rms_px"] < 0.3
+
+
+def test_wand_with_an_lframe_recording_sets_the_floor(calibkit_cli, tmp_path):
+    from calibkit import floor
+    from calibkit.observations import Truth
+
+    rig = sim.make_rig(4, 4.0, seed=8)
+    rig.save(tmp_path / "rig.toml")
+    truth = sim.wand_motion(300, 100.0, 4.0, (0.0, 0.2, 0.5), seed=8)
+    save_observations(tmp_path / "w.mcrec", sim.observe(rig, truth, noise_px=0.1, seed=8))
+    pts = floor.LFrame().points((0.0, 0.0), 0.0)
+    lf = Truth(np.repeat(np.arange(30), 3), np.tile(np.arange(3), 30), np.tile(pts, (30, 1)))
+    save_observations(tmp_path / "l.mcrec", sim.observe(rig, lf, noise_px=0.1, seed=9))
+    r = calibkit_cli("wand", "--from", tmp_path / "w.mcrec", "--intrinsics",
+                     tmp_path / "rig.toml", "--floor", tmp_path / "l.mcrec", "--out",
+                     tmp_path / "out.toml", "--no-plots")
+    assert r.code == 0, r.err
+    assert "world frame: floor" in r.out
+    # the L-frame lies at the true origin: the result is in the true frame, no alignment
+    err = np.linalg.norm(Rig.load(tmp_path / "out.toml").centres() - rig.centres(), axis=1)
+    assert err.max() < 6e-3
