@@ -59,8 +59,15 @@ def _edges(pinfo: np.ndarray, spec: WandSpec) -> tuple[np.ndarray, np.ndarray]:
 def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None = None,
               refine_intrinsics: bool = False, holdout: float = 0.1, seed: int = 0,
               world: Callable[[Rig, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
-              options: bundle.BundleOptions | None = None, progress=None) -> WandCalibration:
-    """Everything: see calibrate_wand."""
+              options: bundle.BundleOptions | None = None, progress=None,
+              extra: Callable[[Rig], bundle.BundleData] | None = None) -> WandCalibration:
+    """Everything: see calibrate_wand. `extra(start_rig)` gives more points to solve with
+    (the projector's floor and table dots: calibkit.extrinsic.bundle_data), joined to the
+    wand's; their plane and position priors then hold the world frame, so it needs
+    `initial` poses already in that frame (from calibkit extrinsic)."""
+    if extra is not None and initial is None:
+        raise UserError("points on known planes need initial poses in the world frame: give "
+                        "--rig (e.g. from calibkit extrinsic)")
     spec = WandSpec(tuple(spacing_m))
     intr = _ordered_intrinsics(obs, intrinsics)
     wand = identify(obs, spec, intr)
@@ -113,12 +120,19 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
         tri = triangulate(start, pidx, cam, tw.uv, n_points=len(pinfo), ray_distance=False)
         edge, length = _edges(pinfo, spec) if spec.n_markers > 1 else (np.zeros((0, 2)), [])
         data = bundle.BundleData(start, pidx, cam, tw.uv, tri.xyz, edge, length)
+        if extra is not None:
+            from calibkit.extrinsic import join_bundle_data
+
+            data = join_bundle_data(data, extra(start))
         opts = options or bundle.BundleOptions(refine_intrinsics=refine_intrinsics,
                                                reference_camera=int(np.argmax(
                                                    np.bincount(cam, minlength=len(start)))))
         result = bundle.solve(data, opts, progress)
         start = result.rig
     # the world frame
+    if world is None and extra is not None:  # the extra points' priors set the frame
+        def world(_rig, _xyz):
+            return np.eye(3), np.zeros(3)
     A, b = (world or floor.frame_from_cameras)(result.rig, result.xyz)
     rig = floor.transform_rig(result.rig, A, b)
     solved = wand_report.evaluate(rig, wand, spec, np.setdiff1d(frames, held_frames), camera_of)

@@ -269,3 +269,35 @@ def test_capture_keeps_what_it_has_on_ctrl_c(scene):
                   Progress("capture", enabled=False))
     assert got is not None and list(got.frames()) == list(range(100))
     assert monitor.samples.sum() > 0 and not monitor.done()
+
+
+def test_projector_dots_join_the_wand_solve_and_hold_the_world_frame():
+    from calibkit import bundle
+
+    rig = sim.make_rig(4, 4.0, seed=14)
+    truth = sim.wand_motion(300, 100.0, 4.0, SPACING, seed=14)
+    obs = sim.observe(rig, truth, noise_px=0.2, seed=14)
+    projector = sim.make_projector(4.0, seed=14)
+    u, v = np.meshgrid(np.linspace(100, 1180, 8), np.linspace(100, 700, 6))
+    xyz, plane = sim.projector_scene(projector, np.stack([u.ravel(), v.ravel()], axis=1))
+    xyz = xyz[plane == 0]
+    dots = sim.observe(rig, Truth(np.zeros(len(xyz)), np.arange(len(xyz)), xyz),
+                       noise_px=0.2, seed=15)
+
+    def extra(start: Rig) -> bundle.BundleData:
+        cam = np.array([start.names.index(n) for n in dots.camera_names])[dots.camera]
+        pts = np.arange(len(xyz))
+        return bundle.BundleData(start, dots.marker, cam, dots.uv, xyz, known_point=pts,
+                                 known_xyz=xyz, plane_point=pts,
+                                 plane_normal=np.tile([0.0, 0.0, 1.0], (len(xyz), 1)),
+                                 plane_offset_m=np.zeros(len(xyz)))
+
+    rng = np.random.default_rng(3)
+    start = Rig(tuple(c.replace(t=c.t + rng.normal(0, 0.02, 3)) for c in rig))
+    cal = calibrate(obs, rig, SPACING, initial=start, extra=extra)
+    assert cal.report["world_frame"] == "floor"
+    # the dots' surveyed positions (1 mm) hold the frame: no alignment needed
+    err = np.linalg.norm(cal.rig.centres() - rig.centres(), axis=1)
+    assert err.max() < 5e-3
+    with pytest.raises(UserError, match="world frame"):
+        calibrate(obs, rig, SPACING, extra=extra)
