@@ -202,7 +202,7 @@ class Labeller:
             q = self.pos[tracked] + self.vel[tracked] * (self.age[tracked, None] + 1)
             diff = q[:, None] - P[None]
             cost = np.sqrt(np.einsum("tki,tki->tk", diff, diff))
-            cost[cost > self.gate_m] = BIG
+            cost[~(cost <= self.gate_m)] = BIG          # also NaN: no prediction
             r, c = linear_sum_assignment(cost)
             good = cost[r, c] < BIG
             point_of[tracked[r[good]]] = c[good]
@@ -465,6 +465,7 @@ class Labeller:
         # once it has been seen twice in a row: a one-frame ghost must not move it
         steady = seen_prev | (has & ~np.isfinite(self.snap[np.arange(self.n),
                                                               np.arange(self.n)]).all(1))
+        self.vel[~np.isfinite(self.vel).all(1)] = 0.0
         self.pos = np.where(has[:, None], cur, self.pos)
         self.age = np.where(has, 0, self.age + 1)
         if steady.any():
