@@ -127,7 +127,11 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
         opts = options or bundle.BundleOptions(refine_intrinsics=refine_intrinsics,
                                                reference_camera=int(np.argmax(
                                                    np.bincount(cam, minlength=len(start)))))
-        result = bundle.solve(data, opts, progress)
+        try:
+            result = bundle.solve(data, opts, progress)
+        except RuntimeError as exc:  # GTSAM: an indeterminate system (too little data)
+            raise UserError(f"the bundle adjustment failed ({str(exc).splitlines()[0]}): a "
+                            "camera sees too few wand markers; capture longer") from None
         start = result.rig
     # the world frame
     if world is None and extra is not None:  # the extra points' priors set the frame
