@@ -79,8 +79,10 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
                         f"(fewer than {MIN_WAND_FRAMES}): left out, not calibrated")
     keep_cams = [c for c in range(len(intr)) if intr[c].name not in never]
     if len(keep_cams) < 2:
-        raise UserError("fewer than two cameras saw the wand: nothing to calibrate (is the "
-                        "wand spacing right? see --spacing)")
+        seen = ", ".join(f"{n} {k}" for n, k in zip(intr.names, per_cam.tolist(), strict=True))
+        raise UserError(f"fewer than two cameras saw the wand in {MIN_WAND_FRAMES} frames or "
+                        f"more (frames with the wand: {seen}); capture longer, or check "
+                        "--spacing")
     # hold out 10 % of the wand frames, chosen at random
     rng = np.random.default_rng(seed)
     frames = wand.frames()
