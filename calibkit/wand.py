@@ -230,6 +230,16 @@ class CaptureMonitor:
         return " ".join(f"{n}:{s}/{100 * c:.0f}%" for n, s, c in
                         zip(self.names, self.samples, self.coverage, strict=True))
 
+    def grid_text(self) -> str:
+        """The cells each camera's markers visited ('#') and not ('.'), cameras side by
+        side: where in the image to wave the wand next."""
+        width = max(self.gx, max(len(n) for n in self.names))
+        lines = ["  ".join(n.ljust(width) for n in self.names)]
+        for y in range(self.gy):
+            lines.append("  ".join("".join("#" if v else "." for v in self.cells[c, y])
+                                   .ljust(width) for c in range(len(self.names))))
+        return "\n".join(line.rstrip() for line in lines)
+
     def rows(self) -> list[list]:
         return [[n, int(s), round(100 * float(c), 1), "yes" if d else "no"]
                 for n, s, c, d in zip(self.names, self.samples, self.coverage,

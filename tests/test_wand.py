@@ -105,6 +105,8 @@ def test_capture_monitor_stops_when_every_camera_has_enough(scene):
     m.add(WandObservations(("a",), ((640, 480),), np.arange(len(pts)), np.zeros(len(pts),
                            dtype=np.int32), np.zeros(len(pts), dtype=np.int32), pts))
     assert m.coverage[0] == 1.0
+    assert m.grid_text().splitlines()[1:] == ["########"] * 6
+    assert set("".join(monitor.grid_text().splitlines()[1:]).replace(" ", "")) <= {"#", "."}
 
 
 def test_initial_poses_from_nothing(scene):

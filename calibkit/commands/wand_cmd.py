@@ -183,6 +183,7 @@ def register(app: typer.Typer) -> None:
             if obs is None:
                 raise UserError("nothing was captured")
             print_table(monitor.rows(), ["camera", "wand samples", "coverage %", "enough"])
+            typer.echo("\nimage cells the wand reached (#):\n" + monitor.grid_text() + "\n")
             typer.echo(f"capture saved to {capture_path}")
         if floor_rec is not None:
             floor_obs_rec, _ = load_observations(floor_rec, intr)
