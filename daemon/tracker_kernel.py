@@ -11,10 +11,11 @@ drop the worst observation when it does not fit and solve again.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from calibkit.jit import jit
 
 
-@njit(cache=True)
+@jit
 def _project(R, t, fx, fy, cx, cy, skew, dist, c, X, J):
     """Pixel (u, v) and depth of X in camera c; d pixel / d X into J (2, 3)."""
     pc0 = R[c, 0, 0] * X[0] + R[c, 0, 1] * X[1] + R[c, 0, 2] * X[2] + t[c, 0]
@@ -47,7 +48,7 @@ def _project(R, t, fx, fy, cx, cy, skew, dist, c, X, J):
     return u, v, pc2
 
 
-@njit(cache=True)
+@jit
 def _solve(H, g, out):
     """out = H^-1 g for a symmetric 3x3 H; returns trace(H^-1), or -1 if singular."""
     a, b, c = H[0, 0], H[0, 1], H[0, 2]
@@ -68,7 +69,7 @@ def _solve(H, g, out):
     return (A + D + F) * inv
 
 
-@njit(cache=True)
+@jit
 def gate_and_solve(pred, gate, need, R, t, fx, fy, cx, cy, skew, dist, order, starts, uv,
                    outlier_px, two_view_px):
     """Tracks (pred (T, 3), gate_px (T,), cameras needed (T,)) against the frame's blobs
