@@ -51,7 +51,10 @@ def evaluate(rig: Rig, wand: WandObservations, spec: WandSpec, frames: np.ndarra
     lengths = _all_lengths(tri.xyz, pinfo, spec)
     err_mm = (lengths[:, 0] - lengths[:, 1]) * 1000.0
     err_mm = err_mm[np.isfinite(err_mm)]
-    behind = np.sum(~(z[ok] > 0))
+    # triangulation leaves a point out (NaN) when it lands behind one of its cameras: among
+    # markers seen twice or more, those are the observations a mirror image puts behind
+    seen2 = tri.n_cameras[pidx] >= 2
+    behind = np.sum(seen2 & ~ok)
     return {
         "frames": int(len(np.unique(w.frame))),
         "observations": int(ok.sum()),
@@ -64,7 +67,7 @@ def evaluate(rig: Rig, wand: WandObservations, spec: WandSpec, frames: np.ndarra
         else float("nan"),
         "mean_ray_distance_mm": float(np.nanmean(tri.ray_dist_m) * 1000.0)
         if np.isfinite(tri.ray_dist_m).any() else float("nan"),
-        "behind_share": float(behind / max(1, ok.sum())),
+        "behind_share": float(behind / max(1, seen2.sum())),
         "residual_px": r, "residual_camera": cam, "residual_uv": w.uv,
         "xyz": tri.xyz[np.isfinite(tri.xyz[:, 0])],
     }

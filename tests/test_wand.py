@@ -203,8 +203,19 @@ def test_impossible_solutions_are_flagged(calibrated):
     A = rotation_from_rvec([np.pi, 0, 0])
     flipped = wand_report.checks(floor.transform_rig(cal.rig, A, np.zeros(3)), xyz @ A.T, 0.0)
     assert flipped["upside_down"] and not flipped["ok"]
-    # a mirrored solution puts points behind the cameras that see them
-    assert wand_report.checks(cal.rig, xyz, 0.2)["mirrored"]
+    # the "twisted pair": a camera turned 180 degrees about its baseline to another one
+    # explains the same epipolar geometry, but the markers then triangulate behind cameras
+    c0, c1 = cal.rig[0].centre, cal.rig[1].centre
+    axis = (c1 - c0) / np.linalg.norm(c1 - c0)
+    half_turn = rotation_from_rvec(np.pi * axis)
+    twisted_cam = cal.rig[1].replace(R=cal.rig[1].R @ half_turn.T)
+    twisted_cam = twisted_cam.replace(t=-twisted_cam.R @ c1)
+    twisted = cal.rig.replace_camera(twisted_cam)
+    camera_of = np.array([twisted.index(n) for n in cal.wand.camera_names])
+    fig = wand_report.evaluate(twisted, cal.wand, WandSpec(SPACING), None, camera_of)
+    assert fig["behind_share"] > wand_report.BEHIND_SHARE
+    assert wand_report.checks(twisted, fig["xyz"], fig["behind_share"])["mirrored"]
+    assert cal.solved["behind_share"] == 0.0
     grade, reason = wand_report.grade(cal.report["held_out"], flipped, 0.5)
     assert grade == "failed" and "upside down" in reason
 
