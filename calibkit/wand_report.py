@@ -93,8 +93,9 @@ def checks(rig: Rig, points_xyz: np.ndarray, behind_share: float) -> dict:
 
     camera_behind_volume: the middle of the wand's points lies behind a camera.
     upside_down: the wand moved mostly below the floor (z < 0), or most cameras sit below it.
-    mirrored: more than 1 % of observations lie behind their camera (the "twisted pair"
-    of a two-view start, a mirror image of the true rig), or a left-handed camera.
+    mirrored: more than 1 % of the observations of markers seen twice or more triangulate
+    behind a camera (evaluate's behind_share: the "twisted pair" of a two-view start, a
+    mirror image of the true rig), or a left-handed camera.
     """
     pts = points_xyz[np.isfinite(points_xyz).all(axis=1)]
     middle = np.median(pts, axis=0) if len(pts) else np.zeros(3)
