@@ -45,6 +45,7 @@ class AllCameras:
     frame, so this layout is what it needs."""
 
     def __init__(self, arrays: RigArrays) -> None:
+        self.arrays = arrays
         self.n = len(arrays.fx)
         self.R_stack = arrays.R.reshape(-1, 3).T.copy()  # (3, 3C): X @ R_stack -> (T, 3C)
         self.R = arrays.R

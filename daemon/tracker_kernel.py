@@ -170,3 +170,69 @@ def gate_and_solve(pred, gate, need, R, t, fx, fy, cx, cy, skew, dist, order, st
         ok[i] = good
         sigma[i] = np.sqrt(max(tr, 0.0) / 3.0)
     return blobs, explained, xyz, ok, n_used, sigma
+
+
+@jit
+def refine_step(R, t, markers, obs, uv, Rc, tc, fx, fy, cx, cy, skew, dist, valid):
+    """One Gauss-Newton step on each valid body's pose against its markers' blobs (the
+    compiled form of daemon.rigid.refine_poses; tests compare them). R (B, 3, 3) and
+    t (B, 3) are updated in place."""
+    B, K = markers.shape[0], markers.shape[1]
+    C = obs.shape[2]
+    J = np.zeros((2, 3))
+    Jp = np.zeros((2, 6))
+    H = np.zeros((6, 6))
+    g = np.zeros(6)
+    X = np.zeros(3)
+    Rm = np.zeros(3)
+    for b in range(B):
+        if not valid[b]:
+            continue
+        H[:, :] = 0.0
+        g[:] = 0.0
+        n = 0
+        for k in range(K):
+            for a in range(3):
+                Rm[a] = R[b, a, 0] * markers[b, k, 0] + R[b, a, 1] * markers[b, k, 1] \
+                    + R[b, a, 2] * markers[b, k, 2]
+                X[a] = Rm[a] + t[b, a]
+            for c in range(C):
+                m = obs[b, k, c]
+                if m < 0:
+                    continue
+                u, v, z = _project(Rc, tc, fx, fy, cx, cy, skew, dist, c, X, J)
+                if z <= 0:
+                    continue
+                r0 = u - uv[m, 0]
+                r1 = v - uv[m, 1]
+                # d X / d(rotation increment) = -[Rm]x ; d X / d t = I
+                for i in range(2):
+                    Jp[i, 0] = J[i, 2] * Rm[1] - J[i, 1] * Rm[2]
+                    Jp[i, 1] = J[i, 0] * Rm[2] - J[i, 2] * Rm[0]
+                    Jp[i, 2] = J[i, 1] * Rm[0] - J[i, 0] * Rm[1]
+                    Jp[i, 3] = J[i, 0]
+                    Jp[i, 4] = J[i, 1]
+                    Jp[i, 5] = J[i, 2]
+                for p in range(6):
+                    g[p] += Jp[0, p] * r0 + Jp[1, p] * r1
+                    for q in range(6):
+                        H[p, q] += Jp[0, p] * Jp[0, q] + Jp[1, p] * Jp[1, q]
+                n += 1
+        if n < 6:
+            continue
+        step = -np.linalg.solve(H, g)
+        angle = np.sqrt(step[0] ** 2 + step[1] ** 2 + step[2] ** 2)
+        if angle > 1e-300:
+            kx, ky, kz = step[0] / angle, step[1] / angle, step[2] / angle
+        else:
+            kx, ky, kz = 0.0, 0.0, 0.0
+        s, c1 = np.sin(angle), 1.0 - np.cos(angle)
+        dR = np.array([[1 - c1 * (ky * ky + kz * kz), -s * kz + c1 * kx * ky,
+                        s * ky + c1 * kx * kz],
+                       [s * kz + c1 * kx * ky, 1 - c1 * (kx * kx + kz * kz),
+                        -s * kx + c1 * ky * kz],
+                       [-s * ky + c1 * kx * kz, s * kx + c1 * ky * kz,
+                        1 - c1 * (kx * kx + ky * ky)]])
+        R[b] = dR @ R[b]
+        for a in range(3):
+            t[b, a] += step[3 + a]
