@@ -307,6 +307,12 @@ class Daemon:
         warm.ids, warm.xyz = np.array([1]), self.rig.centres().mean(axis=0)[None] * 0.0
         warm.vel, warm.missing = np.zeros((1, 3)), np.zeros(1, dtype=np.int64)
         warm.update(np.arange(len(self.rig)), np.zeros((len(self.rig), 2)) + 100.0, 0)
+        from daemon.tracker_kernel import refine_step
+
+        a = warm.arrays
+        refine_step(np.tile(np.eye(3), (1, 1, 1)), np.zeros((1, 3)), np.zeros((1, 3, 3)),
+                    np.full((1, 3, len(self.rig)), -1, dtype=np.int64), np.zeros((1, 2)),
+                    a.R, a.t, a.fx, a.fy, a.cx, a.cy, a.skew, a.dist, np.ones(1, dtype=bool))
         if self.scene is None:  # live cameras: detection has compiled kernels too
             from calibkit.detect import detect
 
