@@ -39,7 +39,8 @@ class Labeller:
                  adapt: float = 0.02, smooth: float = 1.0, structure_limit: float = 2.0,
                  candidate_limit: float = 1.0, ambiguity: float = 4.0,
                  witnesses: bool = False, spread_gain: float = 2.0,
-                 fresh_margin: float = 4.0, shape_check: bool = False) -> None:
+                 fresh_margin: float = 4.0, shape_check: bool = False,
+                 suspect_frames: int = 30) -> None:
         self.ms = markerset
         n = markerset.n
         self.n = n
@@ -54,6 +55,7 @@ class Labeller:
         self.ambiguity = ambiguity
         self.witnesses = witnesses
         self.spread_gain = spread_gain
+        self.suspect_frames = suspect_frames
         self.fresh_margin = fresh_margin
         self._support_spread = np.zeros(0)
         sd = markerset.sd_m.copy()
@@ -416,7 +418,7 @@ class Labeller:
         """Swap two labelled markers when their distances to the other markers fit much
         better the other way round (a swap that tracking alone would carry on)."""
         i, j = self.swap_pairs[:, 0], self.swap_pairs[:, 1]
-        suspect = (self.since_reacquired < 60) | (np.nan_to_num(err) > 0.5)
+        suspect = (self.since_reacquired < self.suspect_frames) | (np.nan_to_num(err) > 0.5)
         done = self._witness_swaps(cur, point_of, marker_of, err, suspect)
         done |= self._check_segment_order(cur, point_of, marker_of, suspect)
         if not suspect.any():
