@@ -121,6 +121,7 @@ def run_tracking(rig, bodies, frames, score=None, tracker=None, rigid=None, skip
         t0 = time.perf_counter()
         tr = tracker.update(cam, uv, int(f * 1e9 / FPS))
         poses = rigid.update(tr, uv, tracker.cams)
+        tracker.place(*rigid.hidden_markers(tr))
         result_packet(_Result(f, int(f * 1e9 / FPS), poses))
         times.append(time.perf_counter() - t0)
         if score is not None and f >= skip:

@@ -172,6 +172,7 @@ class RigidTracker:
                             a.skew, a.dist, valid)
             else:
                 R, t = refine_poses(R, t, self.markers, obs, uv, cameras, valid)
+        self._last = (R, t, valid)
         R, t = self._smooth(R, t, valid)
         position = np.einsum("bij,bj->bi", R, self.pivot) + t
         position[~valid] = np.nan
@@ -180,6 +181,20 @@ class RigidTracker:
         err = np.where(valid, err, np.nan)
         return BodyPoses(self.ids.copy(), valid, position, R, q, err, used,
                          self.assigned.copy())
+
+    def hidden_markers(self, tracks: TrackFrame) -> tuple[np.ndarray, np.ndarray]:
+        """(track ids, positions) of the markers of tracked bodies whose tracks were not
+        seen this frame: where the body's pose puts them. Handed back to the tracker, an
+        occluded marker's track follows its body instead of coasting straight on, so it
+        reappears inside its gate and a passing marker is not taken for it."""
+        R, t, valid = getattr(self, "_last", (None, None, None))
+        if R is None or not np.any(valid) or not len(tracks):
+            return np.zeros(0, np.int64), np.zeros((0, 3))
+        row = self._rows(tracks, self.assigned)
+        hidden = valid[:, None] & (row >= 0) & ~tracks.seen[np.maximum(row, 0)]
+        b, k = np.nonzero(hidden)
+        where = np.einsum("nij,nj->ni", R[b], self.markers[b, k]) + t[b]
+        return self.assigned[b, k], where
 
     # ---- pieces ----------------------------------------------------------------------------
 

@@ -121,6 +121,15 @@ class Tracker:
         self.last_t_ns: int | None = None
         self.frames = 0
 
+    def place(self, ids: np.ndarray, xyz: np.ndarray) -> None:
+        """Move coasting tracks to better positions (an occluded marker where its rigid
+        body's pose puts it); their next prediction starts there."""
+        if not len(ids) or not len(self.ids):
+            return
+        pos = np.minimum(np.searchsorted(self.ids, ids), len(self.ids) - 1)
+        hit = self.ids[pos] == ids
+        self.xyz[pos[hit]] = xyz[hit]
+
     def reset(self) -> None:
         self.__init__(self.rig, self.config)
 
