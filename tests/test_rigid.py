@@ -183,3 +183,25 @@ def test_compiled_refinement_matches_numpy():
         np.testing.assert_allclose(pa.rotation[pa.valid], pb.rotation[pb.valid], atol=1e-9)
         moved = max(moved, float(np.nanmax(np.abs(pa.position - pp.position), initial=0)))
     assert moved > 1e-6  # the refinement did change the poses
+
+
+def test_hidden_markers_of_a_tracked_body_follow_its_pose():
+    markers = np.array([[0, 0, 0], [0.12, 0, 0], [0, 0.08, 0.01], [0.05, 0.05, 0.06]], float)
+    rt = RigidTracker([BodyDef("a", 1, markers, np.zeros(3), 3, 3)], RigidConfig(refine=False))
+    ids = np.arange(1, 5)
+    rt.update(_frame(ids, markers + [0, 0, 1]))
+    moved = markers + [0.01, 0.02, 1.0]
+    seen = np.array([True, True, True, False])  # marker 3 hidden; its track coasts elsewhere
+    xyz = moved.copy()
+    xyz[3] = [5.0, 5.0, 5.0]
+    rt.update(_frame(ids, xyz, seen))
+    hid, where = rt.hidden_markers(_frame(ids, xyz, seen))
+    assert hid.tolist() == [4]
+    np.testing.assert_allclose(where[0], moved[3], atol=1e-9)
+    rig = sim.make_rig(4, 4.0, seed=0)
+    tr = Tracker(rig)
+    tr.ids, tr.xyz = ids.copy(), xyz.copy()
+    tr.vel, tr.missing = np.zeros((4, 3)), np.zeros(4, dtype=np.int64)
+    tr.place(hid, where)
+    np.testing.assert_allclose(tr.xyz[3], moved[3], atol=1e-9)
+    np.testing.assert_allclose(tr.xyz[:3], xyz[:3])
