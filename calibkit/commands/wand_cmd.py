@@ -107,6 +107,10 @@ def register(app: typer.Typer) -> None:
         rig_path: Annotated[Path | None, typer.Option(
             "--rig", help="Rig file with intrinsics and initial poses (e.g. from "
                           "calibkit extrinsic).")] = None,
+        dots: Annotated[Path | None, typer.Option(
+            "--dots", help="Projector dots on the floor and table (NAME.dots.npz from "
+                           "calibkit extrinsic): solved with the wand, they hold the world "
+                           "frame; needs --rig from the same extrinsic run.")] = None,
         spacing: Annotated[str, typer.Option(
             "--spacing", help="Marker positions along the wand, metres.")] = "0,0.2,0.5",
         refine_intrinsics: Annotated[bool, typer.Option(
@@ -149,6 +153,22 @@ def register(app: typer.Typer) -> None:
             raise UserError("give exactly one of --from REC, --sim or --camera (live)")
         if intrinsics is not None and rig_path is not None:
             raise UserError("give --intrinsics or --rig, not both")
+        if dots is not None and rig_path is None:
+            raise UserError("--dots needs --rig: the poses from the calibkit extrinsic run that "
+                            "wrote the dots (they are in the same world frame)")
+        if dots is not None and floor_rec is not None:
+            raise UserError("give --dots or --floor, not both: each sets the world frame")
+        extra = None
+        if dots is not None:
+            from calibkit.extrinsic import bundle_data, load_dots
+
+            dot_obs = load_dots(dots)
+
+            def extra(start_rig):
+                # On their planes only: the dots' positions come from a homography fitted to
+                # tape measurements (mm errors) and priors on them pull the wand's scale and
+                # shape; the planes alone kept the rig 2.7x closer to the truth (docs/wand.md).
+                return bundle_data(start_rig, dot_obs, known=False)
         initial = Rig.load(rig_path) if rig_path is not None else None
         intr = initial or (Rig.load(intrinsics) if intrinsics is not None else None)
         capture_path = save_capture or out.with_name(out.stem + ".capture.mcrec")
@@ -195,7 +215,8 @@ def register(app: typer.Typer) -> None:
 
         progress = Progress("wand solve, iterations")
         cal = calibrate(obs, intr, spec.spacing_m, initial, refine_intrinsics, holdout, seed,
-                        world, progress=lambda text: progress.update(progress.done + 1, text))
+                        world, progress=lambda text: progress.update(progress.done + 1, text),
+                        extra=extra)
         progress.finish(f"{cal.report['solve']['time_s']:.1f} s in the solver")
         cal.rig.save(out)
         if use_sim:
