@@ -480,7 +480,7 @@ class Labeller:
 # ---------------------------------------------------------------------- from scratch
 
 
-SUBJECT_REL = 0.06   # another body: distances differ by this fraction (1 SD) at least
+SUBJECT_REL = 0.15   # another body: distances differ by this fraction (1 SD) at least
 
 
 def _tolerance(ms: MarkerSet, noise_m: float = 0.003) -> np.ndarray:
