@@ -66,6 +66,16 @@ def test_other_subjects_marker_set_with_seed_frames(walk, acro):
     assert score(pts, truth, labels, 10)["correct"] >= 0.999
 
 
+def test_other_subjects_marker_set_from_the_template_alone(walk):
+    """No labelled frame and a marker set learned on another person: the tolerance for
+    another body's distances (15 %) still finds a start frame, and tracking learns the
+    rest (one marker of 41 may stay wrong)."""
+    ms = learn([read_c3d(DATA / "85_02.c3d")])
+    pts, truth = points_with_ghosts(walk, 0, seed=2)
+    _, _, labels = label_take(pts, ms)
+    assert score(pts, truth, labels)["correct"] >= 0.95
+
+
 @pytest.mark.parametrize("which", ["walk", "acro"])
 def test_hidden_spans_and_ghosts(which, walk, acro, cmu41):
     """20 % of marker-frames hidden in spans of 0.1-1 s and 3 ghosts per frame: the issue's
