@@ -37,6 +37,8 @@ class Publisher:
         self._stop = False
         self._thread: threading.Thread | None = None
         self._next_due = 0.0
+        self._next_open = 0.0  # when a failed output may be opened again
+        self._in_flight = False  # the worker holds a frame it has not sent yet
         self.sent = 0
         self.dropped = 0  # frames pushed out of a full queue
         self.errors = 0
@@ -69,15 +71,17 @@ class Publisher:
             if now < self._next_due:
                 return
             self._next_due = max(self._next_due + 1.0 / self.rate_hz, now - 0.5 / self.rate_hz)
-        if self.inline and self.connected and not self._queue:
-            try:
-                self.send(result)
-                self.sent += 1
-                self.send_ns.append((result.arrival_ns, time.monotonic_ns()))
-                return
-            except Exception:  # noqa: BLE001 - the worker logs it and reopens
-                pass
         with self._cond:
+            # Inline only when the worker holds nothing: a frame it has popped but not yet
+            # sent would otherwise go out after this newer one (frames out of order).
+            if self.inline and self.connected and not self._queue and not self._in_flight:
+                try:
+                    self.send(result)
+                    self.sent += 1
+                    self.send_ns.append((result.arrival_ns, time.monotonic_ns()))
+                    return
+                except Exception:  # noqa: BLE001 - the worker logs it and reopens
+                    pass
             if len(self._queue) == self._queue.maxlen:
                 self.dropped += 1
             self._queue.append(result)
@@ -96,7 +100,6 @@ class Publisher:
                 "dropped": self.dropped, "errors": self.errors, "last_error": self.last_error}
 
     def _run(self) -> None:
-        next_open = 0.0
         while True:
             with self._cond:
                 while not self._queue and not self._stop:
@@ -104,35 +107,42 @@ class Publisher:
                 if self._stop and (not self._queue or not self.connected):
                     break
                 result = self._queue.popleft() if self._queue else None
-            if result is None:
-                continue
-            if not self.connected:
-                if time.monotonic() < next_open:
-                    self.dropped += 1
-                    continue
-                try:
-                    self.open()
-                    self.connected = True
-                    log.info("%s: open", self.name)
-                except Exception as exc:  # noqa: BLE001 - any failure is retried
-                    self._failed(f"cannot open: {exc}")
-                    next_open = time.monotonic() + self.retry_s
-                    self.dropped += 1
-                    continue
+                self._in_flight = result is not None
             try:
-                self.send(result)
-                self.sent += 1
-                self.send_ns.append((result.arrival_ns, time.monotonic_ns()))
-            except Exception as exc:  # noqa: BLE001
-                self._failed(f"send failed: {exc}")
-                self._safe_close()
-                next_open = time.monotonic() + self.retry_s
+                if result is not None:
+                    self._deliver(result)
+            finally:
+                self._in_flight = False
         self._safe_close()
+
+    def _deliver(self, result) -> None:
+        """Open the output if needed (at most once per retry_s) and send one frame."""
+        if not self.connected:
+            if time.monotonic() < self._next_open:
+                self.dropped += 1
+                return
+            try:
+                self.open()
+                self.connected = True
+                log.info("%s: open", self.name)
+            except Exception as exc:  # noqa: BLE001 - any failure is retried
+                self._failed(f"cannot open: {exc}")
+                self._next_open = time.monotonic() + self.retry_s
+                self.dropped += 1
+                return
+        try:
+            self.send(result)
+            self.sent += 1
+            self.send_ns.append((result.arrival_ns, time.monotonic_ns()))
+        except Exception as exc:  # noqa: BLE001
+            self._failed(f"send failed: {exc}")
+            self._safe_close()
+            self._next_open = time.monotonic() + self.retry_s
 
     def _failed(self, message: str) -> None:
         self.errors += 1
         if message != self.last_error:
-            log.warning("%s: %s (retrying every %.0f s)", self.name, message, self.retry_s)
+            log.warning("%s: %s (retrying every %g s)", self.name, message, self.retry_s)
         self.last_error = message
 
     def _safe_close(self) -> None:
