@@ -28,9 +28,7 @@ from projector.patterns import (
     ROLE_OFF,
     ROLE_ON,
     Schedule,
-    check_by_neighbours,
-    decode_layer,
-    identify_by_neighbours,
+    name_layer,
 )
 
 
@@ -196,35 +194,15 @@ class DotCapture:
             assert sch.frames[off_i].role == ROLE_OFF
             found, spread = self._find_dots(step_images[on_i], step_images[off_i],
                                             on_shots[on_i])
-            if predicted:
-                known = np.concatenate(ids) if ids else np.zeros(0, np.int64)
-                ref_uv = np.concatenate(uv) if uv else np.zeros((0, 2))
-                layer_ids = sch.layers[layer]
-                pick = identify_by_neighbours(sch.points_xy[known], ref_uv,
-                                              sch.points_xy[layer_ids], found)
-                got = np.where(pick >= 0, layer_ids[np.maximum(pick, 0)], -1)
-            else:
-                got, _ = decode_layer(sch, layer, step_images, found,
-                                      window_px=max(1.0, self._radius_img(found)))
-                named = np.nonzero(got >= 0)[0]
-                agree = check_by_neighbours(sch.points_xy[got[named]], found[named])
-                got[named[~agree]] = -1
+            known = np.concatenate(ids) if ids else np.zeros(0, np.int64)
+            known_uv = np.concatenate(uv) if uv else np.zeros((0, 2))
+            got = name_layer(sch, layer, step_images, found, known, known_uv)
             keep = got >= 0
             rejected += int((~keep).sum())
             ids.append(got[keep])
             uv.append(found[keep])
             scatter.append(spread[keep])
         return ids, uv, scatter, rejected
-
-    @staticmethod
-    def _radius_img(uv: np.ndarray) -> float:
-        """A sampling window well inside the dot spacing in the image."""
-        if len(uv) < 2:
-            return 2.0
-        from scipy.spatial import cKDTree
-
-        dist, _ = cKDTree(uv).query(uv, k=2)
-        return float(np.clip(np.median(dist[:, 1]) / 6.0, 1.0, 4.0))
 
     def _find_dots(self, on: np.ndarray, off: np.ndarray, shots: list[np.ndarray]
                    ) -> tuple[np.ndarray, np.ndarray]:

@@ -36,9 +36,7 @@ from projector.display import Dots
 from projector.patterns import (
     ROLE_OFF,
     Schedule,
-    check_by_neighbours,
-    decode_layer,
-    identify_by_neighbours,
+    name_layer,
 )
 
 try:
@@ -474,15 +472,6 @@ def find_dots(on: np.ndarray, off: np.ndarray, shots: list[np.ndarray],
     return uv[keep], spread[keep]
 
 
-def _window_px(uv: np.ndarray) -> float:
-    if len(uv) < 2:
-        return 2.0
-    from scipy.spatial import cKDTree
-
-    dist, _ = cKDTree(uv).query(uv, k=2)
-    return float(np.clip(np.median(dist[:, 1]) / 6.0, 1.0, 4.0))
-
-
 def identify_dots(schedule: Schedule, step_images: dict[int, np.ndarray | None],
                   on_shots: dict[int, list[np.ndarray]], max_scatter_px: float = 0.3
                   ) -> CameraDots:
@@ -499,19 +488,9 @@ def identify_dots(schedule: Schedule, step_images: dict[int, np.ndarray | None],
         if on_img is None or off_img is None:
             continue
         found, spread = find_dots(on_img, off_img, on_shots[on_i], max_scatter_px)
-        if len(idx) == 1:  # predicted from the named neighbours
-            known = np.concatenate(ids) if ids else np.zeros(0, np.int64)
-            ref_uv = np.concatenate(uv) if uv else np.zeros((0, 2))
-            layer_ids = schedule.layers[layer]
-            pick = identify_by_neighbours(schedule.points_xy[known], ref_uv,
-                                          schedule.points_xy[layer_ids], found)
-            got = np.where(pick >= 0, layer_ids[np.maximum(pick, 0)], -1)
-        else:
-            got, _ = decode_layer(schedule, layer, step_images, found,
-                                  window_px=max(1.0, _window_px(found)))
-            named = np.flatnonzero(got >= 0)
-            agree = check_by_neighbours(schedule.points_xy[got[named]], found[named])
-            got[named[~agree]] = -1
+        known = np.concatenate(ids) if ids else np.zeros(0, np.int64)
+        known_uv = np.concatenate(uv) if uv else np.zeros((0, 2))
+        got = name_layer(schedule, layer, step_images, found, known, known_uv)
         keep = got >= 0
         rejected += int((~keep).sum())
         ids.append(got[keep])

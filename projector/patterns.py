@@ -360,3 +360,32 @@ def identify_by_neighbours(ref_screen: np.ndarray, ref_uv: np.ndarray, screen: n
     mutual = i_back[j[cand]] == cand
     out[j[cand[mutual]]] = cand[mutual]
     return out
+
+
+def sampling_window_px(uv: np.ndarray) -> float:
+    """A window for sampling a dot's code, well inside the dots' spacing in the image."""
+    if len(uv) < 2:
+        return 2.0
+    from scipy.spatial import cKDTree
+
+    dist, _ = cKDTree(uv).query(uv, k=2)
+    return float(np.clip(np.median(dist[:, 1]) / 6.0, 1.0, 4.0))
+
+
+def name_layer(schedule: Schedule, layer: int, step_images: dict[int, np.ndarray | None],
+               found: np.ndarray, known_ids: np.ndarray, known_uv: np.ndarray) -> np.ndarray:
+    """The dot id of each dot `found` (image pixels) in one layer of a schedule, -1 where
+    none can be given: a coded layer by its code, each id then checked against its
+    neighbours; a predicted (uncoded) layer from where the dots already named (known_ids at
+    known_uv) put it. What the intrinsic and extrinsic captures share."""
+    if len(schedule.layer_frames(layer)) == 1:
+        layer_ids = schedule.layers[layer]
+        pick = identify_by_neighbours(schedule.points_xy[known_ids], known_uv,
+                                      schedule.points_xy[layer_ids], found)
+        return np.where(pick >= 0, layer_ids[np.maximum(pick, 0)], -1)
+    got, _ = decode_layer(schedule, layer, step_images, found,
+                          window_px=max(1.0, sampling_window_px(found)))
+    named = np.flatnonzero(got >= 0)
+    agree = check_by_neighbours(schedule.points_xy[got[named]], found[named])
+    got[named[~agree]] = -1
+    return got
