@@ -117,18 +117,23 @@ class Tracker:
         self.xyz = np.zeros((0, 3))
         self.vel = np.zeros((0, 3))
         self.missing = np.zeros(0, dtype=np.int64)
+        self.anchored = np.zeros(0, dtype=bool)  # placed by their rigid body since last frame
         self.next_id = 1
         self.last_t_ns: int | None = None
         self.frames = 0
 
     def place(self, ids: np.ndarray, xyz: np.ndarray) -> None:
         """Move coasting tracks to better positions (an occluded marker where its rigid
-        body's pose puts it); their next prediction starts there."""
+        body's pose puts it); their next prediction starts there. Such a track is
+        "anchored" for the next frame: its prediction is as good as its body's pose, so its
+        gate does not grow and only a point on top of it (merge_m) may revive it; a marker of
+        another body passing through its place would otherwise take its identity."""
         if not len(ids) or not len(self.ids):
             return
         pos = np.minimum(np.searchsorted(self.ids, ids), len(self.ids) - 1)
         hit = self.ids[pos] == ids
         self.xyz[pos[hit]] = xyz[hit]
+        self.anchored[pos[hit]] = True
 
     def reset(self) -> None:
         self.__init__(self.rig, self.config)
@@ -155,7 +160,7 @@ class Tracker:
             a = self.arrays
             order = np.argsort(camera, kind="stable")
             starts = np.searchsorted(camera[order], np.arange(n_cameras + 1))
-            gate = cfg.gate_px + cfg.gate_growth_px * np.minimum(self.missing, 4)
+            gate = self._gates()
             need = np.where(self.missing > 0, 3, 2)
             blobs, explained, xyz, ok, n_used, sigma = gate_and_solve(
                 pred, gate.astype(np.float64), need, a.R, a.t, a.fx, a.fy, a.cx, a.cy, a.skew,
@@ -193,11 +198,20 @@ class Tracker:
         if not np.all(keep):
             self.ids, self.xyz, self.vel = self.ids[keep], self.xyz[keep], self.vel[keep]
             self.missing = self.missing[keep]
+            self.anchored = self.anchored[keep]
             blobs, seen, n_cams = blobs[keep], seen[keep], n_cams[keep]
             self.sigma = self.sigma[keep]
+        self.anchored[:] = False  # until the rigid bodies place their hidden markers again
         sigma = np.where(seen, self.sigma, np.inf)
         return TrackFrame(self.ids.copy(), self.xyz.copy(), seen, n_cams, blobs,
                           self.missing.copy(), sigma)
+
+    def _gates(self) -> np.ndarray:
+        """Each track's gate (px): wider the longer it has been missing, unless its rigid
+        body placed it."""
+        cfg = self.config
+        growth = np.where(self.anchored, 0, np.minimum(self.missing, 4))
+        return cfg.gate_px + cfg.gate_growth_px * growth
 
     def _associate(self, proj: np.ndarray, front: np.ndarray, camera: np.ndarray,
                    uv: np.ndarray):
@@ -207,7 +221,6 @@ class Tracker:
 
         proj (T, C, 2) and front (T, C) are the tracks' predictions in every camera. The
         blobs are padded into a (C, Mmax) table so all cameras are compared at once."""
-        cfg = self.config
         n_tracks, n_cams = front.shape
         order = np.argsort(camera, kind="stable")
         cam_sorted = camera[order]
@@ -218,7 +231,7 @@ class Tracker:
         table[cam_sorted, rank] = uv[order]
         index = np.full((n_cams, max(width, 1)), -1, dtype=np.int64)
         index[cam_sorted, rank] = order
-        gate = cfg.gate_px + cfg.gate_growth_px * np.minimum(self.missing, 4)  # (T,)
+        gate = self._gates()  # (T,)
         dx = proj[:, :, 0, None] - table[None, :, :, 0]
         dy = proj[:, :, 1, None] - table[None, :, :, 1]
         d2 = dx * dx + dy * dy  # (T, C, W)
@@ -299,7 +312,8 @@ class Tracker:
             take &= ~np.any((d < cfg.merge_m) & seen[None, :], axis=1)
             # a point near a coasting track is that track back, if each is the other's only
             # candidate (two markers near one lost track would swap identities)
-            close = ~seen[None, :] & (d < cfg.revive_m) & take[:, None]
+            radius = np.where(self.anchored, cfg.merge_m, cfg.revive_m)
+            close = ~seen[None, :] & (d < radius[None, :]) & take[:, None]
             near = np.argmax(close, axis=1)
             revive = (close.sum(axis=1) == 1) & (close.sum(axis=0)[near] == 1)
             if np.any(revive):
@@ -321,6 +335,7 @@ class Tracker:
             self.xyz = np.concatenate([self.xyz, xyz[take]])
             self.vel = np.concatenate([self.vel, np.zeros((k, 3))])
             self.missing = np.concatenate([self.missing, np.zeros(k, dtype=np.int64)])
+            self.anchored = np.concatenate([self.anchored, np.zeros(k, dtype=bool)])
             seen = np.concatenate([seen, np.ones(k, dtype=bool)])
             # a new point's certainty: like a tracked one seen by as many cameras
             typical = np.median(self.sigma[np.isfinite(self.sigma)]) if np.any(

@@ -202,6 +202,8 @@ def test_hidden_markers_of_a_tracked_body_follow_its_pose():
     tr = Tracker(rig)
     tr.ids, tr.xyz = ids.copy(), xyz.copy()
     tr.vel, tr.missing = np.zeros((4, 3)), np.zeros(4, dtype=np.int64)
+    tr.anchored = np.zeros(4, dtype=bool)
     tr.place(hid, where)
     np.testing.assert_allclose(tr.xyz[3], moved[3], atol=1e-9)
+    assert tr.anchored.tolist() == [False, False, False, True]  # placed: gate stays narrow
     np.testing.assert_allclose(tr.xyz[:3], xyz[:3])
