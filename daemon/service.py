@@ -304,8 +304,7 @@ class Daemon:
 
         # the tracker's kernel: one track in front of the rig, one blob per camera
         warm = Tracker(self.rig, self.config.tracker)
-        warm.ids, warm.xyz = np.array([1]), self.rig.centres().mean(axis=0)[None] * 0.0
-        warm.vel, warm.missing = np.zeros((1, 3)), np.zeros(1, dtype=np.int64)
+        warm.set_tracks(np.array([1]), np.zeros((1, 3)))
         warm.update(np.arange(len(self.rig)), np.zeros((len(self.rig), 2)) + 100.0, 0)
         from daemon.tracker_kernel import refine_step
 

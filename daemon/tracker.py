@@ -122,6 +122,17 @@ class Tracker:
         self.last_t_ns: int | None = None
         self.frames = 0
 
+    def set_tracks(self, ids: np.ndarray, xyz: np.ndarray) -> None:
+        """Start from these tracks (ids ascending), at rest and just seen: for warming the
+        compiled kernels up and for tests; every per-track array stays the same length."""
+        self.ids = np.asarray(ids, dtype=np.int64).reshape(-1).copy()
+        n = len(self.ids)
+        self.xyz = np.asarray(xyz, dtype=np.float64).reshape(n, 3).copy()
+        self.vel = np.zeros((n, 3))
+        self.missing = np.zeros(n, dtype=np.int64)
+        self.anchored = np.zeros(n, dtype=bool)
+        self.next_id = int(self.ids.max(initial=0)) + 1
+
     def place(self, ids: np.ndarray, xyz: np.ndarray) -> None:
         """Move coasting tracks to better positions (an occluded marker where its rigid
         body's pose puts it); their next prediction starts there. Such a track is

@@ -200,9 +200,7 @@ def test_hidden_markers_of_a_tracked_body_follow_its_pose():
     np.testing.assert_allclose(where[0], moved[3], atol=1e-9)
     rig = sim.make_rig(4, 4.0, seed=0)
     tr = Tracker(rig)
-    tr.ids, tr.xyz = ids.copy(), xyz.copy()
-    tr.vel, tr.missing = np.zeros((4, 3)), np.zeros(4, dtype=np.int64)
-    tr.anchored = np.zeros(4, dtype=bool)
+    tr.set_tracks(ids, xyz)
     tr.place(hid, where)
     np.testing.assert_allclose(tr.xyz[3], moved[3], atol=1e-9)
     assert tr.anchored.tolist() == [False, False, False, True]  # placed: gate stays narrow
