@@ -276,34 +276,21 @@ def export_bvh(path: str | Path, skel: Skeleton, take: Take) -> None:
     F = take.n_frames
     rots = np.zeros((F, len(names), 3, 3))
     for i, j in enumerate(skel.joints):
-        R = _hold(R_w[j.name])
+        R = _hold(R_w[j.name], np.eye(3))
         if j.parent is None:
             rots[:, i] = R
         else:
-            Rp = _hold(R_w[j.parent])
+            Rp = _hold(R_w[j.parent], np.eye(3))
             rots[:, i] = np.einsum("fji,fjk->fik", Rp, R)
-    root_pos = _hold_vec(J[names[parents.index(-1)]])
+    root_pos = _hold(J[names[parents.index(-1)]], np.zeros(3))
     write_bvh(path, names, parents, offsets, root_pos, rots, take.rate_hz)
 
 
-def _hold(R: np.ndarray) -> np.ndarray:
-    """Frames without a pose keep the last one (identity before the first)."""
-    out = R.copy()
-    last = np.eye(3)
-    for f in range(len(out)):
-        if np.isfinite(out[f]).all():
-            last = out[f]
-        else:
-            out[f] = last
-    return out
-
-
-def _hold_vec(x: np.ndarray) -> np.ndarray:
-    out = x.copy()
-    last = np.zeros(3)
-    for f in range(len(out)):
-        if np.isfinite(out[f]).all():
-            last = out[f]
-        else:
-            out[f] = last
+def _hold(x: np.ndarray, before: np.ndarray) -> np.ndarray:
+    """Frames (rows) without a finite value keep the last one; `before` until the first."""
+    x = np.asarray(x, dtype=np.float64)
+    ok = np.isfinite(x.reshape(len(x), -1)).all(axis=1)
+    last = np.maximum.accumulate(np.where(ok, np.arange(len(x)), -1))
+    out = x[np.maximum(last, 0)].copy()
+    out[last < 0] = before
     return out
