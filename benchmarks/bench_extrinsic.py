@@ -91,7 +91,7 @@ def with_wand(seed: int, n_frames: int) -> dict:
     """The default calibration, then a wand dance (true labels, 0.2 px) solved together
     with the plane dots (extrinsic.bundle_data + join_bundle_data), no world transform."""
     from calibkit import bundle, sim
-    from calibkit.geometry import triangulate
+    from calibkit.wand_solve import labelled_wand_data
 
     v = Variant("default")
     scene = sp.make_scene(6, VOLUME, 0.75, seed=seed)
@@ -110,19 +110,7 @@ def with_wand(seed: int, n_frames: int) -> dict:
     spacing = (0.0, 0.2, 0.5)
     obs = sim.observe(scene.rig, sim.wand_motion(n_frames, 100.0, VOLUME, spacing, seed=seed),
                       noise_px=0.2, seed=seed)
-    pts, pidx = np.unique(obs.frame * 3 + obs.marker, return_inverse=True)
-    xyz = triangulate(res.rig, pidx, obs.camera, obs.uv, n_points=len(pts),
-                      ray_distance=False).xyz
-    frame, marker = np.divmod(pts, 3)
-    edges, lengths = [], []
-    for a, b in ((0, 1), (1, 2), (0, 2)):
-        ia = np.flatnonzero(marker == a)
-        ib = np.searchsorted(pts, frame[ia] * 3 + b).clip(0, len(pts) - 1)
-        ok = pts[ib] == frame[ia] * 3 + b
-        edges.append(np.column_stack([ia[ok], ib[ok]]))
-        lengths.append(np.full(int(ok.sum()), spacing[b] - spacing[a]))
-    wand = bundle.BundleData(res.rig, pidx, obs.camera, obs.uv, xyz, np.concatenate(edges),
-                             np.concatenate(lengths))
+    wand = labelled_wand_data(res.rig, obs, spacing)
     t0 = time.perf_counter()
     out = bundle.solve(ex.join_bundle_data(wand, ex.bundle_data(
         res.rig, res.dots.select(res.inlier))), bundle.BundleOptions(

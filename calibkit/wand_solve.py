@@ -56,6 +56,18 @@ def _edges(pinfo: np.ndarray, spec: WandSpec) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(E).reshape(-1, 2), np.concatenate(L)
 
 
+def labelled_wand_data(rig: Rig, obs: Observations, spacing_m) -> bundle.BundleData:
+    """Bundle input for wand blobs that carry their marker labels (the simulator's truth):
+    for benchmarks and tests that want the solve without the identification step. Cameras
+    are the rig's, numbered as in `obs`."""
+    spec = WandSpec(tuple(spacing_m))
+    pidx, pinfo = point_index(obs, spec.n_markers)
+    cam = obs.camera.astype(np.int64)
+    xyz = triangulate(rig, pidx, cam, obs.uv, n_points=len(pinfo), ray_distance=False).xyz
+    edge, length = _edges(pinfo, spec)
+    return bundle.BundleData(rig, pidx, cam, obs.uv, xyz, edge, length)
+
+
 def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None = None,
               refine_intrinsics: bool = False, holdout: float = 0.1, seed: int = 0,
               world: Callable[[Rig, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,

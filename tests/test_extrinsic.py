@@ -329,7 +329,7 @@ def test_plane_dots_hold_the_world_frame_in_a_wand_bundle():
     """The dots joined to a wand solve (bundle_data + join_bundle_data): no world transform
     afterwards, yet the cameras stay in the tape's frame, and agree better at head height."""
     from calibkit import bundle, sim
-    from calibkit.geometry import triangulate
+    from calibkit.wand_solve import labelled_wand_data
 
     scene = sp.make_scene(4, seed=3)
     refs = _refs(scene, 0.005, seed=3)
@@ -339,21 +339,9 @@ def test_plane_dots_hold_the_world_frame_in_a_wand_bundle():
     spacing = (0.0, 0.2, 0.5)
     obs = sim.observe(scene.rig, sim.wand_motion(200, 100.0, 4.0, spacing, seed=3),
                       noise_px=0.2, seed=3)
-    pts, pidx = np.unique(obs.frame * 3 + obs.marker, return_inverse=True)
-    xyz = triangulate(res.rig, pidx, obs.camera, obs.uv, n_points=len(pts),
-                      ray_distance=False).xyz
-    frame, marker = np.divmod(pts, 3)
-    edges, lengths = [], []
-    for a, b in ((0, 1), (1, 2), (0, 2)):
-        ia = np.flatnonzero(marker == a)
-        ib = np.searchsorted(pts, frame[ia] * 3 + b).clip(0, len(pts) - 1)
-        ok = pts[ib] == frame[ia] * 3 + b
-        edges.append(np.column_stack([ia[ok], ib[ok]]))
-        lengths.append(np.full(int(ok.sum()), spacing[b] - spacing[a]))
-    wand = bundle.BundleData(res.rig, pidx, obs.camera, obs.uv, xyz, np.concatenate(edges),
-                             np.concatenate(lengths))
+    wand = labelled_wand_data(res.rig, obs, spacing)
     joined = ex.join_bundle_data(wand, ex.bundle_data(res.rig, res.dots.select(res.inlier)))
-    assert len(joined.xyz) == len(xyz) + len(np.unique(res.dots.point[res.inlier]))
+    assert len(joined.xyz) == len(wand.xyz) + len(np.unique(res.dots.point[res.inlier]))
     out = bundle.solve(joined, bundle.BundleOptions(known_sigma_m=0.005, plane_sigma_m=0.002,
                                                     noise_px=0.3))
     pos, rot = _errors(scene.rig, out.rig)
