@@ -25,10 +25,9 @@ from calibkit.errors import UserError
 from calibkit.settle import SettleDetector, signature_noise
 from projector.display import Dots
 from projector.patterns import (
-    ROLE_OFF,
     ROLE_ON,
     Schedule,
-    name_layer,
+    name_layers,
 )
 
 
@@ -185,24 +184,8 @@ class DotCapture:
                 on_shots[i] = shots
             if progress is not None:
                 progress(i + 1, len(sch.frames))
-        ids, uv, scatter, rejected = [], [], [], 0
-        for layer in range(len(sch.layers)):
-            idx = sch.layer_frames(layer)
-            on_i = idx[0]
-            predicted = len(idx) == 1
-            off_i = sch.layer_frames(0)[1] if predicted else idx[1]
-            assert sch.frames[off_i].role == ROLE_OFF
-            found, spread = self._find_dots(step_images[on_i], step_images[off_i],
-                                            on_shots[on_i])
-            known = np.concatenate(ids) if ids else np.zeros(0, np.int64)
-            known_uv = np.concatenate(uv) if uv else np.zeros((0, 2))
-            got = name_layer(sch, layer, step_images, found, known, known_uv)
-            keep = got >= 0
-            rejected += int((~keep).sum())
-            ids.append(got[keep])
-            uv.append(found[keep])
-            scatter.append(spread[keep])
-        return ids, uv, scatter, rejected
+        return name_layers(sch, step_images,
+                           lambda i, on, off: self._find_dots(on, off, on_shots[i]))
 
     def _find_dots(self, on: np.ndarray, off: np.ndarray, shots: list[np.ndarray]
                    ) -> tuple[np.ndarray, np.ndarray]:

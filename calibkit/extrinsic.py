@@ -36,7 +36,7 @@ from projector.display import Dots
 from projector.patterns import (
     ROLE_OFF,
     Schedule,
-    name_layer,
+    name_layers,
 )
 
 try:
@@ -477,25 +477,9 @@ def identify_dots(schedule: Schedule, step_images: dict[int, np.ndarray | None],
                   ) -> CameraDots:
     """Name every dot one camera saw: the first layer by its code (checked against its
     neighbours), later layers by where the named dots around them put them."""
-    ids, uv, scatter, rejected = [], [], [], 0
-    off_i = schedule.layer_frames(0)[1]
-    assert schedule.frames[off_i].role == ROLE_OFF
-    for layer in range(len(schedule.layers)):
-        idx = schedule.layer_frames(layer)
-        on_i = idx[0]
-        on_img, off_img = step_images.get(on_i), step_images.get(
-            off_i if len(idx) == 1 else idx[1])
-        if on_img is None or off_img is None:
-            continue
-        found, spread = find_dots(on_img, off_img, on_shots[on_i], max_scatter_px)
-        known = np.concatenate(ids) if ids else np.zeros(0, np.int64)
-        known_uv = np.concatenate(uv) if uv else np.zeros((0, 2))
-        got = name_layer(schedule, layer, step_images, found, known, known_uv)
-        keep = got >= 0
-        rejected += int((~keep).sum())
-        ids.append(got[keep])
-        uv.append(found[keep])
-        scatter.append(spread[keep])
+    ids, uv, scatter, rejected = name_layers(
+        schedule, step_images,
+        lambda i, on, off: find_dots(on, off, on_shots[i], max_scatter_px))
     ids_a = np.concatenate(ids) if ids else np.zeros(0, np.int64)
     uv_a = np.concatenate(uv) if uv else np.zeros((0, 2))
     sc_a = np.concatenate(scatter) if scatter else np.zeros(0)

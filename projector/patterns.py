@@ -389,3 +389,30 @@ def name_layer(schedule: Schedule, layer: int, step_images: dict[int, np.ndarray
     agree = check_by_neighbours(schedule.points_xy[got[named]], found[named])
     got[named[~agree]] = -1
     return got
+
+
+def name_layers(schedule: Schedule, step_images: dict[int, np.ndarray | None], find_dots
+                ) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray], int]:
+    """Name the dots of every layer in order, each layer helped by those named before it:
+    per layer the named ids, their image positions and scatter, and the count of dots that
+    could not be named. `find_dots(on_index, on_image, off_image) -> (uv (N, 2), scatter
+    (N,))` finds one layer's dots; a layer whose images are missing is skipped."""
+    off0 = schedule.layer_frames(0)[1]
+    assert schedule.frames[off0].role == ROLE_OFF
+    ids, uv, scatter, rejected = [], [], [], 0
+    for layer in range(len(schedule.layers)):
+        idx = schedule.layer_frames(layer)
+        on_i, off_i = idx[0], (off0 if len(idx) == 1 else idx[1])
+        on_img, off_img = step_images.get(on_i), step_images.get(off_i)
+        if on_img is None or off_img is None:
+            continue
+        found, spread = find_dots(on_i, on_img, off_img)
+        known = np.concatenate(ids) if ids else np.zeros(0, np.int64)
+        known_uv = np.concatenate(uv) if uv else np.zeros((0, 2))
+        got = name_layer(schedule, layer, step_images, found, known, known_uv)
+        keep = got >= 0
+        rejected += int((~keep).sum())
+        ids.append(got[keep])
+        uv.append(found[keep])
+        scatter.append(spread[keep])
+    return ids, uv, scatter, rejected
