@@ -75,6 +75,17 @@ def watchdog_interval_s() -> float | None:
 
 # ---- control socket ----------------------------------------------------------------------------
 
+def _read_message(sock: socket.socket) -> bytes:
+    """One control-socket message: bytes up to a newline, or to the peer's close."""
+    data = b""
+    while not data.endswith(b"\n"):
+        chunk = sock.recv(65536)
+        if not chunk:
+            break
+        data += chunk
+    return data
+
+
 def request(runtime_dir: Path | None, message: dict, timeout_s: float = 5.0) -> dict:
     """Send one request to a running daemon's control socket; its JSON answer."""
     path = Path(runtime_dir or default_runtime_dir()) / SOCKET_NAME
@@ -83,12 +94,7 @@ def request(runtime_dir: Path | None, message: dict, timeout_s: float = 5.0) -> 
             s.settimeout(timeout_s)
             s.connect(str(path))
             s.sendall(json.dumps(message).encode() + b"\n")
-            data = b""
-            while not data.endswith(b"\n"):
-                chunk = s.recv(65536)
-                if not chunk:
-                    break
-                data += chunk
+            data = _read_message(s)
     except (FileNotFoundError, ConnectionRefusedError):
         raise UserError(f"no mocapd running (no control socket at {path}); start one with "
                         "`mocapd start`, or pass --runtime-dir") from None
@@ -152,12 +158,7 @@ class ControlServer:
             with conn:
                 try:
                     conn.settimeout(2.0)
-                    data = b""
-                    while not data.endswith(b"\n"):
-                        chunk = conn.recv(65536)
-                        if not chunk:
-                            break
-                        data += chunk
+                    data = _read_message(conn)
                     try:
                         answer = self.handler(json.loads(data or b"{}"))
                     except UserError as exc:
