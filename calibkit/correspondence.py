@@ -1,12 +1,13 @@
 """Which blobs in different cameras are the same marker: epipolar matching of unlabelled blobs.
 
-The seed thesis's method, vectorised per camera pair: every blob's candidates are the blobs
-near its epipolar line in the other cameras; each candidate's ray meets the blob's ray at a
-point along it; those points are clustered by depth, and a cluster seen by >= 3 cameras is
-a marker. Clusters are verified by triangulation (their rays must really meet), then
-accepted best first with each blob used at most once. Two-camera matches are added only
-where the pairing is unique both ways, because two rays always "meet" somewhere on the
-epipolar line and a ghost is otherwise indistinguishable from a marker.
+The seed thesis's method, over many frames at once: every blob's candidates are the blobs
+near its epipolar line in the other cameras of its frame (a compiled kernel; the numpy
+reference finds the same pairs by sorting epipolar-plane angles); each candidate's ray meets
+the blob's ray at a point along it; those points are clustered by depth, and a cluster seen
+by >= 3 cameras is a marker. Clusters are verified by triangulation (their rays must really
+meet), then accepted best first with each blob used at most once. Two-camera matches are
+added only where the pairing is unique both ways, because two rays always "meet" somewhere
+on the epipolar line and a ghost is otherwise indistinguishable from a marker.
 """
 
 from __future__ import annotations
