@@ -55,6 +55,7 @@ class FrameResult:
     blob_marker: np.ndarray | None = None  # (M,) true markers (simulator)
     scene_frame: int = -1
     samples: list | None = None
+    labelled: object | None = None  # what the labelling stage made of the tracks, if any
 
 
 # ---- capture ---------------------------------------------------------------------------------
@@ -283,22 +284,28 @@ class Pipeline:
     """The tracker and rigid bodies over frame sets; results to hooks and publishers."""
 
     def __init__(self, rig, tracker_config, rigid_config, bodies, publishers=(),
-                 hooks=()) -> None:
+                 hooks=(), labeller=None) -> None:
         self.rig = rig
         self.tracker = Tracker(rig, tracker_config)
         self.rigid = RigidTracker(list(bodies), rigid_config)
         self.publishers = list(publishers)
         self.hooks = list(hooks)
+        # optional stage between the rigid bodies and the outputs: labeller(result) returns
+        # what is stored in result.labelled (named markers when a marker set is configured)
+        self.labeller = labeller
         self.stats = Stats()
         self._lock = threading.Lock()
         self._pending_bodies = None
         self._pending_publishers = None
+        self._pending_labeller = None
         self.last_result: FrameResult | None = None
 
-    def replace(self, bodies=None, publishers=None) -> None:
-        """New rigid bodies and/or publishers from a reload; applied between two frames by
-        the frame loop, so the stream never stops."""
+    def replace(self, bodies=None, publishers=None, labeller=...) -> None:
+        """New rigid bodies, publishers and/or labelling stage (None: labelling off) from a
+        reload; applied between two frames by the frame loop, so the stream never stops."""
         with self._lock:
+            if labeller is not ...:
+                self._pending_labeller = (labeller,)
             if bodies is not None:
                 self._pending_bodies = list(bodies)
             if publishers is not None:
@@ -307,7 +314,10 @@ class Pipeline:
     def _apply_pending(self) -> None:
         with self._lock:
             bodies, pubs = self._pending_bodies, self._pending_publishers
-            self._pending_bodies = self._pending_publishers = None
+            labeller = self._pending_labeller
+            self._pending_bodies = self._pending_publishers = self._pending_labeller = None
+        if labeller is not None:
+            self.labeller = labeller[0]
         if bodies is not None:
             self.rigid.set_bodies(bodies)
         if pubs is not None:
@@ -319,7 +329,8 @@ class Pipeline:
                 p.stop()
 
     def process(self, fs: FrameSet) -> FrameResult:
-        if self._pending_bodies is not None or self._pending_publishers is not None:
+        if (self._pending_bodies is not None or self._pending_publishers is not None
+                or self._pending_labeller is not None):
             self._apply_pending()
         samples = fs.samples
         if samples:
@@ -336,6 +347,9 @@ class Pipeline:
         scene_frame = samples[0].scene_frame if samples else -1
         result = FrameResult(fs.index, fs.t_ns, fs.arrival_ns, time.monotonic_ns(), camera, uv,
                              tracks, poses, marker, scene_frame, samples)
+        if self.labeller is not None:
+            result.labelled = self.labeller(result)
+            result.done_ns = time.monotonic_ns()
         for p in self.publishers:
             p.submit(result)
         for hook in self.hooks:
