@@ -247,3 +247,85 @@ def test_serial_publisher_to_a_pseudo_terminal_that_stops_reading():
     finally:
         os.close(master)
         os.close(slave)
+
+
+# ---- labelled markers in the packet (a marker set configured) ---------------------------------
+
+def _markers(k, rng, set_size=41):
+    return (set_size, rng.permutation(set_size)[:k], rng.random(k),
+            rng.normal(size=(k, 3)))
+
+
+def test_packet_with_labelled_markers_round_trip_and_layout():
+    rng = np.random.default_rng(5)
+    b = _bodies(2, rng)
+    set_size, index, conf, xyz = _markers(7, rng)
+    data = packet.encode(9, 10, 11, **b, labelled=(set_size, index, conf, xyz))
+    assert len(data) == 24 + 2 * 36 + 4 + 7 * 16
+    assert int.from_bytes(data[20:24], "little") == packet.HAS_MARKERS  # header flags
+    end = 24 + 2 * 36
+    assert int.from_bytes(data[end:end + 2], "little") == 7
+    assert int.from_bytes(data[end + 2:end + 4], "little") == 41
+    first = end + 4  # index u16, confidence u8, flags u8, then x y z
+    assert int.from_bytes(data[first:first + 2], "little") == index[0]
+    assert data[first + 2] == round(conf[0] * 255) and data[first + 3] == 0
+    assert np.frombuffer(data[first + 4:first + 16], "<f4").tolist() == \
+        xyz[0].astype(np.float32).tolist()
+    p = packet.decode(data)
+    np.testing.assert_array_equal(p.ids, b["ids"])
+    assert p.has_markers and p.set_size == 41
+    np.testing.assert_array_equal(p.marker_index, index)
+    np.testing.assert_allclose(p.marker_confidence, conf, atol=0.5 / 255 + 1e-7)
+    np.testing.assert_allclose(p.marker_position, xyz, rtol=1e-6, atol=1e-6)
+    # an empty section still says a marker set is configured
+    p0 = packet.decode(packet.encode(1, 2, 3, **b, labelled=(41, [], [], np.zeros((0, 3)))))
+    assert p0.has_markers and p0.set_size == 41 and len(p0.marker_index) == 0
+    # an old packet decodes as before, with no markers
+    old = packet.decode(packet.encode(1, 2, 3, **b))
+    assert not old.has_markers and old.marker_position.shape == (0, 3)
+    for bad in (data[:-1], data + b"\0", data[:end + 2]):
+        with pytest.raises(ValueError):
+            packet.decode(bad)
+
+
+def test_a_41_marker_packet_with_ten_bodies_fits_the_ethernet_mtu():
+    rng = np.random.default_rng(6)
+    data = packet.encode(1, 2, 3, **_bodies(10, rng), labelled=_markers(41, rng))
+    assert len(data) + 28 <= 1500  # IPv4 and UDP headers: one unfragmented datagram
+
+
+@pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler on this machine")
+def test_c_header_decodes_labelled_markers_and_old_packets(tmp_path):
+    rng = np.random.default_rng(7)
+    b = _bodies(2, rng)
+    set_size, index, conf, xyz = _markers(5, rng)
+    new = packet.encode(5, 6, 7, **b, labelled=(set_size, index, conf, xyz))
+    old = packet.encode(5, 6, 7, **b)
+    src = tmp_path / "m.c"
+    src.write_text(f"""
+#include <stdio.h>
+#include "{HEADER_H}"
+int main(void) {{
+    uint8_t buf[4096]; size_t n = fread(buf, 1, sizeof buf, stdin);
+    mocapd_header_t h; int count = mocapd_parse(buf, n, &h);
+    if (count < 0) {{ puts("bad"); return 1; }}
+    uint16_t set_size = 0; int k = mocapd_marker_count(buf, &h, &set_size);
+    printf("%d %d %u\\n", count, k, set_size);
+    for (int i = 0; i < k; i++) {{ mocapd_marker_t m; mocapd_marker(buf, &h, i, &m);
+        printf("%u %u %.6f %.6f %.6f\\n", m.index, m.confidence, m.pos[0], m.pos[1],
+               m.pos[2]); }}
+    return 0;
+}}""")
+    exe = tmp_path / "m"
+    subprocess.run(["cc", "-std=c99", "-Wall", "-Werror", "-o", str(exe), str(src)], check=True)
+    out = subprocess.run([str(exe)], input=new, capture_output=True, check=True).stdout
+    lines = out.decode().split("\n")
+    assert lines[0] == "2 5 41"
+    for i in range(5):
+        f = lines[1 + i].split()
+        assert int(f[0]) == index[i] and int(f[1]) == round(conf[i] * 255)
+        np.testing.assert_allclose([float(v) for v in f[2:5]], xyz[i], atol=1e-5)
+    out = subprocess.run([str(exe)], input=old, capture_output=True, check=True).stdout
+    assert out.decode().split("\n")[0] == "2 0 0"
+    bad = subprocess.run([str(exe)], input=new[:-1], capture_output=True)
+    assert bad.returncode == 1
