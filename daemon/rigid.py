@@ -214,12 +214,28 @@ class RigidTracker:
         if len(tracks):
             seen = (row >= 0) & tracks.seen[np.maximum(row, 0)]
         dst = tracks.xyz[np.maximum(row, 0)] if len(tracks) else np.zeros(row.shape + (3,))
-        R = np.tile(np.eye(3), (len(self.bodies), 1, 1))
-        t = np.zeros((len(self.bodies), 3))
-        err = np.full(len(self.bodies), np.nan)
         sigma = None
         if len(tracks) and tracks.sigma_m is not None:
             sigma = tracks.sigma_m[np.maximum(row, 0)]
+        if cfg.compiled:
+            from daemon.rigid_kernel import fit_bodies
+
+            use_sigma = sigma is not None
+            R, t, err, seen, released = fit_bodies(
+                self.markers, dst, seen, sigma if use_sigma else np.zeros(seen.shape),
+                use_sigma, cfg.max_error_m, 3)
+            self.assigned[released] = -1
+        else:
+            R, t, err = self._fit_numpy(dst, seen, sigma)  # releases in place
+        count = seen.sum(axis=1)
+        valid = count >= np.maximum(self.keep_min, 3)
+        self._seen = seen
+        return R, t, err, valid, count
+
+    def _fit_numpy(self, dst, seen, sigma):
+        """The numpy form of daemon.rigid_kernel.fit_bodies (the reference its tests use):
+        fit, release the worst marker of each body that has one too far, fit again."""
+        cfg = self.config
         for _ in range(3):
             # weights: inverse variance of each marker's triangulation, when known
             w = seen.astype(np.float64)
@@ -240,10 +256,7 @@ class RigidTracker:
             b = np.flatnonzero(has)
             self.assigned[b, worst[has]] = -1
             seen[b, worst[has]] = False
-        count = seen.sum(axis=1)
-        valid = count >= np.maximum(self.keep_min, 3)
-        self._seen = seen
-        return R, t, err, valid, count
+        return R, t, err
 
     def _extend(self, tracks: TrackFrame, R, t, valid) -> None:
         """Give free marker slots of tracked bodies the seen, unassigned track where the

@@ -205,3 +205,37 @@ def test_hidden_markers_of_a_tracked_body_follow_its_pose():
     np.testing.assert_allclose(tr.xyz[3], moved[3], atol=1e-9)
     assert tr.anchored.tolist() == [False, False, False, True]  # placed: gate stays narrow
     np.testing.assert_allclose(tr.xyz[:3], xyz[:3])
+
+
+def test_compiled_fit_matches_numpy_with_releases():
+    """The compiled body fit (daemon.rigid_kernel) against the numpy path: weights from
+    the tracks' sigma, a marker knocked 3 cm off (released), a body with nothing seen."""
+    truth, bodies = sim.rigid_body_motion(4, 30, FPS, 4.0, 5, seed=7)
+    defs = [BodyDef(b.name, b.id, b.markers_body, np.zeros(3)) for b in bodies]
+    fits = {}
+    for compiled in (True, False):
+        rt = RigidTracker(defs, RigidConfig(refine=False, compiled=compiled))
+        rng = np.random.default_rng(3)
+        out = []
+        for f in range(30):
+            xyz = np.concatenate([b.poses[f, :3, :3] @ b.markers_body.T for b in bodies], 1).T
+            xyz += np.concatenate([np.tile(b.poses[f, :3, 3], (5, 1)) for b in bodies])
+            xyz += rng.normal(0, 3e-4, xyz.shape)
+            seen = np.ones(len(xyz), bool)
+            if f >= 10:
+                xyz[2] += [0.03, 0, 0]  # body 0's third marker jumps: released
+                seen[15:20] = False  # body 3 hidden
+            frame = _frame(np.arange(len(xyz)), xyz, seen)
+            frame.sigma_m = rng.uniform(5e-4, 2e-3, len(xyz))
+            out.append((rt.update(frame), rt.assigned.copy()))
+        fits[compiled] = out
+    released = 0
+    for (pa, aa), (pb, ab) in zip(fits[True], fits[False], strict=True):
+        np.testing.assert_array_equal(pa.valid, pb.valid)
+        np.testing.assert_array_equal(aa, ab)
+        np.testing.assert_array_equal(pa.n_markers, pb.n_markers)
+        np.testing.assert_allclose(pa.position[pa.valid], pb.position[pb.valid], atol=1e-9)
+        np.testing.assert_allclose(pa.rotation[pa.valid], pb.rotation[pb.valid], atol=1e-9)
+        np.testing.assert_allclose(pa.error_m[pa.valid], pb.error_m[pb.valid], atol=1e-12)
+        released += int(aa[0, 2] < 0)
+    assert released >= 10 and not fits[True][-1][0].valid[3]
