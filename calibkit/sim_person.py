@@ -130,3 +130,31 @@ def _finish(a, root, rate_hz, noise_m, seed) -> PersonTake:
         rng = np.random.default_rng(seed + 1)
         markers = markers + rng.normal(0.0, noise_m, markers.shape)
     return PersonTake(list(MARKERS), markers, joints, rate_hz)
+
+
+def walk_circle(frames: int = 600, rate_hz: float = 120.0, radius_m: float = 1.0,
+                speed_mps: float = 1.0, centre=(0.0, 0.0), noise_m: float = 0.0,
+                seed: int = 0) -> PersonTake:
+    """The walk bent onto a circle (anticlockwise, seen from above) about `centre`, so a
+    take of any length stays inside a capture volume (the live daemon's simulated person).
+    Each frame's body is turned about the vertical by the angle walked so far."""
+    take = walk(frames, rate_hz, speed_mps, noise_m, seed)
+    x0 = take.joints["pelvis"][:, 0]  # the straight walk's progress along +x
+    theta = (x0 - x0[0]) / radius_m
+    c, s = np.cos(theta), np.sin(theta)
+    R = np.zeros((frames, 3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
+    # straight-walk coordinates relative to the walker's progress, then onto the circle:
+    # start at (0, -radius) facing +x, which is the circle's anticlockwise tangent there
+    offset = np.array([0.0, -radius_m, 0.0])
+    ctr = np.array([centre[0], centre[1], 0.0])
+
+    def bend(p: np.ndarray) -> np.ndarray:  # (frames, ..., 3)
+        q = p.copy()
+        q[..., 0] -= x0.reshape((-1,) + (1,) * (p.ndim - 2))
+        q = q + offset
+        return np.einsum("fij,f...j->f...i", R, q) + ctr
+
+    take.markers_m = bend(take.markers_m)
+    take.joints = {k: bend(v) for k, v in take.joints.items()}
+    return take

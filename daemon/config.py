@@ -6,23 +6,25 @@ is one line naming the file, the key and what is wrong, raised as UserError befo
 opens. docs/daemon.md documents every key.
 
     rig = "rig.toml"                     # the calibrated rig (not needed with [sim])
+    markerset = "set.toml"               # label markers live with this set (or "cmu41")
     runtime_dir = "/run/mocapd"          # control socket; default $RUNTIME_DIRECTORY etc.
 
     [pipeline]  mode = "triggered"|"greedy", fps, timeout_frames
     [tracker]   gate_px, max_missing, outlier_px, new_tracks_every, ...
     [rigid]     distance_tol_m, max_error_m
     [sim]       cameras, bodies, markers_per_body, extra_markers, fps, noise_px, dropout,
-                ghosts, volume_m, size, seed, realtime, drop_camera, drop_from_s, drop_for_s
+                ghosts, volume_m, size, seed, realtime, drop_camera, drop_from_s, drop_for_s,
+                define_bodies, person, person_radius_m
     [[rigid_body]] name, id, markers = [[x, y, z], ...], pivot, min_markers_start,
                    min_markers_keep, smoothing
     [[camera]]  name (a camera of the rig), source ("0" a device, a video, an image folder,
                 "basler:SERIAL", "genicam:SERIAL"), fps, threshold, min_area, max_area
     [replay]    path (a .mcrec recording), realtime
-    [[udp]]     address = "HOST:PORT", rate_hz, ttl, bodies
+    [[udp]]     address = "HOST:PORT", rate_hz, ttl, bodies, interface, markers
     [[serial]]  device, baud, rate_hz, bodies
     [[mavlink]] device, baud, body, message, frame, rate_hz, system_id, component_id
     [natnet]    interface, command_port, data_port, multicast, group, up_axis, ttl, rate_hz,
-                legacy_unlabeled, marker_sets     (docs/natnet.md)
+                legacy_unlabeled, marker_sets, markerset_id     (docs/natnet.md)
     [[vrpn]]    address = "HOST:PORT", rate_hz, udp                           (docs/vrpn.md)
 """
 
@@ -60,6 +62,8 @@ class SimConfig:
     drop_from_s: float = 0.5
     drop_for_s: float = 0.5
     define_bodies: bool = True  # track the scene's bodies when the configuration has none
+    person: bool = False  # a person wearing the 41-marker set walks a circle (sim_person)
+    person_radius_m: float = 1.0  # radius of that circle, about the volume's centre
 
 
 @dataclass(frozen=True)
@@ -86,6 +90,7 @@ class UdpOut:
     ttl: int = 1
     bodies: tuple[int, ...] | None = None
     interface: str | None = None  # local address multicast leaves from
+    markers: bool = True  # the labelled markers section, when a marker set is configured
 
 
 @dataclass(frozen=True)
@@ -120,6 +125,7 @@ class NatnetOut:
     rate_hz: float = 0.0
     legacy_unlabeled: bool = False
     marker_sets: bool = True
+    markerset_id: int = 65535  # model id of the live marker set's labelled markers
 
 
 @dataclass(frozen=True)
@@ -149,6 +155,7 @@ class Config:
     replay: ReplayIn | None = None
     natnet: NatnetOut | None = None
     vrpn: tuple[VrpnOut, ...] = ()
+    markerset: Path | None = None  # the marker set markers are labelled with live
 
 
 class _Where:
@@ -274,8 +281,8 @@ def _dataclass_table(w, table, cls, default, prefix):
 def parse_config(data: dict, path: Path | None = None, base: Path | None = None) -> Config:
     """A Config from parsed TOML; relative paths are taken from `base` (the file's folder)."""
     w = _Where(path)
-    top = {"rig", "runtime_dir", "pipeline", "tracker", "rigid", "sim", "rigid_body", "udp",
-           "serial", "mavlink", "natnet", "vrpn", "camera", "replay"}
+    top = {"rig", "runtime_dir", "markerset", "pipeline", "tracker", "rigid", "sim",
+           "rigid_body", "udp", "serial", "mavlink", "natnet", "vrpn", "camera", "replay"}
     _check_keys(w, data, top, "")
     base = base or Path.cwd()
     cfg = Config(path=path)
@@ -284,6 +291,8 @@ def parse_config(data: dict, path: Path | None = None, base: Path | None = None)
         changes["rig"] = base / _string(w, data, "rig", "")
     if "runtime_dir" in data:
         changes["runtime_dir"] = base / _string(w, data, "runtime_dir", "")
+    if "markerset" in data:
+        changes["markerset"] = _markerset(w, _string(w, data, "markerset", ""), base)
     pipe = _table(w, data, "pipeline")
     _check_keys(w, pipe, {"mode", "fps", "timeout_frames"}, "pipeline.")
     changes["mode"] = _string(w, pipe, "mode", "pipeline.", "triggered", ("triggered", "greedy"))
@@ -315,9 +324,28 @@ def parse_config(data: dict, path: Path | None = None, base: Path | None = None)
                                      _bool(w, t, "realtime", "replay.", True))
     if "natnet" in data:
         changes["natnet"] = _natnet(w, _table(w, data, "natnet"), "natnet.")
+        taken = {b.id for b in changes["bodies"]}
+        if "markerset" in changes and changes["natnet"].markerset_id in taken:
+            w.fail("natnet.markerset_id", f"{changes['natnet'].markerset_id} is a rigid "
+                                          "body's id; the marker set needs an id of its own")
     changes["vrpn"] = tuple(_vrpn(w, t, f"vrpn[{i}].")
                             for i, t in enumerate(_list(w, data, "vrpn")))
     return replace(cfg, **changes)
+
+
+def _markerset(w, value: str, base: Path) -> Path:
+    """The marker set's file (a shipped set's name or a path), loaded once to check it."""
+    from daemon.live_label import load, resolve, shipped_sets
+
+    path = resolve(value, base)
+    if not path.exists():
+        w.fail("markerset", f"no marker set {value!r} (no file {path}; shipped sets: "
+                            f"{', '.join(shipped_sets())})")
+    try:
+        load(path)
+    except UserError as exc:
+        w.fail("markerset", str(exc))
+    return path
 
 
 def _sim_limits(w, sim: SimConfig) -> None:
@@ -331,6 +359,9 @@ def _sim_limits(w, sim: SimConfig) -> None:
         w.fail("sim.fps", f"must be positive, got {sim.fps}")
     if not 0 <= sim.dropout < 1:
         w.fail("sim.dropout", f"must be in [0, 1), got {sim.dropout}")
+    if sim.person and not 0.3 <= sim.person_radius_m <= sim.volume_m / 2 - 0.3:
+        w.fail("sim.person_radius_m", f"must be between 0.3 and {sim.volume_m / 2 - 0.3:g} "
+                                      f"(inside the volume), got {sim.person_radius_m}")
 
 
 def _table(w, data, key) -> dict:
@@ -401,7 +432,7 @@ def _camera(w, t, p, base: Path) -> CameraIn:
 
 
 def _udp(w, t, p) -> UdpOut:
-    _check_keys(w, t, {"address", "rate_hz", "ttl", "bodies", "interface"}, p)
+    _check_keys(w, t, {"address", "rate_hz", "ttl", "bodies", "interface", "markers"}, p)
     try:
         host, port = parse_address(_string(w, t, "address", p))
     except ValueError as exc:
@@ -415,7 +446,8 @@ def _udp(w, t, p) -> UdpOut:
         except ValueError:
             w.fail(p + "interface", f"expected a local IPv4 address, got {interface!r}")
     return UdpOut(host, port, _number(w, t, "rate_hz", p, 0.0, lo=0),
-                  _number(w, t, "ttl", p, 1, int, 0, 255), _ids(w, t, "bodies", p), interface)
+                  _number(w, t, "ttl", p, 1, int, 0, 255), _ids(w, t, "bodies", p), interface,
+                  _bool(w, t, "markers", p, True))
 
 
 def _serial(w, t, p) -> SerialOut:
@@ -455,7 +487,8 @@ def _natnet(w, t, p) -> NatnetOut:
                      _number(w, t, "ttl", p, d.ttl, int, 0, 255),
                      _number(w, t, "rate_hz", p, d.rate_hz, lo=0),
                      _bool(w, t, "legacy_unlabeled", p, d.legacy_unlabeled),
-                     _bool(w, t, "marker_sets", p, d.marker_sets))
+                     _bool(w, t, "marker_sets", p, d.marker_sets),
+                     _number(w, t, "markerset_id", p, d.markerset_id, int, 1, 65535))
 
 
 def _ipv4(text: str) -> bool:

@@ -25,6 +25,8 @@ import numpy as np
 from calibkit.camera import Rig
 from calibkit.errors import UserError
 from daemon.config import Config, default_runtime_dir, load_config
+from daemon.live_label import LiveLabeller
+from daemon.live_label import load as load_markerset
 from daemon.pipeline import CaptureThread, FrameSet, Multiplexer, Pipeline, latency_figures
 from daemon.publish.mavlink import MavlinkPublisher
 from daemon.publish.natnet import NatNetPublisher
@@ -189,13 +191,14 @@ def _plain(value):
 
 # ---- the daemon ------------------------------------------------------------------------------
 
-def make_publishers(config: Config, bodies=()) -> list:
-    """The configured outputs; `bodies` (BodyDef) name the trackers NatNet and VRPN serve."""
+def make_publishers(config: Config, bodies=(), markerset=None) -> list:
+    """The configured outputs; `bodies` (BodyDef) name the trackers NatNet and VRPN serve,
+    `markerset` (the live MarkerSet, if any) the labelled markers NatNet describes."""
     pubs = []
     for u in config.udp:
         pubs.append(UdpPublisher([(u.host, u.port)], ttl=u.ttl, rate_hz=u.rate_hz,
                                  bodies=u.bodies, name=f"udp:{u.host}:{u.port}",
-                                 interface=u.interface))
+                                 interface=u.interface, markers=u.markers))
     for s in config.serial:
         pubs.append(SerialPublisher(s.device, s.baud, s.rate_hz, s.bodies))
     for m in config.mavlink:
@@ -206,7 +209,10 @@ def make_publishers(config: Config, bodies=()) -> list:
         pubs.append(NatNetPublisher(bodies, n.interface, n.command_port, n.data_port,
                                     n.multicast, n.group, n.up_axis, n.ttl, n.rate_hz,
                                     n.legacy_unlabeled, name=f"natnet:{n.interface}",
-                                    marker_sets=n.marker_sets))
+                                    marker_sets=n.marker_sets,
+                                    markerset=None if markerset is None else
+                                    (markerset.name, list(markerset.labels)),
+                                    markerset_id=n.markerset_id))
     for v in config.vrpn:
         pubs.append(VrpnPublisher(bodies, v.host, v.port, v.rate_hz, v.udp,
                                   name=f"vrpn:{v.host}:{v.port}"))
@@ -227,6 +233,7 @@ class Daemon:
         self.started_ns = time.monotonic_ns()
         self.scene: SimScene | None = None
         self.evaluator: Evaluator | None = None
+        self.labelling: LiveLabeller | None = None
         self.captures: list[CaptureThread] = []
         self.rig = self._rig(config)
         self._truth_rig = truth_rig
@@ -265,9 +272,11 @@ class Daemon:
                             "recording, or use --sim")
         bodies = self._bodies(cfg)
         self._warn_alike(bodies)
+        self.labelling, self._markerset_key = self._labeller(cfg), self._set_key(cfg)
         self.pipeline = Pipeline(self.rig, cfg.tracker, cfg.rigid, bodies,
-                                 make_publishers(cfg, bodies),
-                                 hooks=[self.evaluator] if self.evaluator else [])
+                                 make_publishers(cfg, bodies, self._markerset()),
+                                 hooks=[self.evaluator] if self.evaluator else [],
+                                 labeller=self.labelling)
         self._warm_up()
         runtime = cfg.runtime_dir or default_runtime_dir()
         self.control = ControlServer(runtime, self.handle)
@@ -325,6 +334,30 @@ class Daemon:
         samples = [self.scene.sample(c, 0, 0) for c in range(len(self.rig))]
         camera = np.concatenate([np.full(len(s.uv), s.camera) for s in samples])
         match_frame(self.rig, camera, np.concatenate([s.uv for s in samples]))
+
+    def _labeller(self, cfg: Config) -> LiveLabeller | None:
+        """The labelling stage for the configured marker set (None: no marker set)."""
+        if cfg.markerset is None:
+            return None
+        fps = self.scene.fps if self.scene is not None else cfg.fps
+        realtime = (cfg.sim.realtime if cfg.sim is not None
+                    else cfg.replay.realtime if cfg.replay is not None else True)
+        return LiveLabeller(load_markerset(cfg.markerset), fps, str(cfg.markerset),
+                            background=realtime)
+
+    @staticmethod
+    def _set_key(cfg: Config):
+        """What identifies the configured marker set: its path and its file's bytes (a
+        reload with the same, unchanged set keeps the labeller and its tracking)."""
+        if cfg.markerset is None:
+            return None
+        try:
+            return str(cfg.markerset), cfg.markerset.read_bytes()
+        except OSError:
+            return str(cfg.markerset), None
+
+    def _markerset(self):
+        return None if self.labelling is None else self.labelling.ms
 
     def _bodies(self, cfg: Config) -> list:
         if cfg.bodies or cfg.sim is None or not cfg.sim.define_bodies:
@@ -463,12 +496,26 @@ class Daemon:
             log.error("reload failed, keeping the running configuration: %s", exc)
             sd_notify("READY=1")
             return False
+        key = self._set_key(new)
+        labelling = self.labelling
+        if key != self._markerset_key:
+            try:
+                labelling = self._labeller(new)
+            except UserError as exc:
+                log.error("reload failed, keeping the running configuration: %s", exc)
+                sd_notify("READY=1")
+                return False
         bodies = self._bodies(new)
         self._warn_alike(bodies)
-        self.pipeline.replace(bodies=bodies, publishers=make_publishers(new, bodies))
+        changes = {} if labelling is self.labelling else {"labeller": labelling}
+        self.labelling, self._markerset_key = labelling, key
+        self.pipeline.replace(bodies=bodies, publishers=make_publishers(new, bodies,
+                                                                        self._markerset()),
+                              **changes)
         self.config = new
-        log.info("configuration reloaded: %d rigid bodies, %d outputs", len(bodies),
-                 len(new.udp) + len(new.serial) + len(new.mavlink))
+        log.info("configuration reloaded: %d rigid bodies, %d outputs%s", len(bodies),
+                 len(new.udp) + len(new.serial) + len(new.mavlink),
+                 "" if labelling is None else f", marker set {labelling.set_name}")
         sd_notify("READY=1")
         return True
 
@@ -568,6 +615,7 @@ class Daemon:
             "bodies_tracked": st.valid_bodies,
             "outputs": [p.status() for p in self.pipeline.publishers],
             "recording": str(self.recorder.path) if self.recorder else None,
+            "labelling": None if self.labelling is None else self.labelling.status(),
         }
 
     def figures(self) -> dict:
@@ -592,6 +640,10 @@ class Daemon:
             out["multiplexer"] = self.mux_stats()
         if self.evaluator is not None:
             out["truth"] = self.evaluator.figures()
+        if self.labelling is not None:
+            st = self.labelling.status()
+            out["labelling"] = {k: st[k] for k in ("markerset", "frames", "failures",
+                                                   "time_ms_median", "time_ms_p99")}
         return out
 
     def mux_stats(self) -> dict | None:

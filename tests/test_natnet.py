@@ -686,3 +686,72 @@ def test_a_reload_keeps_unicast_clients_that_send_no_keep_alives():
     for s in (listener, hello):
         s.close()
     assert got is not None and struct.unpack_from("<i", got, 4)[0] == 2
+
+
+# ---- the live marker set's named markers --------------------------------------------------------
+
+def _labelled_frame(scene, i, names, index):
+    """Frame i with the loose markers named by a marker set: loose marker j is marker
+    index[j] of the set."""
+    from daemon.live_label import LabelledMarkers
+
+    r = scene.frame(i)
+    tr = r.tracks
+    loose = np.flatnonzero(tr.ids >= 1000)
+    r.labelled = LabelledMarkers("person", names, np.asarray(index), tr.xyz[loose],
+                                 np.full(len(loose), 0.9), tr.ids[loose])
+    return r
+
+
+def test_named_markers_in_marker_sets_descriptions_and_labelled_markers():
+    scene = Scene()  # two bodies, three loose markers
+    defs = scene.defs()
+    names = ["LFHD", "RFHD", "LBHD", "RBHD", "C7"]
+    r = _labelled_frame(scene, 3, names, [4, 0, 2])
+    model = nn.MarkerModel(defs, ("person", names))
+    f = parse_frame(nn.message(nn.NAT_FRAMEOFDATA, nn.frame_payload(
+        r, marker_model=model, markerset_id=900)))
+    assert [m.model_name for m in f.marker_sets] == ["body0", "body1", "person", "all"]
+    got = np.array(f.marker_sets[2].marker_pos_list)
+    loose = r.tracks.xyz[-3:]
+    np.testing.assert_allclose(got[[4, 0, 2]], loose, atol=1e-6)
+    assert np.all(got[[1, 3]] == 0)  # not labelled this frame
+    assert f.marker_sets[3].marker_pos_list == (f.marker_sets[0].marker_pos_list
+                                                + f.marker_sets[1].marker_pos_list
+                                                + f.marker_sets[2].marker_pos_list)
+    # labelled markers: the named ones as (set id, index + 1), the bodies' as before
+    named = sorted((m.marker_id, m.pos) for m in f.labeled_markers if m.model_id == 900)
+    assert [i for i, _ in named] == [1, 3, 5]
+    np.testing.assert_allclose([p for _, p in named], loose[[1, 2, 0]], atol=1e-6)
+    assert all(m.has_model and not m.unlabeled for m in f.labeled_markers if m.model_id == 900)
+    assert sum(m.model_id in (1, 2) for m in f.labeled_markers) == 8
+    assert not any(m.unlabeled for m in f.labeled_markers)
+    d = natnet_client.DataDescriptions.read_from_buffer(
+        natnet_client.PacketBuffer(nn.model_definitions(defs, markerset=("person", names))[4:]),
+        natnet_client.Version(4, 1))
+    assert [(m.name, list(m.marker_names)) for m in d.marker_sets][2] == ("person", names)
+    assert d.marker_sets[3].marker_names[-1] == "person_C7"
+    # y up: the set's positions turn with everything else
+    fy = parse_frame(nn.message(nn.NAT_FRAMEOFDATA, nn.frame_payload(
+        r, up_axis="y", marker_model=model)))
+    np.testing.assert_allclose(np.array(fy.marker_sets[2].marker_pos_list)[4],
+                               loose[0] @ nn.Y_UP.T, atol=1e-6)
+
+
+def test_named_markers_without_bodies_or_marker_sets():
+    scene = Scene()
+    names = ["A", "B", "C"]
+    r = _labelled_frame(scene, 3, names, [2, 1, 0])
+    r.poses = BodyPoses(np.zeros(0, int), np.zeros(0, bool), np.zeros((0, 3)),
+                        np.zeros((0, 3, 3)), np.zeros((0, 4)), np.zeros(0), np.zeros(0, int),
+                        np.zeros((0, 4), int))
+    f = parse_frame(nn.message(nn.NAT_FRAMEOFDATA, nn.frame_payload(
+        r, marker_model=nn.MarkerModel([], ("set", names)))))
+    assert [m.model_name for m in f.marker_sets] == ["set", "all"]
+    np.testing.assert_allclose(f.marker_sets[0].marker_pos_list, r.tracks.xyz[-3:][::-1],
+                               atol=1e-6)
+    # marker sets off: the names still reach the labelled markers
+    f = parse_frame(nn.message(nn.NAT_FRAMEOFDATA, nn.frame_payload(r)))
+    assert f.marker_sets == ()
+    assert sorted(m.marker_id for m in f.labeled_markers if m.model_id == nn.MARKERSET_ID) \
+        == [1, 2, 3]

@@ -11,7 +11,8 @@ with uint16 message id and uint16 payload size):
   (application name, versions, the clock frequency of the frame's tick stamps, the data
   port, whether data is multicast, the group); NAT_REQUEST_MODELDEF gets NAT_MODELDEF (a
   marker set per body and "all", then the rigid bodies: name, id, parent, offset, marker
-  positions); NAT_KEEPALIVE subscribes the
+  positions; with a marker set configured, one more marker set named after it with its
+  markers by name, before "all"); NAT_KEEPALIVE subscribes the
   sending address to unicast frames for `keepalive_timeout_s`; NAT_REQUEST_FRAMEOFDATA gets
   the latest frame; NAT_DISCONNECT unsubscribes.
 - frames (NAT_FRAMEOFDATA) go to the multicast group on the data port (default
@@ -20,7 +21,8 @@ with uint16 message id and uint16 payload size):
   listens without sending keep-alives (dropped when that port refuses them). Each carries
   the frame number, the marker sets, rigid bodies (id, position, quaternion x y z w, mean
   marker error, tracking-valid flag), labelled markers (a body's markers as (body id << 16
-  | member), the others flagged unlabelled with their track id), a timestamp and three
+  | member); a marker the marker set named as (markerset_id << 16 | its index in the set
+  + 1); the others flagged unlabelled with their track id), a timestamp and three
   clock ticks (mid-exposure, data received, transmit; nanoseconds of the monotonic clock,
   frequency 1e9) from which clients compute camera-to-client latency.
 
@@ -75,6 +77,8 @@ MARKER_PC_SOLVED = 0x02
 MARKER_HAS_MODEL = 0x08
 MARKER_UNLABELED = 0x10
 
+MARKERSET_ID = 65535  # default model id of the live marker set's labelled markers
+
 # z-up (ours) -> Motive's y-up: (x, y, z) -> (x, z, -y)
 Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
@@ -116,22 +120,27 @@ def rotate_quaternion(q: np.ndarray, M: np.ndarray) -> np.ndarray:
     return out
 
 
-def marker_set_names(bodies) -> list[tuple[str, list[str]]]:
-    """Motive's marker sets: one per rigid body (its markers, `Marker1`...) and `all`."""
+def marker_set_names(bodies, markerset=None) -> list[tuple[str, list[str]]]:
+    """Motive's marker sets: one per rigid body (its markers, `Marker1`...), the live
+    marker set (name, marker names) if one is configured, and `all`."""
     sets = [(b.name, [f"Marker{j + 1}" for j in range(len(b.markers))]) for b in bodies]
+    if markerset is not None:
+        sets.append((markerset[0], list(markerset[1])))
     if sets:
         sets.append(("all", [f"{name}_{m}" for name, ms in sets for m in ms]))
     return sets
 
 
-def model_definitions(bodies, up_axis: str = "z", marker_sets: bool = True) -> bytes:
-    """NAT_MODELDEF: the marker sets (unless turned off), then the rigid bodies (BodyDef:
-    name, id, markers in the body frame).
+def model_definitions(bodies, up_axis: str = "z", marker_sets: bool = True,
+                      markerset=None) -> bytes:
+    """NAT_MODELDEF: the marker sets (unless turned off; `markerset` (name, marker names)
+    adds the live marker set's), then the rigid bodies (BodyDef: name, id, markers in the
+    body frame).
 
     Offsets are zero and the markers are given relative to the body's pivot, because
     clients (libmotioncapture) add the offset to every reported position."""
     M = axes(up_axis)
-    sets = marker_set_names(bodies) if marker_sets else []
+    sets = marker_set_names(bodies, markerset) if marker_sets else []
     parts = [struct.pack("<i", len(sets) + len(bodies))]
     for name, names in sets:
         desc = (name.encode("utf-8") + b"\0" + struct.pack("<i", len(names))
@@ -169,9 +178,11 @@ _UNLABELLED = MARKER_PC_SOLVED | MARKER_UNLABELED
 
 class MarkerModel:
     """The bodies' markers relative to their pivots, padded to (B, K, 3), for the frames'
-    marker sets."""
+    marker sets; and the live marker set's name and size, if one is configured."""
 
-    def __init__(self, bodies) -> None:
+    def __init__(self, bodies, markerset=None) -> None:
+        self.set_name = None if markerset is None else markerset[0].encode("utf-8") + b"\0"
+        self.set_size = 0 if markerset is None else len(markerset[1])
         self.ids = np.array([int(b.id) for b in bodies], np.int64)
         self.names = [b.name.encode("utf-8") + b"\0" for b in bodies]
         self.counts = np.array([len(b.markers) for b in bodies], np.int64)
@@ -183,10 +194,12 @@ class MarkerModel:
 
 def marker_sets_block(result, model: MarkerModel, M: np.ndarray | None) -> tuple[int, bytes]:
     """The frame's marker sets: each body's markers where it is tracked (the track's
-    position when seen, else where the fitted pose puts it), zeros when it is not; then
-    `all`. Nothing when the frame's bodies are not the model's."""
+    position when seen, else where the fitted pose puts it), zeros when it is not; the
+    live marker set's markers where labelled this frame, zeros where not; then `all`.
+    Nothing when the frame's bodies are not the model's."""
     p = result.poses
-    if not len(model.ids) or not np.array_equal(np.asarray(p.ids), model.ids):
+    if (not len(model.ids) and model.set_name is None) or not np.array_equal(
+            np.asarray(p.ids), model.ids):
         return 0, b""
     valid = np.asarray(p.valid, bool)
     k = model.local.shape[1]
@@ -205,17 +218,31 @@ def marker_sets_block(result, model: MarkerModel, M: np.ndarray | None) -> tuple
     xyz = np.nan_to_num(xyz).astype("<f4")
     parts = [name + struct.pack("<i", c) + xyz[i, :c].tobytes()
              for i, (name, c) in enumerate(zip(model.names, model.counts, strict=True))]
-    everything = np.concatenate([xyz[i, :c] for i, c in enumerate(model.counts)])
+    chunks = [xyz[i, :c] for i, c in enumerate(model.counts)]
+    if model.set_name is not None:
+        named = np.zeros((model.set_size, 3))
+        lab = getattr(result, "labelled", None)
+        if lab is not None and len(lab.index):
+            ok = np.asarray(lab.index) < model.set_size  # a set swapped by a reload
+            named[np.asarray(lab.index)[ok]] = np.asarray(lab.xyz)[ok]
+        if M is not None:
+            named = named @ M.T
+        named = named.astype("<f4")
+        parts.append(model.set_name + struct.pack("<i", model.set_size) + named.tobytes())
+        chunks.append(named)
+    everything = np.concatenate(chunks).astype("<f4")
     parts.append(b"all\0" + struct.pack("<i", len(everything)) + everything.tobytes())
     return len(parts), b"".join(parts)
 
 
 def frame_payload(result, up_axis: str = "z", legacy_unlabeled: bool = False,
                   t0_ns: int = 0, transmit_ns: int | None = None,
-                  models_changed: bool = False, marker_model: MarkerModel | None = None
-                  ) -> bytes:
+                  models_changed: bool = False, marker_model: MarkerModel | None = None,
+                  markerset_id: int = MARKERSET_ID) -> bytes:
     """The NAT_FRAMEOFDATA payload for a FrameResult (daemon.pipeline); with a
-    MarkerModel, the bodies' marker sets too."""
+    MarkerModel, the bodies' (and the live marker set's) marker sets too. Markers the
+    live marker set named (result.labelled) are labelled (markerset_id << 16 | index + 1)
+    unless a body holds them."""
     M = axes(up_axis)
     turn = up_axis != "z"
     p = result.poses
@@ -250,6 +277,13 @@ def frame_payload(result, up_axis: str = "z", legacy_unlabeled: bool = False,
         at = np.minimum(np.searchsorted(ids, tid), m - 1)  # track ids are sorted
         hit = ids[at] == tid
         labels[at[hit]] = member[held][hit]
+        is_label[at[hit]] = True
+    lab = getattr(result, "labelled", None)
+    if m and lab is not None and len(lab.index):
+        tid = np.asarray(lab.track)
+        at = np.minimum(np.searchsorted(ids, tid), m - 1)
+        hit = (ids[at] == tid) & ~is_label[at]
+        labels[at[hit]] = (int(markerset_id) << 16) | (np.asarray(lab.index)[hit] + 1)
         is_label[at[hit]] = True
     legacy = xyz[~is_label].astype("<f4") if legacy_unlabeled else np.zeros((0, 3), "<f4")
     n_sets, sets = (marker_sets_block(result, marker_model, M if turn else None)
@@ -304,7 +338,10 @@ class NatNetPublisher(Publisher):
                  group: str = "239.255.42.99", up_axis: str = "z", ttl: int = 1,
                  rate_hz: float = 0.0, legacy_unlabeled: bool = False,
                  keepalive_timeout_s: float = 10.0, name: str = "natnet",
-                 marker_sets: bool = True) -> None:
+                 marker_sets: bool = True, markerset=None,
+                 markerset_id: int = MARKERSET_ID) -> None:
+        """`markerset`: (name, marker names) of the live marker set, if one is configured;
+        its labelled markers carry model id `markerset_id`."""
         # if the port is taken (another program; a server of another process), retry soon
         super().__init__(rate_hz=rate_hz, retry_s=0.1)
         axes(up_axis)
@@ -327,8 +364,9 @@ class NatNetPublisher(Publisher):
         self.handed_over = False
         self._cmd_thread: threading.Thread | None = None
         self._cmd_stop = threading.Event()
-        self._modeldef = model_definitions(self.bodies, up_axis, marker_sets)
-        self._marker_model = MarkerModel(self.bodies) if marker_sets else None
+        self.markerset, self.markerset_id = markerset, markerset_id
+        self._modeldef = model_definitions(self.bodies, up_axis, marker_sets, markerset)
+        self._marker_model = MarkerModel(self.bodies, markerset) if marker_sets else None
         self._info = server_info(data_port, multicast, group)
 
     # ---- lifecycle: the command port is open from start, not from the first frame ---------
@@ -435,7 +473,7 @@ class NatNetPublisher(Publisher):
             self.t0_ns = int(result.t_ns)
         data = message(NAT_FRAMEOFDATA, frame_payload(
             result, self.up_axis, self.legacy_unlabeled, self.t0_ns, models_changed=first,
-            marker_model=self._marker_model))
+            marker_model=self._marker_model, markerset_id=self.markerset_id))
         self.latest = data
         if self.multicast:
             try:
