@@ -40,7 +40,7 @@ class Labeller:
                  candidate_limit: float = 1.0, ambiguity: float = 4.0,
                  witnesses: bool = False, spread_gain: float = 2.0,
                  fresh_margin: float = 4.0, shape_check: bool = False,
-                 suspect_frames: int = 30) -> None:
+                 suspect_frames: int = 30, module_reid: bool = True) -> None:
         self.ms = markerset
         n = markerset.n
         self.n = n
@@ -91,6 +91,25 @@ class Labeller:
         self.shape_check = shape_check
         self.template_tol = _tolerance(markerset, noise_m)
         self.anchors = np.argsort(sd, axis=1)[:, :-1]     # all others, steadiest first
+        # rigid modules (a segment and the markers that hold still with it, e.g. a foot's
+        # tetrahedron with its ankle): re-identified jointly, by a proper rigid fit of the
+        # module's own shape in this take (which tells a module from its mirror image)
+        self.module_reid = module_reid
+        self.modules = rigid_modules(markerset)
+        M = len(self.modules)
+        width = max((len(m) for m in self.modules), default=1)
+        self.mod_idx = np.zeros((M, width), int)
+        self.mod_mask = np.zeros((M, width), bool)
+        for k, m in enumerate(self.modules):
+            self.mod_idx[k, :len(m)] = m
+            self.mod_mask[k, :len(m)] = True
+        self.mod_of = np.full(n, -1)
+        for k, m in enumerate(self.modules):
+            self.mod_of[m] = k
+        self.mod_shape = np.full((M, width, 3), np.nan)     # this take's shape, once seen
+        self.mod_ref = [_mds_shape(markerset.mean_m[np.ix_(m, m)]) for m in self.modules]
+        self.mod_sigma = np.array([np.sqrt(np.mean(markerset.sd_m[np.ix_(m, m)] ** 2))
+                                   for m in self.modules]).reshape(M) + noise_m
         self.pos = np.full((n, 3), np.nan)
         self.vel = np.zeros((n, 3))
         self.age = np.full(n, 10 ** 6)
@@ -245,6 +264,8 @@ class Labeller:
             fresh |= (self.age[lost] > 20) & (cost >= BIG).all(1)
             if fresh.any():
                 cost[fresh] = self._fresh_cost(lost[fresh], P[free], cur)
+            if self.module_reid:
+                self._module_assign(lost, P[free], cur, cost)
             r, c = linear_sum_assignment(cost)
             good = cost[r, c] < BIG
             # ambiguous: another lost marker fits the same point almost as well
@@ -451,8 +472,84 @@ class Labeller:
             done = True
         return done
 
+    def _module_assign(self, lost: np.ndarray, Pf: np.ndarray, cur: np.ndarray,
+                       cost: np.ndarray) -> None:
+        """Re-identify the lost markers of each rigid module jointly: every assignment of
+        its lost markers to candidate points (or to none) is scored by a proper rigid fit
+        of the module's shape in this take to its labelled and assigned points. Marker by
+        marker, two markers at equal distances from the visible ones (a foot's LMT5 and
+        LTOE from its heel and ankle) or a ghost that fits one marker's distances can take
+        the wrong point; the module's shape and handedness tell. A clear winner is forced
+        into `cost`; a tie blocks the markers it concerns for this frame (they wait for
+        more of the module to show)."""
+        mods = np.unique(self.mod_of[lost])
+        mods = mods[mods >= 0]
+        if not len(mods):
+            return
+        row_of = np.full(self.n, -1)
+        row_of[lost] = np.arange(len(lost))
+        seen = np.isfinite(cur).all(1)
+        for k in mods:
+            idx = self.modules[k]
+            lm = idx[row_of[idx] >= 0]
+            anchors = idx[seen[idx]]
+            rows = row_of[lm]
+            cand = cost[rows] < BIG                                      # (l, F)
+            if len(anchors) >= 2:
+                d = np.sqrt(((Pf[:, None] - cur[anchors][None]) ** 2).sum(2))   # (F, A)
+                mu = self.mean_all[np.ix_(lm, anchors)]
+                tol = self.adapt_tol[np.ix_(lm, anchors)]
+                cand |= (np.abs(d[None] - mu[:, None]) <= tol[:, None]).all(2)
+            n_cand = cand.sum(1)
+            if not n_cand.any() or len(anchors) + (n_cand > 0).sum() < 3 \
+                    or np.prod(n_cand + 1) > 4096:
+                continue
+            shape = self.mod_shape[k, :len(idx)]
+            if not np.isfinite(shape).all():
+                continue      # not seen whole in this take yet: marker by marker
+            hyps = _injective_product([np.r_[-1, np.nonzero(c)[0]] for c in cand])
+            H = len(hyps)
+            X = np.broadcast_to(np.nan_to_num(cur[idx]), (H, len(idx), 3)).copy()
+            w = np.broadcast_to(seen[idx], (H, len(idx))).astype(float)
+            pos = np.searchsorted(idx, lm) if np.all(np.diff(idx) > 0) else \
+                np.array([list(idx).index(m) for m in lm])
+            got = hyps >= 0
+            for j in range(len(lm)):
+                X[got[:, j], pos[j]] = Pf[hyps[got[:, j], j]]
+                w[:, pos[j]] = got[:, j]
+            r2 = _rigid_residuals(shape, X, w, True)
+            sigma = self.mod_sigma[k]
+            total = w.sum(1)
+            bad = ((r2 > (3.5 * sigma) ** 2).any(1)) | ((total < 3) & got.any(1))
+            score = r2.sum(1) / sigma ** 2 + 9.0 * (~got).sum(1)
+            score[bad] = np.inf
+            b = int(np.argmin(score))
+            if not np.isfinite(score[b]):
+                continue
+            best = hyps[b]
+            used = best[best >= 0]
+            conflict = (got & (hyps != best[None]) &
+                        ((best[None] >= 0) | np.isin(hyps, used))).any(1)
+            near = conflict & (score < score[b] + 9.0)
+            agree = ~(near[:, None] & (hyps != best[None])).any(0)
+            # a marker is decided here only where a fit could judge it (3+ points)
+            judged = (got & (total >= 3)[:, None]).any(0) | (best >= 0)
+            for j in range(len(lm)):
+                if not judged[j]:
+                    continue
+                cost[rows[j]] = BIG
+                if agree[j] and best[j] >= 0:
+                    cost[:, best[j]] = BIG
+                    cost[rows[j], best[j]] = 0.0
+
     def _commit(self, cur: np.ndarray, has: np.ndarray) -> None:
         seen_prev = has & (self.age == 0)
+        if len(self.modules):
+            steady_now = seen_prev[self.mod_idx] | ~self.mod_mask
+            full = steady_now.all(1)
+            if full.any():
+                self.mod_shape[full] = np.where(self.mod_mask[full, :, None],
+                                                cur[self.mod_idx[full]], np.nan)
         newvel = np.where(seen_prev[:, None], cur - self.pos, 0.0)
         self.vel = np.where(seen_prev[:, None], self.smooth * newvel + (1 - self.smooth) * self.vel,
                             np.where(has[:, None], 0.0, self.vel))
@@ -475,6 +572,67 @@ class Labeller:
         if self.adapt > 0 and has.sum() > 3 and self.frames % 4 == 0:
             self._learn_distances(cur, min(1.0, 4 * self.adapt))
         self.frames += 1
+
+
+# ---------------------------------------------------------------------- rigid modules
+
+
+def rigid_modules(ms: MarkerSet, max_sd_m: float = 0.008) -> list[np.ndarray]:
+    """The marker set's segments of 3+ markers, each joined by the markers that keep their
+    distance to all its members within `max_sd_m` (a foot's ankle marker): the groups
+    whose shape, and handedness, a rigid fit can check."""
+    mods = [list(sg.markers) for sg in ms.segments if len(sg.markers) >= 3]
+    inside = {m for g in mods for m in g}
+    for x in range(ms.n):
+        if x in inside or not mods:
+            continue
+        spread = [ms.sd_m[x, g].max() for g in mods]
+        k = int(np.argmin(spread))
+        if spread[k] <= max_sd_m:
+            mods[k].append(x)
+    return [np.array(sorted(g)) for g in mods]
+
+
+def _mds_shape(mean: np.ndarray) -> np.ndarray:
+    """Points (m, 3) with the given distances (classical MDS), up to a mirror image."""
+    m = len(mean)
+    J = np.eye(m) - 1.0 / m
+    B = -0.5 * J @ (mean ** 2) @ J
+    val, vec = np.linalg.eigh(B)
+    top = np.argsort(val)[::-1][:3]
+    return vec[:, top] * np.sqrt(np.maximum(val[top], 0.0))
+
+
+def _injective_product(options: list[np.ndarray]) -> np.ndarray:
+    """All combinations (one entry per list, -1 = none) that use no point twice."""
+    grids = np.meshgrid(*options, indexing="ij")
+    h = np.stack([g.ravel() for g in grids], axis=1)
+    ok = np.ones(len(h), bool)
+    for a in range(h.shape[1]):
+        for b in range(a + 1, h.shape[1]):
+            ok &= (h[:, a] != h[:, b]) | (h[:, a] < 0)
+    return h[ok]
+
+
+def _rigid_residuals(shape: np.ndarray, X: np.ndarray, w: np.ndarray, proper: bool
+                     ) -> np.ndarray:
+    """Squared residuals (H, m) of the weighted best rigid fit of `shape` (m, 3) to each
+    of X (H, m, 3) (weights w (H, m), 0 = not there); rotations only when `proper`,
+    otherwise mirror images allowed too."""
+    sw = np.maximum(w.sum(1), 1e-12)
+    cs = (w @ shape) / sw[:, None]
+    cx = np.einsum("hm,hmi->hi", w, X) / sw[:, None]
+    S0 = shape[None] - cs[:, None]
+    X0 = X - cx[:, None]
+    Hm = np.einsum("hm,hmi,hmj->hij", w, S0, X0)
+    U, _, Vt = np.linalg.svd(Hm)
+    if proper:
+        d = np.sign(np.linalg.det(np.einsum("hji,hkj->hik", Vt, U)))
+        Vt = Vt.copy()
+        Vt[:, 2] *= np.where(d == 0, 1.0, d)[:, None]
+    R = np.einsum("hji,hkj->hik", Vt, U)                              # V U^T
+    fit = np.einsum("hij,hmj->hmi", R, S0)
+    return ((fit - X0) ** 2).sum(2) * w
 
 
 # ---------------------------------------------------------------------- from scratch
