@@ -129,6 +129,7 @@ class Multiplexer:
         self.cond = threading.Condition()
         self.pending: dict[int, dict[int, CameraSample]] = {}
         self.first_arrival: dict[int, int] = {}
+        self.need: dict[int, list[int]] = {}  # per pending frame: the cameras it waits for
         self.ready: deque = deque(maxlen=64)
         self.last_emitted = -1
         self.incomplete = 0  # sets emitted on timeout, missing a camera
@@ -150,11 +151,15 @@ class Multiplexer:
             if sample.index <= self.last_emitted:
                 self.late += 1
                 return
-            group = self.pending.setdefault(sample.index, {})
-            self.first_arrival.setdefault(sample.index, sample.arrival_ns)
+            group = self.pending.get(sample.index)
+            if group is None:
+                # which cameras this frame waits for: asked once per frame, not per sample
+                # (eight threads push in turn; every microsecond here is latency)
+                group = self.pending[sample.index] = {}
+                self.first_arrival[sample.index] = sample.arrival_ns
+                self.need[sample.index] = np.flatnonzero(self.connected()).tolist()
             group[sample.camera] = sample
-            need = self.connected()
-            if all(c in group for c in np.flatnonzero(need)):
+            if len(group) == self.n or all(c in group for c in self.need[sample.index]):
                 self._emit(sample.index)
 
     def _put(self, fs: FrameSet) -> None:
@@ -172,6 +177,7 @@ class Multiplexer:
     def _emit_group(self, index: int) -> None:
         group = self.pending.pop(index)
         self.first_arrival.pop(index, None)
+        self.need.pop(index, None)
         if index <= self.last_emitted:
             return
         self.last_emitted = index
@@ -181,7 +187,8 @@ class Multiplexer:
             got = np.zeros(self.n, dtype=bool)
             got[list(group)] = True
             self.missing[~got] += 1
-        t = int(np.median([s.t_ns for s in samples]))
+        ts = sorted(s.t_ns for s in samples)
+        t = (ts[(len(ts) - 1) // 2] + ts[len(ts) // 2]) // 2  # the median capture time
         self._put(FrameSet(index, t, max(s.arrival_ns for s in samples), samples))
 
     def _expire(self, now_ns: int) -> None:
