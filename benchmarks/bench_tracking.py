@@ -175,12 +175,14 @@ def _piece(rig, n, seed):
                      obs.marker[order[starts[f]:starts[f + 1]]]) for f in range(n)]
 
 
-def latency(seconds: float, size: str) -> dict:
+def latency(seconds: float, size: str, nice: int = 0) -> dict:
     rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     rx.bind(("127.0.0.1", 0))
     rx.settimeout(0.5)
-    cmd = [sys.executable, "-m", "daemon.cli", "start", "--sim", "--sim-cameras", str(N_CAMERAS),
-           "--sim-bodies", str(N_BODIES), "--sim-fps", str(FPS), "--noise-px", str(NOISE_PX),
+    prio = ["nice", "-n", str(nice)] if nice else []  # as the unit's Nice= would run it
+    cmd = [*prio, sys.executable, "-m", "daemon.cli", "start", "--sim",
+           "--sim-cameras", str(N_CAMERAS), "--sim-bodies", str(N_BODIES),
+           "--sim-fps", str(FPS), "--noise-px", str(NOISE_PX),
            "--udp", f"127.0.0.1:{rx.getsockname()[1]}", "--duration", str(seconds),
            "--runtime-dir", f"/tmp/mocapd-bench-{rx.getsockname()[1]}"]
     cfg = ROOT / "benchmarks" / f".bench_tracking_{size}.toml"
@@ -217,6 +219,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--minutes", type=float, default=2.0)
     ap.add_argument("--latency-s", type=float, default=10.0)
+    ap.add_argument("--nice", type=int, default=0,
+                    help="run the daemon at this priority (negative: as root, like the "
+                         "system unit's Nice=-10)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     out = {"scene": {"cameras": N_CAMERAS, "bodies": N_BODIES, "markers": N_BODIES * PER_BODY,
@@ -259,7 +264,7 @@ def main() -> None:
     if args.latency_s > 0:
         lrows = []
         for name in SIZES:
-            lat = latency(args.latency_s, name)
+            lat = latency(args.latency_s, name, args.nice)
             out[f"latency_{name}"] = lat
             lrows.append([name, lat["packets"], round(lat["rate_hz"], 1),
                           round(lat["median_ms"], 3), round(lat["p99_ms"], 3),

@@ -264,6 +264,11 @@ def test_install_unit(tmp_path, mocapd_cli):
     text = out.read_text()
     assert "Type=notify" in text and "ExecReload=/bin/kill -HUP $MAINPID" in text
     assert f"--config {tmp_path / 'mocapd.toml'}" in text and "WatchdogSec=5" in text
+    assert "WantedBy=multi-user.target" in text and "Nice=-10" in text  # a system unit
+    user = tmp_path / ".config/systemd/user/mocapd.service"
+    assert mocapd_cli("install-unit", "--config", tmp_path / "mocapd.toml", "--out",
+                      user).code == 0
+    assert "Nice=" not in user.read_text()  # a user manager may not raise priority
     r = mocapd_cli("install-unit", "--config", tmp_path / "missing.toml", "--out", out)
     assert r.code == 2
 

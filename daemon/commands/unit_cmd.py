@@ -15,6 +15,11 @@ from calibkit.fileio import write_text_atomic
 
 def unit_text(config: Path, executable: str, watchdog_s: int = 5,
               wanted_by: str = "default.target") -> str:
+    # A system unit runs the tracking ahead of ordinary work on the machine: under load a
+    # frame loop at the default priority waits for the CPU and the latency tail grows from
+    # ~3 ms to tens of ms (docs/tracking.md). A user manager may not raise priority, and a
+    # unit asking for it would fail to start, so user units leave it out.
+    priority = "" if wanted_by == "default.target" else "Nice=-10\n"
     return f"""[Unit]
 Description=mocapd motion-capture tracking daemon
 After=network-online.target
@@ -32,7 +37,7 @@ Restart=on-failure
 RestartSec=2
 KillSignal=SIGTERM
 TimeoutStopSec=10
-
+{priority}
 [Install]
 WantedBy={wanted_by}
 """
