@@ -23,6 +23,30 @@ def _check_out(path: Path, inputs: list[Path]) -> None:
             raise UserError(f"--out {path} is an input; write to another file")
 
 
+def _triangulated(path: Path, rig_path: Path | None):
+    """A recording's blobs matched across cameras and triangulated, as `calibkit
+    triangulate` does: (Points, the recording's frame rate or None)."""
+    import numpy as np
+
+    from calibkit.camera import Rig
+    from calibkit.correspondence import match_frames
+    from calibkit.recording import load_observations
+    from daemon.c3dio import Points
+
+    if rig_path is None:
+        raise UserError(f"{path}: a recording holds 2D blobs; give --rig RIG.toml to "
+                        f"triangulate them")
+    rig = Rig.load(rig_path)
+    obs, _ = load_observations(path, rig)
+    if len(obs) == 0:
+        raise UserError(f"{path}: holds no blobs")
+    progress = Progress("triangulate", len(obs.frames()))
+    found = match_frames(rig, obs, progress=progress.update)
+    progress.finish(f"{len(found.frame)} points")
+    return Points(found.frame.astype(np.int64), found.xyz), (float(obs.fps) if obs.fps
+                                                              else None)
+
+
 def register(app: typer.Typer) -> None:
     ms_app = typer.Typer(help="Marker sets: learn one from a labelled take.",
                          no_args_is_help=True)
@@ -63,9 +87,12 @@ def register(app: typer.Typer) -> None:
     @app.command("label")
     def label_cmd(
         points: Annotated[Path, typer.Argument(
-            help="Unlabelled points: CSV frame,x,y,z (metres) or a C3D (labels ignored).")],
+            help="Unlabelled points: CSV frame,x,y,z (metres), a C3D (labels ignored), or a "
+                 "recording of blobs (.mcrec, with --rig: triangulated first).")],
         markerset: Annotated[Path, typer.Option("--markerset", help="Marker set (.toml).")],
         out: Annotated[Path, typer.Option("--out", help="Labelled take (.c3d or .csv).")],
+        rig_path: Annotated[Path | None, typer.Option(
+            "--rig", help="The calibrated rig, to triangulate a .mcrec recording.")] = None,
         seed_frames: Annotated[int, typer.Option(
             "--seed-frames", help="Use the first N frames' labels from --seed (or from a "
                                   "labelled C3D given as POINTS).")] = 0,
@@ -97,8 +124,14 @@ def register(app: typer.Typer) -> None:
                 seed_take = labelled
         elif points.suffix.lower() == ".csv":
             pts = read_points_csv(points)
+        elif points.suffix.lower() == ".mcrec":
+            pts, rec_rate = _triangulated(points, rig_path)
+            rate_hz = rate_hz or rec_rate
         else:
-            raise UserError(f"{points}: POINTS must be a .csv (frame,x,y,z) or .c3d file")
+            raise UserError(f"{points}: POINTS must be a .csv (frame,x,y,z), a .c3d or a "
+                            f".mcrec recording")
+        if rig_path is not None and points.suffix.lower() != ".mcrec":
+            raise UserError("--rig is for a .mcrec recording; these points are 3D already")
         if seed is not None:
             seed_take = read_take(seed, rate_hz)
         if seed_frames and seed_take is None:
