@@ -350,7 +350,6 @@ class Pipeline:
             camera, uv, marker = np.zeros(0, np.int64), np.zeros((0, 2)), None
         tracks = self.tracker.update(camera, uv, fs.t_ns)
         poses = self.rigid.update(tracks, uv, self.tracker.cams)
-        self.tracker.place(*self.rigid.hidden_markers(tracks))
         scene_frame = samples[0].scene_frame if samples else -1
         result = FrameResult(fs.index, fs.t_ns, fs.arrival_ns, time.monotonic_ns(), camera, uv,
                              tracks, poses, marker, scene_frame, samples)
@@ -359,6 +358,9 @@ class Pipeline:
             result.done_ns = time.monotonic_ns()
         for p in self.publishers:
             p.submit(result)
+        # for the next frame only (the result holds copies): after the outputs, off the
+        # latency path
+        self.tracker.place(*self.rigid.hidden_markers(tracks))
         for hook in self.hooks:
             hook(result)
         self.stats.add(result)
