@@ -14,7 +14,7 @@ opens. docs/daemon.md documents every key.
     [rigid]     distance_tol_m, max_error_m
     [sim]       cameras, bodies, markers_per_body, extra_markers, fps, noise_px, dropout,
                 ghosts, volume_m, size, seed, realtime, drop_camera, drop_from_s, drop_for_s,
-                define_bodies, person, person_radius_m
+                define_bodies, person, person_radius_m, unsync_ms
     [[rigid_body]] name, id, markers = [[x, y, z], ...], pivot, min_markers_start,
                    min_markers_keep, smoothing
     [[camera]]  name (a camera of the rig), source ("0" a device, a video, an image folder,
@@ -64,6 +64,7 @@ class SimConfig:
     define_bodies: bool = True  # track the scene's bodies when the configuration has none
     person: bool = False  # a person wearing the 41-marker set walks a circle (sim_person)
     person_radius_m: float = 1.0  # radius of that circle, about the volume's centre
+    unsync_ms: float = 0.0  # cameras' clocks offset by up to this: unsynchronised cameras
 
 
 @dataclass(frozen=True)
@@ -359,6 +360,9 @@ def _sim_limits(w, sim: SimConfig) -> None:
         w.fail("sim.fps", f"must be positive, got {sim.fps}")
     if not 0 <= sim.dropout < 1:
         w.fail("sim.dropout", f"must be in [0, 1), got {sim.dropout}")
+    if not 0 <= sim.unsync_ms < 1000 / sim.fps:
+        w.fail("sim.unsync_ms", f"must be in [0, {1000 / sim.fps:g}) (a frame period), "
+                                f"got {sim.unsync_ms}")
     if sim.person and not 0.3 <= sim.person_radius_m <= sim.volume_m / 2 - 0.3:
         w.fail("sim.person_radius_m", f"must be between 0.3 and {sim.volume_m / 2 - 0.3:g} "
                                       f"(inside the volume), got {sim.person_radius_m}")

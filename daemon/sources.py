@@ -21,7 +21,7 @@ from calibkit import sim
 from calibkit.camera import Rig
 from calibkit.errors import UserError
 from daemon.config import SimConfig
-from daemon.rigid import BodyDef
+from daemon.rigid import BodyDef, matrix_from_quaternion
 
 log = logging.getLogger("mocapd.sources")
 
@@ -83,13 +83,18 @@ class SimScene:
             truth = type(truth)(np.concatenate([truth.frame, loose.frame]),
                                 np.concatenate([truth.marker, loose.marker + 1000]),
                                 np.concatenate([truth.xyz, loose.xyz]))
+        self.t0_ns: int | None = None  # live runs: when frame 0 was due (SimCamera sets it)
         self.person_labels: list[str] = []
         self.person_xyz = np.zeros((n, 0, 3))  # (frames, 41, 3) the person's markers
         if cfg.person:
             truth = self._add_person(truth, n)
         self.truth = truth
+        # unsynchronised cameras: each camera's clock offset, fixed for the run
+        self.offsets_ns = np.random.default_rng(cfg.seed + 4).uniform(
+            0.0, cfg.unsync_ms * 1e6, len(rig)).round()
         obs = sim.observe(self.truth_rig, truth, noise_px=cfg.noise_px, dropout=cfg.dropout,
-                          ghosts_per_camera=cfg.ghosts, fps=cfg.fps, seed=cfg.seed + 3)
+                          ghosts_per_camera=cfg.ghosts, fps=cfg.fps, seed=cfg.seed + 3,
+                          clock_offset_ns=self.offsets_ns)
         self.obs = obs.sorted()
         key = self.obs.frame * len(rig) + self.obs.camera
         self.starts = np.searchsorted(key, np.arange(n * len(rig) + 1))
@@ -194,6 +199,7 @@ class SimCamera:
 
     def __init__(self, scene: SimScene, camera: int, t0_ns: int) -> None:
         self.scene, self.camera, self.t0_ns = scene, camera, t0_ns
+        scene.t0_ns = t0_ns  # when frame 0 was due: the Evaluator places frames in time
         self.name = scene.rig.names[camera]
 
     def open(self) -> Iterator[CameraSample]:
@@ -201,8 +207,10 @@ class SimCamera:
         period = 1e9 / self.scene.fps
         i = max(0, int(np.ceil((time.monotonic_ns() - self.t0_ns) / period)))
         end = getattr(self.scene, "frame_numbers", None)
+        offsets = getattr(self.scene, "offsets_ns", None)  # unsynchronised simulated clocks
+        t0 = self.t0_ns + (int(offsets[self.camera]) if offsets is not None else 0)
         while end is None or i < len(end):
-            due = self.t0_ns + round(i * period)
+            due = t0 + round(i * period)
             wait = due - time.monotonic_ns()
             if wait > 0:
                 time.sleep(wait * 1e-9)
@@ -346,6 +354,7 @@ class Evaluator:
         for i, b in enumerate(truth):
             self.marker_ids[i, :len(b.marker_ids)] = b.marker_ids
         self.poses = np.stack([b.poses for b in truth]) if nb else np.zeros((0, 1, 4, 4))
+        self._quats = None  # (bodies, frames, 4) x y z w, made when first needed
         self.valid = np.zeros(nb, dtype=np.int64)
         self.gross = np.zeros(nb, dtype=np.int64)
         self.scored = np.zeros(nb, dtype=np.int64)  # valid frames within the gross limits
@@ -386,9 +395,9 @@ class Evaluator:
             wrong = np.any((got >= 0) & (want >= 0) & (got != want), axis=1)
             self.body_swaps += int(np.sum(ok & wrong & ~self.swapped))
             self.swapped[ok] = wrong[ok]
-        T = self.poses[:, result.scene_frame]
-        e = np.linalg.norm(p.position[row] - T[:, :3, 3], axis=1)
-        cos = (np.einsum("bij,bij->b", p.rotation[row], T[:, :3, :3]) - 1) / 2
+        R_true, t_true = self._truth_at(result)
+        e = np.linalg.norm(p.position[row] - t_true, axis=1)
+        cos = (np.einsum("bij,bij->b", p.rotation[row], R_true) - 1) / 2
         a = np.degrees(np.arccos(np.clip(cos, -1, 1)))
         self.valid += ok
         gross = ok & ((e > 0.02) | (a > 5.0))
@@ -398,6 +407,37 @@ class Evaluator:
         self.pos_sq[good] += e[good] ** 2
         self.ang_sq[good] += a[good] ** 2
         self.ang_max[good] = np.maximum(self.ang_max[good], a[good])
+
+    def _truth_at(self, result):
+        """The bodies' true (R, t) when the frame set was taken. Live, a set's time may lie
+        between two scene frames: unsynchronised cameras (the set's median capture time), or
+        the greedy multiplexer (the newest camera's time, the others moved to it); the truth
+        is then interpolated (positions linearly, orientations by normalised quaternions),
+        as the simulator rendered each camera's view."""
+        f = result.scene_frame
+        T = self.poses[:, f]
+        t0 = getattr(self.scene, "t0_ns", None)
+        if t0 is None:  # not a live run: sets are taken at their frame's time
+            return T[:, :3, :3], T[:, :3, 3]
+        period = 1e9 / self.scene.fps
+        at = f + (result.t_ns - t0 - result.frame * period) / period
+        last = self.poses.shape[1] - 1
+        if abs(at - f) < 1e-6 or last < 1:
+            return T[:, :3, :3], T[:, :3, 3]
+        base = int(min(max(np.floor(at), 0), last - 1))
+        w = at - base
+        if self._quats is None:
+            from scipy.spatial.transform import Rotation
+
+            R = self.poses[:, :, :3, :3]
+            self._quats = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat().reshape(
+                R.shape[:2] + (4,))
+        qa, qb = self._quats[:, base], self._quats[:, base + 1]
+        qb = qb * np.sign(np.sum(qa * qb, axis=1, keepdims=True) + 1e-12)
+        q = (1 - w) * qa + w * qb
+        q /= np.linalg.norm(q, axis=1, keepdims=True)
+        pos = (1 - w) * self.poses[:, base, :3, 3] + w * self.poses[:, base + 1, :3, 3]
+        return matrix_from_quaternion(q), pos
 
     def _tracks(self, result):
         """This frame's track identities (track ids sorted, true markers); counts track
