@@ -6,6 +6,9 @@ time; the pipeline has tracks, bodies and publishers. This module sits between t
 returns, per labelled marker, its index in the set, position, confidence and the track it
 came from, with the set's names for the outputs (UDP packet, NatNet). It runs on the frame
 loop, so it does nothing else: no copies beyond the seen rows, no Python loop per marker.
+Markers a rigid body holds are left out: they are named already (the body's), and to the
+labeller they would only be more points that fit no marker (ghosts), which make its start
+from the set alone go wrong far more often.
 
 Starting is the exception: labelling a frame from the marker set alone (no previous
 labels) searches the set's segments and takes a few hundred milliseconds, which would
@@ -15,9 +18,13 @@ normal, sub-millisecond update) and is handed to the frame loop once it is curre
 until then frames go out without labelled markers. The same happens when the labeller
 has named nothing for `lost_s` seconds while markers are seen (the subject left and came
 back), and after a labeller failure (a bug, not a user error: logged once, never a
-stopped stream). A run that is not paced by cameras (a simulation or replay as fast as
-possible, `background=False`) starts inline instead: nothing is missed and the labels are
-the same on every run.
+stopped stream). A start waits until most of the set (`start_fraction` of its markers)
+has been seen for a quarter second in a row (or points for `settle_s`): labelling from
+the set alone is far less reliable on a partial view (the tracker's first frames come and
+go, a subject walks in), and a wrong start is carried along by the tracking; for the same
+reason a start is checked by a second one a quarter second later (`_Start`). A run that
+is not paced by cameras (a simulation or replay as fast as possible, `background=False`)
+starts inline instead: nothing is missed and the labels are the same on every run.
 """
 
 from __future__ import annotations
@@ -75,17 +82,66 @@ def load(path: Path) -> MarkerSet:
     return ms
 
 
-class _Search:
-    """A fresh labeller started on a thread: the first frame from the marker set alone,
-    then every frame queued since, until it is current (see the module docstring)."""
+class _Start:
+    """Starting from the marker set alone, checked by a second opinion.
 
-    def __init__(self, ms: MarkerSet, rate_hz: float, first: np.ndarray,
-                 max_behind: int) -> None:
-        self.labeller = Labeller(ms, rate_hz=rate_hz)
+    A start from the set alone can mistake a near-symmetric group (a wrist's two markers,
+    a foot's four mirrored) and the tracking then carries the mistake along. So the
+    candidate is tracked on, and `check_frames` later another start is made from that
+    frame's points alone (a frame showing most of the set, if one comes within
+    `settle_frames`): if the two name every marker they both name alike, the candidate
+    is accepted; if not, the new start becomes the candidate and is checked in its turn
+    (after `max_tries` checks it is taken as it is). One labeller is tracked at a time,
+    so a start costs one update a frame plus one search per check."""
+
+    def __init__(self, ms: MarkerSet, rate_hz: float, check_frames: int, start_points: int,
+                 settle_frames: int, max_tries: int = 6) -> None:
+        self.ms, self.rate_hz = ms, rate_hz
+        self.check_frames, self.start_points = check_frames, start_points
+        self.settle_frames, self.max_tries = settle_frames, max_tries
+        self.candidate: Labeller | None = None
+        self.since = 0
+        self.tries = 0
+        self.accepted: Labeller | None = None
+
+    def step(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """This frame's labels by the candidate; makes the check when it is due."""
+        if self.candidate is None:
+            self.candidate = Labeller(self.ms, rate_hz=self.rate_hz)
+        labels, conf = self.candidate.update(xyz)
+        if self.accepted is not None:
+            return labels, conf
+        self.since += 1
+        due = self.since > self.check_frames and (
+            len(xyz) >= self.start_points or self.since > self.check_frames + self.settle_frames)
+        if not due:
+            return labels, conf
+        fresh = Labeller(self.ms, rate_hz=self.rate_hz)
+        second, conf2 = fresh.update(xyz)
+        both = (labels >= 0) & (second >= 0)
+        self.tries += 1
+        # every marker both named, named alike: a swapped pair is two differences in 41
+        if both.sum() >= 3 and np.array_equal(labels[both], second[both]):
+            self.accepted = self.candidate
+            return labels, conf
+        log.info("labelling: two starts from the marker set disagree on %d of %d markers; "
+                 "checking again", int(np.sum(labels[both] != second[both])), int(both.sum()))
+        self.candidate, self.since = fresh, 0
+        if self.tries >= self.max_tries:
+            self.accepted = fresh
+        return second, conf2
+
+
+class _Search:
+    """A _Start run on a thread: the first frame, then every frame queued since, until the
+    start is accepted and current (see the module docstring)."""
+
+    def __init__(self, start: _Start, first: np.ndarray, max_behind: int) -> None:
+        self.start = start
         self.queue: deque = deque([first])
         self.max_behind = max_behind
         self.cond = threading.Condition()
-        self.ready = False  # caught up: the frame loop may take the labeller
+        self.ready = False  # accepted and caught up: the frame loop may take the labeller
         self.cancelled = False
         self.error: BaseException | None = None
         self.thread = threading.Thread(target=self._run, name="label-start", daemon=True)
@@ -94,6 +150,9 @@ class _Search:
     def _run(self) -> None:
         while True:
             with self.cond:
+                while (not self.queue and not self.cancelled
+                       and self.start.accepted is None):
+                    self.cond.wait(0.5)  # the check needs later frames
                 if self.cancelled:
                     return
                 if not self.queue:
@@ -101,7 +160,7 @@ class _Search:
                     return
                 xyz = self.queue.popleft()
             try:
-                self.labeller.update(xyz)
+                self.start.step(xyz)
             except Exception as exc:  # noqa: BLE001 - reported by the stage
                 self.error = exc
                 return
@@ -111,11 +170,12 @@ class _Search:
         frame is then left for the caller to label), else None (the frame is queued)."""
         with self.cond:
             if self.ready:
-                return self.labeller
+                return self.start.accepted
             if len(self.queue) >= self.max_behind:  # too far behind: start again
                 self.cancelled = True
             else:
                 self.queue.append(xyz)
+                self.cond.notify()
             return None
 
 
@@ -123,15 +183,23 @@ class LiveLabeller:
     """The pipeline's labelling stage: `stage(result) -> LabelledMarkers`."""
 
     def __init__(self, markerset: MarkerSet, rate_hz: float, source: str = "",
-                 lost_s: float = 0.5, background: bool = True) -> None:
+                 lost_s: float = 0.5, background: bool = True, start_fraction: float = 0.9,
+                 settle_s: float = 2.0, check_s: float = 0.25) -> None:
         self.ms = markerset
         self.rate_hz = float(rate_hz)
         self.source = source  # the file it came from, for status
         self.names = list(markerset.labels)
         self.set_name = markerset.name
         self.labeller: Labeller | None = None  # None while a search runs (or before one)
-        self.search: _Search | None = None
+        self.search: _Search | None = None  # a start on its thread (realtime)
+        self.inline: _Start | None = None  # a start on the frame loop (background=False)
+        self.check_frames = max(1, int(round(check_s * self.rate_hz)))
         self.background = background
+        self.start_points = max(3, int(np.ceil(start_fraction * markerset.n)))
+        self.settle_frames = max(1, int(round(settle_s * self.rate_hz)))
+        self.waiting = 0  # frames with points seen, not yet started from
+        self.steady = 0  # frames in a row showing most of the set
+        self.hold_until = 0  # after a failure: no new start before this frame
         self.lost_frames = max(1, int(round(lost_s * self.rate_hz)))
         self.max_behind = max(16, int(5 * self.rate_hz))  # frames a search may queue
         self.time_ns: deque = deque(maxlen=4096)  # what the stage took, recent frames
@@ -147,17 +215,36 @@ class LiveLabeller:
         t0 = time.monotonic_ns()
         tr = result.tracks
         seen = np.asarray(tr.seen, bool)
+        ids = np.asarray(tr.ids)
+        held = getattr(getattr(result, "poses", None), "tracks", None)
+        if held is not None and np.size(held):
+            held = np.asarray(held)
+            seen = seen & ~np.isin(ids, held[held >= 0])
         xyz = np.asarray(tr.xyz)[seen]
         self.frames += 1
-        out = self._label(xyz, np.asarray(tr.ids)[seen])
+        out = self._label(xyz, ids[seen])
         self.labelled = len(out.index)
         self.time_ns.append(time.monotonic_ns() - t0)
         return out
 
     def _label(self, xyz: np.ndarray, ids: np.ndarray) -> LabelledMarkers:
-        if self.labeller is None and not self.background and len(xyz) >= 3:
-            self.starts += 1
-            self.labeller = Labeller(self.ms, rate_hz=self.rate_hz)
+        if (self.labeller is None and self.search is None and self.inline is None
+                and not self._may_start(len(xyz))):
+            return self._empty
+        if self.labeller is None and not self.background:
+            if self.inline is None:
+                self.starts += 1
+                self.inline = self._start()
+            try:
+                labels, conf = self.inline.step(xyz)
+            except Exception as exc:  # noqa: BLE001 - a labelling bug must not stop the stream
+                self._failed(exc)
+                return self._empty
+            if self.inline.accepted is not None:
+                self.labeller, self.inline = self.inline.accepted, None
+            keep = labels >= 0
+            return LabelledMarkers(self.set_name, self.names, labels[keep].astype(np.int64),
+                                   xyz[keep], conf[keep], ids[keep])
         if self.labeller is None:
             if self.search is not None:
                 self.labeller = self.search.offer(xyz)
@@ -166,9 +253,9 @@ class LiveLabeller:
                 elif self.search.cancelled:
                     self.search = None
             if self.labeller is None:
-                if self.search is None and len(xyz) >= 3:
+                if self.search is None:
                     self.starts += 1
-                    self.search = _Search(self.ms, self.rate_hz, xyz, self.max_behind)
+                    self.search = _Search(self._start(), xyz, self.max_behind)
                 return self._empty
             self.search = None
         try:
@@ -186,12 +273,31 @@ class LiveLabeller:
         return LabelledMarkers(self.set_name, self.names, labels[keep].astype(np.int64),
                                xyz[keep], conf[keep], ids[keep])
 
+    def _start(self) -> _Start:
+        return _Start(self.ms, self.rate_hz, self.check_frames, self.start_points,
+                      self.settle_frames)
+
+    def _may_start(self, n_points: int) -> bool:
+        """Whether this frame is one to start labelling from: most of the set seen for
+        `check_frames` in a row (the tracker's first frames come and go), or points seen
+        for `settle_frames` (see the module docstring)."""
+        if n_points < 3 or self.frames < self.hold_until:
+            self.waiting = self.steady = 0
+            return False
+        self.waiting += 1
+        self.steady = self.steady + 1 if n_points >= self.start_points else 0
+        if self.steady >= self.check_frames or self.waiting >= self.settle_frames:
+            self.waiting = self.steady = 0
+            return True
+        return False
+
     def _failed(self, exc: BaseException) -> None:
         self.failures += 1
         if self.failures == 1:
             log.error("labelling failed (%s: %s); starting afresh from the marker set",
                       type(exc).__name__, exc, exc_info=exc)
-        self.labeller, self.search = None, None
+        self.labeller, self.search, self.inline = None, None, None
+        self.hold_until = self.frames + self.settle_frames  # a failing labeller: once a second
 
     def close(self) -> None:
         """Stop a search in progress (the daemon stops, or a reload replaced this stage)."""

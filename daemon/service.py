@@ -508,6 +508,8 @@ class Daemon:
         bodies = self._bodies(new)
         self._warn_alike(bodies)
         changes = {} if labelling is self.labelling else {"labeller": labelling}
+        if changes and self.labelling is not None:
+            self.labelling.close()  # a start still searching on its thread stops
         self.labelling, self._markerset_key = labelling, key
         self.pipeline.replace(bodies=bodies, publishers=make_publishers(new, bodies,
                                                                         self._markerset()),
@@ -531,6 +533,8 @@ class Daemon:
                 p.stop()
         if self.recorder is not None:
             self.recorder.stop()
+        if self.labelling is not None:
+            self.labelling.close()
         if self.control is not None:
             self.control.close()
         if threading.current_thread() is threading.main_thread():
