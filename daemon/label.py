@@ -24,6 +24,7 @@ import warnings
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from daemon import label_kernels as kern
 from daemon.c3dio import Points, Take
 from daemon.markerset import MarkerSet, signed_volume
 
@@ -40,7 +41,9 @@ class Labeller:
                  candidate_limit: float = 1.0, ambiguity: float = 4.0,
                  witnesses: bool = False, spread_gain: float = 2.0,
                  fresh_margin: float = 4.0, shape_check: bool = False,
-                 suspect_frames: int = 30, module_reid: bool = True) -> None:
+                 suspect_frames: int = 30, module_reid: bool = True,
+                 chi2_cost: bool = False, module_check: bool = True,
+                 renew_sigma: float = 2.0, compiled: bool = True) -> None:
         self.ms = markerset
         n = markerset.n
         self.n = n
@@ -95,6 +98,10 @@ class Labeller:
         # tetrahedron with its ankle): re-identified jointly, by a proper rigid fit of the
         # module's own shape in this take (which tells a module from its mirror image)
         self.module_reid = module_reid
+        self.chi2_cost = chi2_cost
+        self.renew_sigma = renew_sigma
+        self.compiled = compiled       # numba kernels (label_kernels); numpy twins otherwise
+        self._sd2 = markerset.sd_m ** 2
         self.modules = rigid_modules(markerset)
         M = len(self.modules)
         width = max((len(m) for m in self.modules), default=1)
@@ -106,7 +113,12 @@ class Labeller:
         self.mod_of = np.full(n, -1)
         for k, m in enumerate(self.modules):
             self.mod_of[m] = k
+        self.mates = (self.mod_of[:, None] == self.mod_of[None]) & (self.mod_of[:, None] >= 0)
+        np.fill_diagonal(self.mates, False)
         self.mod_shape = np.full((M, width, 3), np.nan)     # this take's shape, once seen
+        self.module_check = module_check
+        self._mod_fit_now: np.ndarray | None = None
+        self._maps_cache: dict = {}
         self.mod_ref = [_mds_shape(markerset.mean_m[np.ix_(m, m)]) for m in self.modules]
         self.mod_sigma = np.array([np.sqrt(np.mean(markerset.sd_m[np.ix_(m, m)] ** 2))
                                    for m in self.modules]).reshape(M) + noise_m
@@ -204,6 +216,7 @@ class Labeller:
         """Label one frame's points (k, 3): marker index per point (-1 = ghost/unknown)
         and a confidence 0..1 per point."""
         P = np.asarray(points, float).reshape(-1, 3)
+        self._P = P
         k = len(P)
         n = self.n
         if not np.isfinite(self.pos).any():
@@ -217,6 +230,7 @@ class Labeller:
 
         marker_of = np.full(k, -1)
         point_of = np.full(n, -1)
+        self._new_now = np.zeros(n, bool)      # markers found again in this frame
         # 1. tracked markers: constant-velocity prediction, one global assignment
         tracked = np.nonzero(self.age <= 2)[0]
         if len(tracked) and k:
@@ -255,7 +269,10 @@ class Labeller:
             sigma = 0.012 + 0.0005 * age + self.spread_gain * spread
             # distances to labelled neighbours must also fit
             cerr, cnum = self._candidate_error(lost, P[free], cur)
-            cost = (dist / sigma[:, None]) ** 2 + 4.0 * cerr ** 2
+            if self.chi2_cost:
+                cost = (dist / sigma[:, None]) ** 2 + self._cand_chi2
+            else:
+                cost = (dist / sigma[:, None]) ** 2 + 4.0 * cerr ** 2
             cost[(dist > gate[:, None]) | (cerr > self.candidate_limit)] = BIG
             # never seen since the start: found by distances alone, from >= 3 neighbours
             fresh = ~np.isfinite(self.snap[lost, lost]).all(1)
@@ -277,6 +294,7 @@ class Labeller:
             point_of[lost[r[good]]] = free[c[good]]
             marker_of[free[c[good]]] = lost[r[good]]
             cur[lost[r[good]]] = P[free[c[good]]]
+            self._new_now[lost[r[good]]] = True
 
         changed = len(lost) > 0 or bad.any()
         if changed:
@@ -293,6 +311,8 @@ class Labeller:
     def _structure_error(self, cur: np.ndarray) -> np.ndarray:
         """Per marker: mean over its labelled neighbours of |d - mean| / tolerance (each
         capped at 3, so one bad neighbour cannot condemn a marker alone)."""
+        if self.compiled:
+            return kern.structure_error(cur, self.nb, self.nb_mean, self._tol())
         diff = cur[:, None] - cur[self.nb]
         d = np.sqrt(np.einsum("nki,nki->nk", diff, diff))
         e = np.abs(d - self.nb_mean) / self._tol()
@@ -329,12 +349,19 @@ class Labeller:
     def _candidate_error(self, markers: np.ndarray, P: np.ndarray, cur: np.ndarray
                          ) -> np.ndarray:
         """(len(markers), len(P)): neighbour-distance error if marker took that point."""
+        if self.compiled:
+            mean, num, self._cand_chi2 = kern.candidate_error(
+                markers, P, cur, self.nb, self.nb_mean, self._tol())
+            return mean, num
         nbx = cur[self.nb[markers]]                                    # (L, K, 3)
         d = np.linalg.norm(P[None, :, None] - nbx[:, None], axis=3)    # (L, k, K)
         e = np.abs(d - self.nb_mean[markers][:, None]) / self._tol()[markers][:, None]
         ok = np.isfinite(e)
         num = ok.sum(2)
         mean = np.where(ok, np.minimum(e, 3.0), 0.0).sum(2) / np.maximum(num, 1)
+        # the same as a sum of squares in units of the distances' SD (tolerance / 3), each
+        # capped at 4 SD: a sum tells two candidates apart where a mean dilutes
+        self._cand_chi2 = np.where(ok, np.minimum(9.0 * e * e, 16.0), 0.0).sum(2)
         return mean, num
 
     def _predict_from_neighbours(self, lost: np.ndarray, cur: np.ndarray) -> np.ndarray:
@@ -343,6 +370,14 @@ class Labeller:
         keep their distance to it (weighted Kabsch, batched over lost markers); with too
         little support, their weighted mean translation; with none, its last position
         moved by its last velocity."""
+        if self.compiled:
+            A = self.snap[lost]
+            W = self.pred_w[lost]
+            fallback = self.pos[lost] + self.vel[lost] * \
+                np.minimum(self.age[lost] + 1, 3)[:, None]
+            pred, self._support_spread = kern.predict_from_neighbours(
+                A, cur, W, W.max(1), self._sd2[lost], A[np.arange(len(lost)), lost], fallback)
+            return pred
         A = self.snap[lost]                                     # (L, n, 3) then
         B = cur                                                 # (n, 3) now
         w = self.pred_w[lost] * (np.isfinite(A).all(2) & np.isfinite(B).all(1)[None])
@@ -434,6 +469,89 @@ class Labeller:
             done = True
         return done
 
+    def _check_modules(self, cur, point_of, marker_of, suspect) -> bool:
+        """Rigid modules against their shape in this take: one whose labelled points do
+        not fit it (labels rotated within a foot, a wrist pair swapped, a ghost taken) is
+        relabelled by the assignment of its points to its markers that fits best by a
+        proper rigid motion. Also decides which modules fit well enough to renew their
+        shape (`_commit`)."""
+        self._mod_fit_now = np.zeros(len(self.modules), bool)
+        if not self.module_check or not len(self.modules):
+            return False
+        has = point_of >= 0
+        w = (has[self.mod_idx] & self.mod_mask).astype(float)           # (M, W)
+        known = (np.isfinite(self.mod_shape).all(2) | ~self.mod_mask).all(1)
+        sus = (suspect[self.mod_idx] & self.mod_mask).any(1)
+        # a module is looked at when one of its markers was found again in this frame,
+        # and every 8th frame (to renew its shape, and to catch what slipped through)
+        new = (self._new_now[self.mod_idx] & self.mod_mask).any(1)
+        look = known & (w.sum(1) >= 3) & (new | (self.frames % 8 == 0))
+        if not look.any():
+            return False
+        ks = np.nonzero(look)[0]
+        r2 = self._residuals(np.nan_to_num(self.mod_shape[ks]),
+                             np.nan_to_num(cur[self.mod_idx[ks]]), w[ks])
+        worst = r2.max(1) / self.mod_sigma[ks] ** 2
+        # the shape is renewed only from a labelling that fits it closely: renewing it
+        # from a looser fit lets a wrong labelling (a ghost, a rotation) become the shape
+        self._mod_fit_now[ks] = worst <= self.renew_sigma ** 2
+        done = False
+        small = self.mod_mask[ks].sum(1) <= 5     # a back of 6+ markers bends too much
+        for k in ks[(worst > 3.0 ** 2) & sus[ks] & small]:
+            done |= self._reorder_module(int(k), cur, point_of, marker_of)
+        return done
+
+    def _reorder_module(self, k: int, cur, point_of, marker_of) -> bool:
+        idx = self.modules[k]
+        m = len(idx)
+        held = np.nonzero(point_of[idx] >= 0)[0]                          # members with a point
+        pts = point_of[idx[held]]
+        maps = self._maps(m, len(held))                                   # (H, p): member per point
+        if len(maps) > 5040:
+            return False
+        H = len(maps)
+        X = np.zeros((H, m, 3))
+        w = np.zeros((H, m))
+        rows = np.arange(H)[:, None]
+        X[rows, maps] = cur[idx[held]][None]
+        w[rows, maps] = 1.0
+        shape = self.mod_shape[k, :m]
+        r2 = self._residuals(shape, X, w)
+        tot = r2.sum(1)
+        same = (maps == held[None]).all(1)
+        ident = float(tot[same][0]) if same.any() else np.inf
+        b = int(np.argmin(tot))
+        sigma = self.mod_sigma[k]
+        if same[b] or r2[b].max() > (2.5 * sigma) ** 2 or tot[b] > 0.25 * ident:
+            return False
+        new_member = maps[b]                                              # for each point
+        old_pos, old_vel = self.pos[idx].copy(), self.vel[idx].copy()
+        point_of[idx] = -1
+        cur[idx] = np.nan
+        for q, j_old, j_new in zip(pts, held, new_member, strict=True):
+            point_of[idx[j_new]] = q
+            marker_of[q] = idx[j_new]
+            cur[idx[j_new]] = self._P[q]
+            self.pos[idx[j_new]] = old_pos[j_old]
+            self.vel[idx[j_new]] = old_vel[j_old]
+        return True
+
+    def _residuals(self, shape: np.ndarray, X: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """Squared residuals of proper rigid fits (see `_rigid_residuals`)."""
+        if self.compiled:
+            return kern.rigid_residuals(np.ascontiguousarray(np.broadcast_to(shape, X.shape)),
+                                        np.ascontiguousarray(X), np.ascontiguousarray(w),
+                                        True)
+        return _rigid_residuals(shape, X, w, True)
+
+    def _maps(self, m: int, p: int) -> np.ndarray:
+        key = (m, p)
+        if key not in self._maps_cache:
+            from itertools import permutations
+            self._maps_cache[key] = np.array(list(permutations(range(m), p)), int
+                                             ).reshape(-1, p)
+        return self._maps_cache[key]
+
     def _repair_swaps(self, cur: np.ndarray, point_of: np.ndarray, marker_of: np.ndarray,
                       err: np.ndarray) -> bool:
         """Swap two labelled markers when their distances to the other markers fit much
@@ -442,6 +560,7 @@ class Labeller:
         suspect = (self.since_reacquired < self.suspect_frames) | (np.nan_to_num(err) > 0.5)
         done = self._witness_swaps(cur, point_of, marker_of, err, suspect)
         done |= self._check_segment_order(cur, point_of, marker_of, suspect)
+        done |= self._check_modules(cur, point_of, marker_of, suspect)
         if not suspect.any():
             return done
         ok = np.isfinite(cur[i]).all(1) & np.isfinite(cur[j]).all(1) & (suspect[i] | suspect[j])
@@ -482,24 +601,36 @@ class Labeller:
         the wrong point; the module's shape and handedness tell. A clear winner is forced
         into `cost`; a tie blocks the markers it concerns for this frame (they wait for
         more of the module to show)."""
-        mods = np.unique(self.mod_of[lost])
-        mods = mods[mods >= 0]
-        if not len(mods):
+        mk = self.mod_of[lost]
+        inmod = mk >= 0
+        if not inmod.any():
+            return
+        seen = np.isfinite(cur).all(1)
+        # candidates: the marker's own gate, or (with 2+ module mates seen) distances to
+        # its mates that fit, for all lost module markers at once
+        lm_all = lost[inmod]
+        mates = self.mates[lm_all] & seen[None]                              # (l, n)
+        cand_all = cost[inmod] < BIG
+        two = mates.sum(1) >= 2
+        if two.any():
+            xs = np.nan_to_num(cur)
+            d = np.sqrt(((Pf[:, None] - xs[None]) ** 2).sum(2))              # (F, n)
+            lt = lm_all[two]
+            off = np.abs(d[None] - self.mean_all[lt][:, None]) > self.adapt_tol[lt][:, None]
+            cand_all[two] |= ~(off & mates[two][:, None]).any(2)
+        has_cand = cand_all.any(1)
+        if not has_cand.any():
             return
         row_of = np.full(self.n, -1)
         row_of[lost] = np.arange(len(lost))
-        seen = np.isfinite(cur).all(1)
-        for k in mods:
+        sub_of = np.full(self.n, -1)
+        sub_of[lm_all] = np.arange(len(lm_all))
+        for k in np.unique(mk[inmod][has_cand]):
             idx = self.modules[k]
             lm = idx[row_of[idx] >= 0]
             anchors = idx[seen[idx]]
             rows = row_of[lm]
-            cand = cost[rows] < BIG                                      # (l, F)
-            if len(anchors) >= 2:
-                d = np.sqrt(((Pf[:, None] - cur[anchors][None]) ** 2).sum(2))   # (F, A)
-                mu = self.mean_all[np.ix_(lm, anchors)]
-                tol = self.adapt_tol[np.ix_(lm, anchors)]
-                cand |= (np.abs(d[None] - mu[:, None]) <= tol[:, None]).all(2)
+            cand = cand_all[sub_of[lm]]                                      # (l, F)
             n_cand = cand.sum(1)
             if not n_cand.any() or len(anchors) + (n_cand > 0).sum() < 3 \
                     or np.prod(n_cand + 1) > 4096:
@@ -517,7 +648,7 @@ class Labeller:
             for j in range(len(lm)):
                 X[got[:, j], pos[j]] = Pf[hyps[got[:, j], j]]
                 w[:, pos[j]] = got[:, j]
-            r2 = _rigid_residuals(shape, X, w, True)
+            r2 = self._residuals(shape, X, w)
             sigma = self.mod_sigma[k]
             total = w.sum(1)
             bad = ((r2 > (3.5 * sigma) ** 2).any(1)) | ((total < 3) & got.any(1))
@@ -547,6 +678,10 @@ class Labeller:
         if len(self.modules):
             steady_now = seen_prev[self.mod_idx] | ~self.mod_mask
             full = steady_now.all(1)
+            if self._mod_fit_now is not None:
+                known = (np.isfinite(self.mod_shape).all(2) | ~self.mod_mask).all(1)
+                full &= self._mod_fit_now | ~known
+            self._mod_fit_now = None
             if full.any():
                 self.mod_shape[full] = np.where(self.mod_mask[full, :, None],
                                                 cur[self.mod_idx[full]], np.nan)
@@ -616,13 +751,14 @@ def _injective_product(options: list[np.ndarray]) -> np.ndarray:
 
 def _rigid_residuals(shape: np.ndarray, X: np.ndarray, w: np.ndarray, proper: bool
                      ) -> np.ndarray:
-    """Squared residuals (H, m) of the weighted best rigid fit of `shape` (m, 3) to each
-    of X (H, m, 3) (weights w (H, m), 0 = not there); rotations only when `proper`,
-    otherwise mirror images allowed too."""
+    """Squared residuals (H, m) of the weighted best rigid fit of `shape` ((m, 3), or one
+    per hypothesis (H, m, 3)) to each of X (H, m, 3) (weights w (H, m), 0 = not there);
+    rotations only when `proper`, otherwise mirror images allowed too."""
     sw = np.maximum(w.sum(1), 1e-12)
-    cs = (w @ shape) / sw[:, None]
+    shape = np.broadcast_to(shape, X.shape)
+    cs = np.einsum("hm,hmi->hi", w, shape) / sw[:, None]
     cx = np.einsum("hm,hmi->hi", w, X) / sw[:, None]
-    S0 = shape[None] - cs[:, None]
+    S0 = shape - cs[:, None]
     X0 = X - cx[:, None]
     Hm = np.einsum("hm,hmi,hmj->hij", w, S0, X0)
     U, _, Vt = np.linalg.svd(Hm)

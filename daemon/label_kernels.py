@@ -1,0 +1,185 @@
+"""Compiled kernels for the labeller's per-frame steps (daemon/label.py).
+
+The labeller works on 41 markers and a few dozen points per frame: numpy's per-call
+overhead, not arithmetic, is what costs there, so the steps that run every frame are
+plain loops compiled with numba (calibkit.jit). Each kernel has a numpy twin in
+daemon/label.py that says what it computes; tests/test_label.py checks they agree.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from calibkit.jit import jit
+
+
+@jit
+def _finite3(x) -> bool:
+    return np.isfinite(x[0]) and np.isfinite(x[1]) and np.isfinite(x[2])
+
+
+@jit
+def structure_error(cur, nb, nb_mean, tol):
+    """Per marker: mean over its labelled neighbours of |d - mean| / tolerance, each
+    capped at 3; NaN for a marker or with no labelled neighbour."""
+    n, K = nb.shape
+    out = np.full(n, np.nan)
+    for i in range(n):
+        if not _finite3(cur[i]):
+            continue
+        s = 0.0
+        c = 0
+        for k in range(K):
+            j = nb[i, k]
+            if not _finite3(cur[j]):
+                continue
+            dx = cur[i, 0] - cur[j, 0]
+            dy = cur[i, 1] - cur[j, 1]
+            dz = cur[i, 2] - cur[j, 2]
+            e = abs(np.sqrt(dx * dx + dy * dy + dz * dz) - nb_mean[i, k]) / tol[i, k]
+            s += min(e, 3.0)
+            c += 1
+        if c:
+            out[i] = s / c
+    return out
+
+
+@jit
+def candidate_error(markers, P, cur, nb, nb_mean, tol):
+    """(L, k) for markers x points: the mean capped neighbour-distance error (as
+    `structure_error`) if the marker took the point, the number of labelled neighbours,
+    and the sum of squared errors in SD units (tolerance / 3), each capped at 16."""
+    L = len(markers)
+    k = len(P)
+    K = nb.shape[1]
+    mean = np.zeros((L, k))
+    num = np.zeros((L, k), np.int64)
+    chi2 = np.zeros((L, k))
+    for a in range(L):
+        m = markers[a]
+        for b in range(k):
+            s = 0.0
+            q = 0.0
+            c = 0
+            for kk in range(K):
+                j = nb[m, kk]
+                if not _finite3(cur[j]):
+                    continue
+                dx = P[b, 0] - cur[j, 0]
+                dy = P[b, 1] - cur[j, 1]
+                dz = P[b, 2] - cur[j, 2]
+                e = abs(np.sqrt(dx * dx + dy * dy + dz * dz) - nb_mean[m, kk]) / tol[m, kk]
+                s += min(e, 3.0)
+                q += min(9.0 * e * e, 16.0)
+                c += 1
+            num[a, b] = c
+            mean[a, b] = s / max(c, 1)
+            chi2[a, b] = q
+    return mean, num, chi2
+
+
+@jit
+def predict_from_neighbours(A, B, W, Wmax, sd2, last, fallback):
+    """Weighted Kabsch per lost marker l: the rigid motion from its snapshot A[l] (n, 3)
+    to now B (n, 3), weights W[l] where both are seen, applied to `last` (L, 3). Fewer
+    than 3 supporting markers (weight > 5 % of Wmax[l]) or a degenerate fit: translation
+    only; no support at all: `fallback` (L, 3). Returns predictions and the weighted
+    spread sqrt(sum w sd2 / sum w) of the markers used."""
+    L, n = W.shape
+    pred = np.empty((L, 3))
+    spread = np.empty(L)
+    okB = np.empty(n, np.bool_)
+    for j in range(n):
+        okB[j] = _finite3(B[j])
+    for li in range(L):
+        sw = 0.0
+        ca = np.zeros(3)
+        cb = np.zeros(3)
+        s2 = 0.0
+        support = 0
+        for j in range(n):
+            if not okB[j] or not _finite3(A[li, j]):
+                continue
+            w = W[li, j]
+            if w > 0.05 * Wmax[li]:
+                support += 1
+            sw += w
+            s2 += w * sd2[li, j]
+            for c in range(3):
+                ca[c] += w * A[li, j, c]
+                cb[c] += w * B[j, c]
+        den = max(sw, 1e-12)
+        spread[li] = np.sqrt(s2 / den)
+        if sw <= 0:
+            pred[li] = fallback[li]
+            continue
+        ca /= den
+        cb /= den
+        H = np.zeros((3, 3))
+        for j in range(n):
+            if not okB[j] or not _finite3(A[li, j]):
+                continue
+            w = W[li, j]
+            for r in range(3):
+                ar = A[li, j, r] - ca[r]
+                for c in range(3):
+                    H[r, c] += w * ar * (B[j, c] - cb[c])
+        R = np.eye(3)
+        if support >= 3:
+            U, S, Vt = np.linalg.svd(H)
+            if S[1] > 1e-12 * max(S[0], 1e-30):
+                V = Vt.T.copy()
+                if np.linalg.det(V @ U.T) < 0:
+                    V[:, 2] = -V[:, 2]
+                R = V @ U.T
+        d = last[li] - ca
+        for r in range(3):
+            pred[li, r] = R[r, 0] * d[0] + R[r, 1] * d[1] + R[r, 2] * d[2] + cb[r]
+    return pred, spread
+
+
+@jit
+def rigid_residuals(shape, X, w, proper):
+    """Squared residuals (H, m) of the weighted best rigid fit of shape[h] (m, 3) to X[h]
+    (m, 3), weights w[h] (0 = not there); proper rotations only when `proper`."""
+    Hn, m, _ = X.shape
+    out = np.zeros((Hn, m))
+    for h in range(Hn):
+        sw = 0.0
+        cs = np.zeros(3)
+        cx = np.zeros(3)
+        for i in range(m):
+            wi = w[h, i]
+            sw += wi
+            for c in range(3):
+                cs[c] += wi * shape[h, i, c]
+                cx[c] += wi * X[h, i, c]
+        den = max(sw, 1e-12)
+        cs /= den
+        cx /= den
+        M = np.zeros((3, 3))
+        for i in range(m):
+            wi = w[h, i]
+            if wi == 0:
+                continue
+            for r in range(3):
+                sr = shape[h, i, r] - cs[r]
+                for c in range(3):
+                    M[r, c] += wi * sr * (X[h, i, c] - cx[c])
+        U, S, Vt = np.linalg.svd(M)
+        V = Vt.T.copy()
+        if proper and np.linalg.det(V @ U.T) < 0:
+            V[:, 2] = -V[:, 2]
+        R = V @ U.T
+        for i in range(m):
+            wi = w[h, i]
+            if wi == 0:
+                continue
+            e = 0.0
+            for r in range(3):
+                f = (R[r, 0] * (shape[h, i, 0] - cs[0]) + R[r, 1] * (shape[h, i, 1] - cs[1])
+                     + R[r, 2] * (shape[h, i, 2] - cs[2]))
+                g = f - (X[h, i, r] - cx[r])
+                e += g * g
+            out[h, i] = e * wi
+    return out
