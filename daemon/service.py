@@ -646,7 +646,7 @@ class Daemon:
             out["truth"] = self.evaluator.figures()
         if self.labelling is not None:
             st = self.labelling.status()
-            out["labelling"] = {k: st[k] for k in ("markerset", "frames", "failures",
+            out["labelling"] = {k: st[k] for k in ("markerset", "frames", "starts", "failures",
                                                    "time_ms_median", "time_ms_p99")}
         return out
 

@@ -222,7 +222,8 @@ def _udp_listener():
     return s
 
 
-def test_mocapd_publishes_named_markers_over_udp_and_natnet_and_reloads_the_set(tmp_path):
+def test_mocapd_publishes_named_markers_over_udp_and_natnet_and_reloads_the_set(tmp_path,
+                                                                               mocapd_cli):
     """The daemon tracks the walking person and a rigid body; UDP packets carry the named
     markers (checked against the simulator's truth), a natnet client reads the set by name
     in the descriptions and its markers in the frames; SIGHUP without the set stops the
@@ -262,6 +263,12 @@ def test_mocapd_publishes_named_markers_over_udp_and_natnet_and_reloads_the_set(
 
     try:
         wait(lambda: labelled_frames() >= 240, 40, "labelled UDP packets")
+        r = mocapd_cli("status", "--runtime-dir", tmp_path / "rt", "--json",
+                       tmp_path / "status.json")
+        assert r.code == 0, r.err
+        st = json.loads((tmp_path / "status.json").read_text())["labelling"]
+        assert st["markerset"] == "sim_person" and st["markers"] == MarkerSet.load(SET).labels
+        assert st["path"] == str(tmp_path / "person.toml") and st["failures"] == 0
         c = natnet_client.NatNetClient("127.0.0.1", "127.0.0.1", command_port=cmd,
                                        data_port=cmd + 1, use_multicast=False)
         frames, descs = [], []
