@@ -171,32 +171,19 @@ def test_rigid_fit_tells_a_module_from_its_mirror_image(cmu41, acro):
     assert np.sqrt(r2[1].max()) > 0.025                 # its labels swapped
 
 
-def test_module_found_again_after_a_long_occlusion(cmu41, acro):
-    """LMT5 and LTOE hidden together for 0.5 s, with a ghost beside the foot: when they
-    show again they are labelled right (or left unlabelled), never swapped or ghosted."""
-    names = cmu41.labels
-    xyz = acro.xyz_m.copy()
-    i5, it, ih = names.index("LMT5"), names.index("LTOE"), names.index("LHEE")
-    hid = slice(60, 120)
-    xyz[hid, [i5, it]] = np.nan
-    lab = Labeller(cmu41, rate_hz=acro.rate_hz)
-    lab.seed_take(xyz[:10])
-    rng = np.random.default_rng(7)
-    wrong = found = 0
-    for f in range(10, 180):
-        pts = xyz[f][np.isfinite(xyz[f]).all(1)]
-        want = np.nonzero(np.isfinite(xyz[f]).all(1))[0]
-        ghost = xyz[f, ih] + rng.normal(0, 0.06, 3)          # near the heel
-        P = np.concatenate([pts, ghost[None]])
-        order = rng.permutation(len(P))
-        labels, _ = lab.update(P[order])
-        truth = np.r_[want, -1][order]
-        lab_ok = (labels == truth) | (labels < 0)
-        wrong += int((~lab_ok).sum())
-        if f >= 120:
-            found += int(((labels == truth) & np.isin(truth, [i5, it])).sum())
-    assert wrong <= 3
-    assert found >= 2 * 50                                # both back within 10 frames
+@pytest.mark.parametrize("pattern", [0, 4])
+def test_modules_found_again_after_long_occlusions(cmu41, pattern):
+    """The first 5 s of 85_02 (acrobatics) with two of the benchmark's occlusion patterns
+    (20 % hidden, 3 ghosts per frame): in pattern 0 the left foot's LMT5 and LTOE are
+    hidden together for 0.15 s and LMT5 for 0.75 s more; marker by marker, the toe was
+    taken for LMT5 and a ghost for the toe (97.9 %); re-identified by the foot's rigid
+    fit they are right (99.1 %). Pattern 4: 98.0 % -> 99.6 %."""
+    full = read_c3d(DATA / "85_02.c3d").select(cmu41.labels)
+    hidden = hide_spans(full, 0.2, seed=pattern)
+    part = Take(hidden.labels, hidden.xyz_m[:600], hidden.rate_hz, hidden.first_frame)
+    pts, truth = points_with_ghosts(part, 3, seed=pattern)
+    _, _, labels = label_take(pts, cmu41, seed=part, seed_frames=10)
+    assert score(pts, truth, labels, 10)["correct"] >= 0.988
 
 
 def test_kernels_match_their_numpy_twins(cmu41, acro):
