@@ -9,6 +9,7 @@ from daemon.config import load_config, parse_address, parse_serial
 
 GOOD = """
 rig = "rig.toml"
+markerset = "cmu41"
 [pipeline]
 mode = "greedy"
 fps = 120
@@ -17,6 +18,7 @@ gate_px = 4.0
 [sim]
 cameras = 6
 size = [1280, 1024]
+person = true
 [[rigid_body]]
 name = "drone"
 id = 3
@@ -26,6 +28,7 @@ smoothing = 0.2
 [[udp]]
 address = "127.0.0.1:9870"
 bodies = [3]
+markers = false
 [[serial]]
 device = "/dev/ttyUSB0"
 baud = 57600
@@ -49,7 +52,9 @@ def test_a_full_configuration_loads(tmp_path):
     assert body.name == "drone" and body.id == 3 and body.smoothing == 0.2
     np.testing.assert_allclose(body.pivot, [0, 0, -0.02])
     assert cfg.udp[0].host == "127.0.0.1" and cfg.udp[0].port == 9870
-    assert cfg.udp[0].bodies == (3,)
+    assert cfg.udp[0].bodies == (3,) and cfg.udp[0].markers is False
+    assert cfg.markerset.name == "cmu41.toml" and cfg.markerset.exists()  # a shipped set
+    assert cfg.sim.person and cfg.sim.person_radius_m == 1.0
     assert cfg.serial[0].baud == 57600
     assert cfg.mavlink[0].message == "odometry" and cfg.mavlink[0].frame == "flu"
 
@@ -87,6 +92,10 @@ BAD = [
     ("[sim]\ncameras = 1\n", "sim.cameras", "between 2 and 32"),
     ("[sim]\nsize = 640\n", "sim.size", "[width, height]"),
     ("rig = \n", "", "not valid TOML"),
+    ("[[udp]]\naddress = '127.0.0.1:1'\nmarkers = 1\n", "udp[0].markers", "true or false"),
+    ("[sim]\nperson = true\nperson_radius_m = 3.0\n", "sim.person_radius_m",
+     "inside the volume"),
+    ("markerset = 'nowhere.toml'\n", "markerset", "shipped sets: cmu41"),
 ]
 
 
