@@ -25,7 +25,7 @@ import numpy as np
 from calibkit.camera import Rig
 from calibkit.errors import UserError
 from daemon.config import Config, default_runtime_dir, load_config
-from daemon.live_label import LiveLabeller
+from daemon.live_label import LabelScore, LiveLabeller
 from daemon.live_label import load as load_markerset
 from daemon.pipeline import CaptureThread, FrameSet, Multiplexer, Pipeline, latency_figures
 from daemon.publish.mavlink import MavlinkPublisher
@@ -234,6 +234,7 @@ class Daemon:
         self.scene: SimScene | None = None
         self.evaluator: Evaluator | None = None
         self.labelling: LiveLabeller | None = None
+        self.label_score: LabelScore | None = None
         self.captures: list[CaptureThread] = []
         self.rig = self._rig(config)
         self._truth_rig = truth_rig
@@ -273,10 +274,13 @@ class Daemon:
         bodies = self._bodies(cfg)
         self._warn_alike(bodies)
         self.labelling, self._markerset_key = self._labeller(cfg), self._set_key(cfg)
+        # with the simulated person: the labelled markers scored against its truth
+        self.label_score = (LabelScore(self.scene) if getattr(self.scene, "person_labels", None)
+                            else None)
+        hooks = [h for h in (self.evaluator, self.label_score) if h is not None]
         self.pipeline = Pipeline(self.rig, cfg.tracker, cfg.rigid, bodies,
                                  make_publishers(cfg, bodies, self._markerset()),
-                                 hooks=[self.evaluator] if self.evaluator else [],
-                                 labeller=self.labelling)
+                                 hooks=hooks, labeller=self.labelling)
         self._warm_up()
         runtime = cfg.runtime_dir or default_runtime_dir()
         self.control = ControlServer(runtime, self.handle)
@@ -644,6 +648,8 @@ class Daemon:
             out["multiplexer"] = self.mux_stats()
         if self.evaluator is not None:
             out["truth"] = self.evaluator.figures()
+        if self.label_score is not None and self.label_score.frames:
+            out.setdefault("truth", {})["labelling"] = self.label_score.figures()
         if self.labelling is not None:
             st = self.labelling.status()
             out["labelling"] = {k: st[k] for k in ("markerset", "frames", "starts", "failures",

@@ -239,7 +239,8 @@ def test_mocapd_publishes_named_markers_over_udp_and_natnet_and_reloads_the_set(
     with_set = 'markerset = "person.toml"\n' + base
     cfg.write_text(with_set)
     proc = subprocess.Popen([sys.executable, "-m", "daemon.cli", "start", "--config", cfg,
-                             "--frames", str(FRAMES), "--runtime-dir", tmp_path / "rt"],
+                             "--frames", str(FRAMES), "--runtime-dir", tmp_path / "rt",
+                             "--json", tmp_path / "run.json"],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     got: list = []
 
@@ -321,6 +322,12 @@ def test_mocapd_publishes_named_markers_over_udp_and_natnet_and_reloads_the_set(
         errors.append(e)
     errors = np.concatenate(errors)
     assert right >= 0.99 * total
+    # the daemon's own score against the truth (a hook on every frame) says the same
+    fig = json.loads((tmp_path / "run.json").read_text())
+    score = fig["truth"]["labelling"]
+    assert score["named_right_fraction"] >= 0.99 and score["frames"] >= len(labelled) * 0.9
+    assert abs(score["position_error_mm_median"] - np.median(errors) * 1000) < 0.2
+    assert fig["labelling"]["markerset"] == "sim_person" and fig["labelling"]["starts"] == 1
     assert np.median([len(p.marker_index) for p in labelled]) >= 39  # of 41
     # tracked positions: ~1 mm for the walking person's markers at 0.2 px noise
     assert np.median(errors) < 0.002 and np.percentile(errors, 99) < 0.006
