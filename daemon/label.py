@@ -302,7 +302,7 @@ class Labeller:
         if self._repair_swaps(cur, point_of, marker_of, err):
             err = self._structure_error(cur)
         has = point_of >= 0
-        conf_m = np.where(has, np.exp(-0.5 * np.nan_to_num(err, nan=0.5) ** 2 * 4), 0.0)
+        conf_m = np.where(has, np.exp(-2.0 * np.where(np.isnan(err), 0.5, err) ** 2), 0.0)
         self._commit(cur, has)
         conf = np.zeros(k)
         conf[point_of[has]] = conf_m[has]
@@ -325,6 +325,9 @@ class Labeller:
         """Cost of each point for markers never seen yet: their distances to every labelled
         marker against the marker set, weighted by steadiness (as when a take starts from
         the template); only a clear winner (4 units better than the runner-up) counts."""
+        if self.compiled:
+            return kern.fresh_cost(markers, P, cur, self.anchors, self.adapt_tol,
+                                   self.mean_all, self.fresh_margin, BIG)
         seen = np.isfinite(cur).all(1)
         if seen.sum() < 3:
             return np.full((len(markers), len(P)), BIG)
@@ -489,8 +492,10 @@ class Labeller:
         if not look.any():
             return False
         ks = np.nonzero(look)[0]
-        r2 = self._residuals(np.nan_to_num(self.mod_shape[ks]),
-                             np.nan_to_num(cur[self.mod_idx[ks]]), w[ks])
+        shapes = self.mod_shape[ks]
+        X = cur[self.mod_idx[ks]]
+        r2 = self._residuals(np.where(np.isnan(shapes), 0.0, shapes),
+                             np.where(np.isnan(X), 0.0, X), w[ks])
         worst = r2.max(1) / self.mod_sigma[ks] ** 2
         # the shape is renewed only from a labelling that fits it closely: renewing it
         # from a looser fit lets a wrong labelling (a ghost, a rotation) become the shape
@@ -557,7 +562,7 @@ class Labeller:
         """Swap two labelled markers when their distances to the other markers fit much
         better the other way round (a swap that tracking alone would carry on)."""
         i, j = self.swap_pairs[:, 0], self.swap_pairs[:, 1]
-        suspect = (self.since_reacquired < self.suspect_frames) | (np.nan_to_num(err) > 0.5)
+        suspect = (self.since_reacquired < self.suspect_frames) | (err > 0.5)   # NaN: False
         done = self._witness_swaps(cur, point_of, marker_of, err, suspect)
         done |= self._check_segment_order(cur, point_of, marker_of, suspect)
         done |= self._check_modules(cur, point_of, marker_of, suspect)
@@ -567,17 +572,20 @@ class Labeller:
         if not ok.any():
             return done
         i, j = i[ok], j[ok]
-        x = np.nan_to_num(cur)
-        seen = np.isfinite(cur).all(1)
-        di = np.linalg.norm(cur[i][:, None] - x[None], axis=2)       # (p, n)
-        dj = np.linalg.norm(cur[j][:, None] - x[None], axis=2)
-        wi = self.swap_w[i] * seen[None]
-        wj = self.swap_w[j] * seen[None]
-        wi[np.arange(len(i)), j] = 0
-        wj[np.arange(len(j)), i] = 0
-        mi, mj = self.mean_all[i], self.mean_all[j]
-        keep = (wi * (di - mi) ** 2 + wj * (dj - mj) ** 2).sum(1)
-        swap = (wi * (dj - mi) ** 2 + wj * (di - mj) ** 2).sum(1)
+        if self.compiled:
+            keep, swap = kern.swap_scores(cur, i, j, self.swap_w, self.mean_all)
+        else:
+            x = np.nan_to_num(cur)
+            seen = np.isfinite(cur).all(1)
+            di = np.linalg.norm(cur[i][:, None] - x[None], axis=2)       # (p, n)
+            dj = np.linalg.norm(cur[j][:, None] - x[None], axis=2)
+            wi = self.swap_w[i] * seen[None]
+            wj = self.swap_w[j] * seen[None]
+            wi[np.arange(len(i)), j] = 0
+            wj[np.arange(len(j)), i] = 0
+            mi, mj = self.mean_all[i], self.mean_all[j]
+            keep = (wi * (di - mi) ** 2 + wj * (dj - mj) ** 2).sum(1)
+            swap = (wi * (dj - mi) ** 2 + wj * (di - mj) ** 2).sum(1)
         better = (swap < 0.25 * keep) & (keep - swap > 25.0)
         for a, b in zip(i[better], j[better], strict=True):
             if point_of[a] < 0 or point_of[b] < 0:
@@ -613,7 +621,7 @@ class Labeller:
         cand_all = cost[inmod] < BIG
         two = mates.sum(1) >= 2
         if two.any():
-            xs = np.nan_to_num(cur)
+            xs = np.where(np.isnan(cur), 0.0, cur)
             d = np.sqrt(((Pf[:, None] - xs[None]) ** 2).sum(2))              # (F, n)
             lt = lm_all[two]
             off = np.abs(d[None] - self.mean_all[lt][:, None]) > self.adapt_tol[lt][:, None]
@@ -640,7 +648,8 @@ class Labeller:
                 continue      # not seen whole in this take yet: marker by marker
             hyps = _injective_product([np.r_[-1, np.nonzero(c)[0]] for c in cand])
             H = len(hyps)
-            X = np.broadcast_to(np.nan_to_num(cur[idx]), (H, len(idx), 3)).copy()
+            x0 = cur[idx]
+            X = np.broadcast_to(np.where(np.isnan(x0), 0.0, x0), (H, len(idx), 3)).copy()
             w = np.broadcast_to(seen[idx], (H, len(idx))).astype(float)
             pos = np.searchsorted(idx, lm) if np.all(np.diff(idx) > 0) else \
                 np.array([list(idx).index(m) for m in lm])

@@ -183,3 +183,100 @@ def rigid_residuals(shape, X, w, proper):
                 e += g * g
             out[h, i] = e * wi
     return out
+
+
+@jit
+def fresh_cost(markers, P, cur, anchors, tol_all, mean_all, margin, big):
+    """(M, k): for markers never seen (or lost long), the steadiness-weighted mean of
+    each point's squared distance errors to every labelled marker (chi2 / 9, each capped
+    at 16); `big` where fewer than 3 labelled anchors, where the cost is 1 or more, and
+    for a marker whose best point is not `margin` better than its second best."""
+    M = len(markers)
+    k = len(P)
+    n = len(cur)
+    out = np.full((M, k), big)
+    seen = np.empty(n, np.bool_)
+    n_seen = 0
+    for j in range(n):
+        seen[j] = _finite3(cur[j])
+        n_seen += seen[j]
+    if n_seen < 3:
+        return out
+    A = anchors.shape[1]
+    for a in range(M):
+        m = markers[a]
+        sw = 0.0
+        n_ok = 0
+        for t in range(A):
+            j = anchors[m, t]
+            if seen[j]:
+                n_ok += 1
+                sw += 1.0 / (tol_all[m, j] * tol_all[m, j])
+        if n_ok < 3:
+            continue
+        den = max(sw, 1e-12)
+        for b in range(k):
+            s = 0.0
+            for t in range(A):
+                j = anchors[m, t]
+                if not seen[j]:
+                    continue
+                w = 1.0 / (tol_all[m, j] * tol_all[m, j])
+                dx = P[b, 0] - cur[j, 0]
+                dy = P[b, 1] - cur[j, 1]
+                dz = P[b, 2] - cur[j, 2]
+                e = np.sqrt(dx * dx + dy * dy + dz * dz) - mean_all[m, j]
+                s += min(e * e * w * 9.0, 16.0) * w
+            c = s / den
+            if c < 1.0:
+                out[a, b] = c
+        if k >= 2:
+            b1 = big
+            b2 = big
+            for b in range(k):
+                v = out[a, b]
+                if v < b1:
+                    b2 = b1
+                    b1 = v
+                elif v < b2:
+                    b2 = v
+            if b2 < b1 + margin:
+                for b in range(k):
+                    out[a, b] = big
+    return out
+
+
+@jit
+def swap_scores(cur, I, J, swap_w, mean_all):
+    """For pairs (I[p], J[p]) of labelled markers: the weighted squared distance errors
+    to every other labelled marker as labelled (keep) and with the two swapped (swap)."""
+    p = len(I)
+    n = len(cur)
+    keep = np.zeros(p)
+    swap = np.zeros(p)
+    seen = np.empty(n, np.bool_)
+    for x in range(n):
+        seen[x] = _finite3(cur[x])
+    for q in range(p):
+        i = I[q]
+        j = J[q]
+        for x in range(n):
+            if not seen[x]:
+                continue
+            wi = swap_w[i, x] if x != j else 0.0
+            wj = swap_w[j, x] if x != i else 0.0
+            if wi == 0.0 and wj == 0.0:
+                continue
+            dx = cur[i, 0] - cur[x, 0]
+            dy = cur[i, 1] - cur[x, 1]
+            dz = cur[i, 2] - cur[x, 2]
+            di = np.sqrt(dx * dx + dy * dy + dz * dz)
+            dx = cur[j, 0] - cur[x, 0]
+            dy = cur[j, 1] - cur[x, 1]
+            dz = cur[j, 2] - cur[x, 2]
+            dj = np.sqrt(dx * dx + dy * dy + dz * dz)
+            mi = mean_all[i, x]
+            mj = mean_all[j, x]
+            keep[q] += wi * (di - mi) ** 2 + wj * (dj - mj) ** 2
+            swap[q] += wi * (dj - mi) ** 2 + wj * (di - mj) ** 2
+    return keep, swap
