@@ -572,20 +572,8 @@ class Labeller:
         if not ok.any():
             return done
         i, j = i[ok], j[ok]
-        if self.compiled:
-            keep, swap = kern.swap_scores(cur, i, j, self.swap_w, self.mean_all)
-        else:
-            x = np.nan_to_num(cur)
-            seen = np.isfinite(cur).all(1)
-            di = np.linalg.norm(cur[i][:, None] - x[None], axis=2)       # (p, n)
-            dj = np.linalg.norm(cur[j][:, None] - x[None], axis=2)
-            wi = self.swap_w[i] * seen[None]
-            wj = self.swap_w[j] * seen[None]
-            wi[np.arange(len(i)), j] = 0
-            wj[np.arange(len(j)), i] = 0
-            mi, mj = self.mean_all[i], self.mean_all[j]
-            keep = (wi * (di - mi) ** 2 + wj * (dj - mj) ** 2).sum(1)
-            swap = (wi * (dj - mi) ** 2 + wj * (di - mj) ** 2).sum(1)
+        scores = kern.swap_scores if self.compiled else _swap_scores
+        keep, swap = scores(cur, i, j, self.swap_w, self.mean_all)
         better = (swap < 0.25 * keep) & (keep - swap > 25.0)
         for a, b in zip(i[better], j[better], strict=True):
             if point_of[a] < 0 or point_of[b] < 0:
@@ -735,6 +723,22 @@ def rigid_modules(ms: MarkerSet, max_sd_m: float = 0.008) -> list[np.ndarray]:
         if spread[k] <= max_sd_m:
             mods[k].append(x)
     return [np.array(sorted(g)) for g in mods]
+
+
+def _swap_scores(cur, i, j, swap_w, mean_all):
+    """numpy twin of label_kernels.swap_scores."""
+    x = np.nan_to_num(cur)
+    seen = np.isfinite(cur).all(1)
+    di = np.linalg.norm(cur[i][:, None] - x[None], axis=2)       # (p, n)
+    dj = np.linalg.norm(cur[j][:, None] - x[None], axis=2)
+    wi = swap_w[i] * seen[None]
+    wj = swap_w[j] * seen[None]
+    wi[np.arange(len(i)), j] = 0
+    wj[np.arange(len(j)), i] = 0
+    mi, mj = mean_all[i], mean_all[j]
+    keep = (wi * (di - mi) ** 2 + wj * (dj - mj) ** 2).sum(1)
+    swap = (wi * (dj - mi) ** 2 + wj * (di - mj) ** 2).sum(1)
+    return keep, swap
 
 
 def _mds_shape(mean: np.ndarray) -> np.ndarray:

@@ -190,7 +190,7 @@ def test_kernels_match_their_numpy_twins(cmu41, acro):
     """Each compiled kernel (daemon/label_kernels.py) against the numpy code it replaces,
     on a labeller's state in the middle of an occluded take with ghosts."""
     from daemon import label_kernels as kern
-    from daemon.label import _rigid_residuals
+    from daemon.label import _rigid_residuals, _swap_scores
     hidden = hide_spans(acro, 0.2, seed=11)
     pts, _ = points_with_ghosts(hidden, 3, seed=11)
     _, per = pts.split()
@@ -214,6 +214,14 @@ def test_kernels_match_their_numpy_twins(cmu41, acro):
     assert np.allclose(fast._predict_from_neighbours(lost, cur),
                        ref._predict_from_neighbours(lost, cur), atol=1e-12)
     assert np.allclose(fast._support_spread, ref._support_spread)
+    assert np.array_equal(fast._fresh_cost(lost, per[150], cur),
+                          ref._fresh_cost(lost, per[150], cur))
+    i, j = ref.swap_pairs[:, 0], ref.swap_pairs[:, 1]
+    seen = np.isfinite(cur).all(1)
+    both = seen[i] & seen[j]
+    keep1, swap1 = kern.swap_scores(cur, i[both], j[both], ref.swap_w, ref.mean_all)
+    keep2, swap2 = _swap_scores(cur, i[both], j[both], ref.swap_w, ref.mean_all)
+    assert np.allclose(keep1, keep2) and np.allclose(swap1, swap2)
     rng = np.random.default_rng(0)
     S, X = rng.normal(size=(2, 40, 5, 3))
     w = (rng.random((40, 5)) > 0.3).astype(float)
