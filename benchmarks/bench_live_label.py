@@ -9,7 +9,10 @@ runs on a thread of its own when the daemon is paced by cameras). The stage's ow
 the labelling stage's clock. Medians over repeated runs; the ratio is against the runs
 without a marker set in the same process.
 
-    nice -n 10 python benchmarks/bench_live_label.py [--frames 1500] [--runs 3]
+Then `--paced` runs paced at the scene's 120 fps (as with cameras: the start searched on
+a thread, frames skipped when the loop falls behind), scored against the person's truth.
+
+    nice -n 10 python benchmarks/bench_live_label.py [--frames 1500] [--runs 3] [--paced 3]
 """
 
 from __future__ import annotations
@@ -34,6 +37,19 @@ SIM = {"cameras": 6, "bodies": 1, "markers_per_body": 4, "fps": 120.0, "noise_px
        "seed": 7, "person": True, "realtime": False}
 
 
+def paced(frames: int, runtime: Path) -> dict:
+    data = {"sim": {**SIM, "realtime": True}, "runtime_dir": str(runtime),
+            "markerset": "sim_person"}
+    d = Daemon(parse_config(data, None, Path.cwd()))
+    fig = d.run(frames=frames)
+    score = fig["truth"]["labelling"]
+    return {"named_right": score["named_right_fraction"],
+            "labelled_frames": score["frames"] / frames,
+            "skipped": fig["multiplexer"]["skipped_behind"],
+            "median_ms": fig["latency_to_poses"]["median_ms"],
+            "p99_ms": fig["latency_to_poses"]["p99_ms"]}
+
+
 def run(frames: int, skip: int, markerset: bool, runtime: Path) -> dict:
     data = {"sim": SIM, "runtime_dir": str(runtime)}
     if markerset:
@@ -54,6 +70,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=1500)
     ap.add_argument("--skip", type=int, default=300)
     ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--paced", type=int, default=0, help="paced runs (0: none)")
     args = ap.parse_args()
     rows = {False: [], True: []}
     with tempfile.TemporaryDirectory() as tmp:
@@ -73,6 +90,16 @@ def main() -> None:
           f"{lab['p99_ms'] - base['p99_ms']:10.3f}")
     print(f"{'labelling stage alone':28s} {lab['stage_median_ms']:10.3f} "
           f"{lab['stage_p99_ms']:10.3f}")
+    if not args.paced:
+        return
+    print(f"\npaced at 120 fps, {args.frames} frames a run")
+    print(f"{'run':>4s} {'named right':>12s} {'frames labelled':>16s} {'skipped':>8s} "
+          f"{'median ms':>10s} {'p99 ms':>8s}")
+    with tempfile.TemporaryDirectory() as tmp:
+        for i in range(args.paced):
+            r = paced(args.frames, Path(tmp) / f"p{i}")
+            print(f"{i + 1:4d} {r['named_right']:12.4f} {r['labelled_frames']:16.3f} "
+                  f"{r['skipped']:8d} {r['median_ms']:10.3f} {r['p99_ms']:8.3f}")
 
 
 if __name__ == "__main__":
