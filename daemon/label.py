@@ -605,15 +605,13 @@ class Labeller:
         # candidates: the marker's own gate, or (with 2+ module mates seen) distances to
         # its mates that fit, for all lost module markers at once
         lm_all = lost[inmod]
-        mates = self.mates[lm_all] & seen[None]                              # (l, n)
         cand_all = cost[inmod] < BIG
-        two = mates.sum(1) >= 2
-        if two.any():
-            xs = np.where(np.isnan(cur), 0.0, cur)
-            d = np.sqrt(((Pf[:, None] - xs[None]) ** 2).sum(2))              # (F, n)
-            lt = lm_all[two]
-            off = np.abs(d[None] - self.mean_all[lt][:, None]) > self.adapt_tol[lt][:, None]
-            cand_all[two] |= ~(off & mates[two][:, None]).any(2)
+        if self.compiled:
+            cand_all = kern.module_candidates(lm_all, self.mates, cur, Pf, self.mean_all,
+                                              self.adapt_tol, cand_all)
+        else:
+            cand_all = _module_candidates(lm_all, self.mates, cur, Pf, self.mean_all,
+                                          self.adapt_tol, cand_all)
         has_cand = cand_all.any(1)
         if not has_cand.any():
             return
@@ -723,6 +721,21 @@ def rigid_modules(ms: MarkerSet, max_sd_m: float = 0.008) -> list[np.ndarray]:
         if spread[k] <= max_sd_m:
             mods[k].append(x)
     return [np.array(sorted(g)) for g in mods]
+
+
+def _module_candidates(lm_all, mates_all, cur, Pf, mean_all, tol_all, cand):
+    """numpy twin of label_kernels.module_candidates."""
+    seen = np.isfinite(cur).all(1)
+    mates = mates_all[lm_all] & seen[None]                               # (l, n)
+    cand = cand.copy()
+    two = mates.sum(1) >= 2
+    if two.any():
+        xs = np.where(np.isnan(cur), 0.0, cur)
+        d = np.sqrt(((Pf[:, None] - xs[None]) ** 2).sum(2))              # (F, n)
+        lt = lm_all[two]
+        off = np.abs(d[None] - mean_all[lt][:, None]) > tol_all[lt][:, None]
+        cand[two] |= ~(off & mates[two][:, None]).any(2)
+    return cand
 
 
 def _swap_scores(cur, i, j, swap_w, mean_all):

@@ -280,3 +280,37 @@ def swap_scores(cur, I, J, swap_w, mean_all):
             keep[q] += wi * (di - mi) ** 2 + wj * (dj - mj) ** 2
             swap[q] += wi * (dj - mi) ** 2 + wj * (di - mj) ** 2
     return keep, swap
+
+
+@jit
+def module_candidates(markers, mates, cur, P, mean_all, tol_all, cand):
+    """Widen `cand` (L, k) (points each lost module marker may take): with 2+ of its
+    module mates labelled, also every point whose distances to all of them fit."""
+    L = len(markers)
+    k = len(P)
+    n = len(cur)
+    out = cand.copy()
+    for a in range(L):
+        x = markers[a]
+        c = 0
+        for y in range(n):
+            if mates[x, y] and _finite3(cur[y]):
+                c += 1
+        if c < 2:
+            continue
+        for b in range(k):
+            if out[a, b]:
+                continue
+            ok = True
+            for y in range(n):
+                if not mates[x, y] or not _finite3(cur[y]):
+                    continue
+                dx = P[b, 0] - cur[y, 0]
+                dy = P[b, 1] - cur[y, 1]
+                dz = P[b, 2] - cur[y, 2]
+                d = np.sqrt(dx * dx + dy * dy + dz * dz)
+                if abs(d - mean_all[x, y]) > tol_all[x, y]:
+                    ok = False
+                    break
+            out[a, b] = ok
+    return out

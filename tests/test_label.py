@@ -190,7 +190,7 @@ def test_kernels_match_their_numpy_twins(cmu41, acro):
     """Each compiled kernel (daemon/label_kernels.py) against the numpy code it replaces,
     on a labeller's state in the middle of an occluded take with ghosts."""
     from daemon import label_kernels as kern
-    from daemon.label import _rigid_residuals, _swap_scores
+    from daemon.label import _module_candidates, _rigid_residuals, _swap_scores
     hidden = hide_spans(acro, 0.2, seed=11)
     pts, _ = points_with_ghosts(hidden, 3, seed=11)
     _, per = pts.split()
@@ -222,6 +222,13 @@ def test_kernels_match_their_numpy_twins(cmu41, acro):
     keep1, swap1 = kern.swap_scores(cur, i[both], j[both], ref.swap_w, ref.mean_all)
     keep2, swap2 = _swap_scores(cur, i[both], j[both], ref.swap_w, ref.mean_all)
     assert np.allclose(keep1, keep2) and np.allclose(swap1, swap2)
+    mods = lost[ref.mod_of[lost] >= 0]
+    everything = acro.xyz_m[150][np.isfinite(acro.xyz_m[150]).all(1)]  # hidden ones too
+    start = np.zeros((len(mods), len(everything)), bool)
+    start[:, ::3] = True
+    args = (mods, ref.mates, cur, everything, ref.mean_all, ref.adapt_tol, start)
+    assert np.array_equal(kern.module_candidates(*args), _module_candidates(*args))
+    assert _module_candidates(*args).sum() > start.sum()
     rng = np.random.default_rng(0)
     S, X = rng.normal(size=(2, 40, 5, 3))
     w = (rng.random((40, 5)) > 0.3).astype(float)
