@@ -117,6 +117,50 @@ class CaptureThread:
 
 # ---- multiplexer -----------------------------------------------------------------------------
 
+GREEDY_MATCH_PX = 20.0  # farthest a blob moves between two samples of its camera
+
+
+def _match(a: np.ndarray, b: np.ndarray, gate_px: float) -> np.ndarray:
+    """For each blob of `a`, its blob in `b`, or -1: nearest both ways, within the gate,
+    and unambiguous (the second nearest of `b` at least twice as far), so two markers that
+    pass close by in the image do not lend each other their motion."""
+    j = np.full(len(a), -1, dtype=np.int64)
+    if not len(a) or not len(b):
+        return j
+    d2 = np.sum((a[:, None, :] - b[None, :, :]) ** 2, axis=2)
+    near = np.argmin(d2, axis=1)
+    best = d2[np.arange(len(a)), near]
+    ok = (best < gate_px * gate_px)
+    if False:
+        second = np.partition(d2, 1, axis=1)[:, 1]
+        ok &= second > 4.0 * best + 1.0
+    j[ok] = near[ok]
+    return j
+
+
+def blob_velocity(hist: list) -> np.ndarray:
+    """Pixels per ns of each blob of the newest sample in `hist` (a camera's last 2-3
+    samples): from its match in the previous sample, averaged with the previous step's
+    when that blob was matched there too (half the noise of a two-sample difference);
+    zero for a blob without an unambiguous match (it is used where it was seen)."""
+    cur, prev = hist[-1], hist[-2]
+    vel = np.zeros_like(cur.uv)
+    if cur.t_ns <= prev.t_ns:
+        return vel
+    j = _match(cur.uv, prev.uv, GREEDY_MATCH_PX)
+    has = j >= 0
+    vel[has] = (cur.uv[has] - prev.uv[j[has]]) / (cur.t_ns - prev.t_ns)
+    if len(hist) >= 3 and hist[-3].t_ns < prev.t_ns and np.any(has):
+        old = hist[-3]
+        k = _match(prev.uv, old.uv, GREEDY_MATCH_PX)
+        both = np.flatnonzero(has)
+        both = both[k[j[both]] >= 0]
+        if len(both):
+            step = (prev.uv[j[both]] - old.uv[k[j[both]]]) / (prev.t_ns - old.t_ns)
+            vel[both] = 0.5 * (vel[both] + step)
+    return vel
+
+
 class Multiplexer:
     """Frame sets from camera samples, `triggered` or `greedy` (see the module docstring)."""
 
@@ -145,7 +189,7 @@ class Multiplexer:
             if self.mode == "greedy":
                 hist = self.latest[sample.camera]
                 hist.append(sample)
-                del hist[:-2]
+                del hist[:-3]
                 self._put(self._greedy_set(sample))
                 return
             if sample.index <= self.last_emitted:
@@ -198,7 +242,7 @@ class Multiplexer:
 
     def _greedy_set(self, newest: CameraSample) -> FrameSet:
         """Every camera's latest blobs, moved to the newest sample's time along their 2D
-        velocity (nearest blob in the camera's previous sample within 20 px)."""
+        velocity (see blob_velocity)."""
         t = newest.t_ns
         out = []
         for hist in self.latest:
@@ -208,14 +252,8 @@ class Multiplexer:
             if cur is newest or len(hist) < 2 or cur.t_ns == t or not len(cur.uv):
                 out.append(cur)
                 continue
-            prev = hist[-2]
-            uv = cur.uv
-            if len(prev.uv) and cur.t_ns > prev.t_ns:
-                d2 = np.sum((uv[:, None, :] - prev.uv[None, :, :]) ** 2, axis=2)
-                j = np.argmin(d2, axis=1)
-                near = d2[np.arange(len(uv)), j] < 400.0
-                vel = np.where(near[:, None], (uv - prev.uv[j]) / (cur.t_ns - prev.t_ns), 0.0)
-                uv = uv + vel * (t - cur.t_ns)
+            vel = blob_velocity(hist)
+            uv = cur.uv + vel * (t - cur.t_ns)
             out.append(CameraSample(cur.camera, newest.index, t, cur.arrival_ns, uv, cur.area,
                                     cur.peak, cur.marker, newest.scene_frame))
         return FrameSet(newest.index, t, newest.arrival_ns, out)
@@ -305,6 +343,7 @@ class Pipeline:
         self._pending_bodies = None
         self._pending_publishers = None
         self._pending_labeller = None
+        self._period_anchor: tuple[int, int] | None = None  # (index, t_ns) of a set
         self.last_result: FrameResult | None = None
 
     def replace(self, bodies=None, publishers=None, labeller=...) -> None:
@@ -335,6 +374,19 @@ class Pipeline:
             for p in old:
                 p.stop()
 
+    def _learn_period(self, fs: FrameSet) -> None:
+        """The frame period from the sets' indices and times (what the tracker needs to
+        weigh updates less than a frame apart): time over frames since an anchor set."""
+        anchor = self._period_anchor
+        if anchor is None or fs.index <= anchor[0] or fs.t_ns <= anchor[1]:
+            self._period_anchor = (fs.index, fs.t_ns)
+            return
+        frames = fs.index - anchor[0]
+        if frames >= 4:
+            self.tracker.period_s = (fs.t_ns - anchor[1]) / frames * 1e-9
+        if frames >= 4096:  # follow a drifting clock
+            self._period_anchor = (fs.index, fs.t_ns)
+
     def process(self, fs: FrameSet) -> FrameResult:
         if (self._pending_bodies is not None or self._pending_publishers is not None
                 or self._pending_labeller is not None):
@@ -348,6 +400,7 @@ class Pipeline:
                       if all(s.marker is not None for s in samples) else None)
         else:
             camera, uv, marker = np.zeros(0, np.int64), np.zeros((0, 2)), None
+        self._learn_period(fs)
         tracks = self.tracker.update(camera, uv, fs.t_ns)
         poses = self.rigid.update(tracks, uv, self.tracker.cams)
         scene_frame = samples[0].scene_frame if samples else -1

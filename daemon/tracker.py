@@ -120,6 +120,7 @@ class Tracker:
         self.anchored = np.zeros(0, dtype=bool)  # placed by their rigid body since last frame
         self.next_id = 1
         self.last_t_ns: int | None = None
+        self.period_s: float | None = None  # the cameras' frame period, when known
         self.frames = 0
 
     def set_tracks(self, ids: np.ndarray, xyz: np.ndarray) -> None:
@@ -189,7 +190,13 @@ class Tracker:
             new_xyz[ok] = xyz[ok]
         if dt > 0 and np.any(seen):
             v = (new_xyz[seen] - self.xyz[seen]) / dt
-            a = np.where(self.missing[seen] == 0, cfg.velocity_alpha, 1.0)[:, None]
+            alpha = cfg.velocity_alpha
+            if self.period_s and dt < self.period_s:
+                # updates closer than a frame (the greedy multiplexer: a set per camera)
+                # each move the velocity less: k of them together as much as one a frame
+                # apart, so a 1 ms step's noise (noise / dt) does not throw the track off
+                alpha = 1.0 - (1.0 - alpha) ** (dt / self.period_s)
+            a = np.where(self.missing[seen] == 0, alpha, 1.0)[:, None]
             self.vel[seen] = a * v + (1 - a) * self.vel[seen]
         self.xyz = new_xyz
         self.missing = np.where(seen, 0, self.missing + 1)

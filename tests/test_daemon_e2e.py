@@ -350,3 +350,25 @@ def test_greedy_multiplexer_live(tmp_path, mocapd_cli):
     for b in t["bodies"].values():  # four cameras only: bodies are sometimes unseen
         assert b["valid_fraction"] > 0.6
         assert b["position_error_mm_rms"] < 5.0
+
+
+def test_greedy_multiplexer_with_unsynchronised_cameras(tmp_path, mocapd_cli):
+    """Cameras whose clocks are up to half a frame apart (8 ms at 60 fps): greedy sets move
+    the other cameras' blobs to the newest camera's time along their 2D motion. Scored
+    against the truth at each set's own time. Without the extrapolation this scene gave
+    3.4 mm RMS, bodies valid in 15-38 % of the sets and 8 track swaps; with it, over ten
+    seeds, 0.9-1.2 mm and no swap (the triggered multiplexer: 0.8-1.7 mm)."""
+    cfg = tmp_path / "mocapd.toml"
+    cfg.write_text(_sim_toml(cameras=4, bodies=2, fps=60.0, unsync_ms=8.0))
+    r = mocapd_cli("start", "--config", cfg, "--mode", "greedy", "--duration", 2.0,
+                   "--json", tmp_path / "g.json", "--runtime-dir", tmp_path / "rt")
+    assert r.code == 0, r.err
+    t = json.loads((tmp_path / "g.json").read_text())["truth"]
+    assert t["body_swaps"] == 0 and t["track_swaps"] == 0
+    for b in t["bodies"].values():  # four cameras: bodies are sometimes unseen
+        assert b["valid_fraction"] > 0.6
+        assert b["position_error_mm_rms"] < 1.8
+    bad = tmp_path / "bad.toml"
+    bad.write_text(_sim_toml(fps=60.0, unsync_ms=20.0))
+    r = mocapd_cli("start", "--config", bad, "--duration", 1, "--runtime-dir", tmp_path / "rt")
+    assert r.code == 2 and "sim.unsync_ms" in r.err
