@@ -22,7 +22,7 @@ stopped stream). A start waits until most of the set (`start_fraction` of its ma
 has been seen for a quarter second in a row (or points for `settle_s`): labelling from
 the set alone is far less reliable on a partial view (the tracker's first frames come and
 go, a subject walks in), and a wrong start is carried along by the tracking; for the same
-reason a start is checked by a second one a quarter second later (`_Start`). A run that
+reason a start is checked by two more, a quarter second apart (`_Start`). A run that
 is not paced by cameras (a simulation or replay as fast as possible, `background=False`)
 starts inline instead: nothing is missed and the labels are the same on every run.
 """
@@ -83,20 +83,22 @@ def load(path: Path) -> MarkerSet:
 
 
 class _Start:
-    """Starting from the marker set alone, checked by a second opinion.
+    """Starting from the marker set alone, checked by further opinions.
 
     A start from the set alone can mistake a near-symmetric group (a wrist's two markers,
     a foot's four mirrored) and the tracking then carries the mistake along. So the
-    candidate is tracked on, and `check_frames` later another start is made from that
+    candidate is tracked on, and every `check_frames` another start is made from that
     frame's points alone (a frame showing most of the set, if one comes within
-    `settle_frames`): if the two name every marker they both name alike, the candidate
-    is accepted; if not, the new start becomes the candidate and is checked in its turn
-    (after `max_tries` checks it is taken as it is). One labeller is tracked at a time,
-    so a start costs one update a frame plus one search per check."""
+    `settle_frames`): once `confirmations` starts in a row name every marker they and the
+    candidate both name alike, the candidate is accepted; at a disagreement the new start
+    becomes the candidate and is checked in its turn (after `max_tries` checks the
+    candidate is taken as it is). One labeller is tracked at a time, so a start costs one
+    update a frame plus one search per check."""
 
     def __init__(self, ms: MarkerSet, rate_hz: float, check_frames: int, start_points: int,
-                 settle_frames: int, max_tries: int = 6) -> None:
+                 settle_frames: int, confirmations: int = 2, max_tries: int = 8) -> None:
         self.ms, self.rate_hz = ms, rate_hz
+        self.confirmations, self.agreed = confirmations, 0
         self.check_frames, self.start_points = check_frames, start_points
         self.settle_frames, self.max_tries = settle_frames, max_tries
         self.candidate: Labeller | None = None
@@ -122,11 +124,14 @@ class _Start:
         self.tries += 1
         # every marker both named, named alike: a swapped pair is two differences in 41
         if both.sum() >= 3 and np.array_equal(labels[both], second[both]):
-            self.accepted = self.candidate
+            self.agreed += 1
+            self.since = 0
+            if self.agreed >= self.confirmations or self.tries >= self.max_tries:
+                self.accepted = self.candidate
             return labels, conf
         log.info("labelling: two starts from the marker set disagree on %d of %d markers; "
                  "checking again", int(np.sum(labels[both] != second[both])), int(both.sum()))
-        self.candidate, self.since = fresh, 0
+        self.candidate, self.since, self.agreed = fresh, 0, 0
         if self.tries >= self.max_tries:
             self.accepted = fresh
         return second, conf2

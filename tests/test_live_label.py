@@ -101,7 +101,7 @@ def test_stage_labels_the_person_inline_with_ghosts_and_gaps():
 def test_stage_starts_on_a_thread_and_catches_up():
     """Realtime: the first frames go out unlabelled while the set is searched on a thread,
     then the caught-up labeller names every marker; a stream that never waits for it."""
-    stage = LiveLabeller(load(SET), 120.0, background=True)
+    stage = LiveLabeller(load(SET), 120.0, background=True, check_s=0.1)
     outs, truths = [], []
     for r, truth in list(_frames(240, hide=False)):
         outs.append(stage(r))
