@@ -83,6 +83,7 @@ class Labeller:
         self.adapted = False
         self._tol_known = None
         self._tol_cache = None
+        self._tol_frames = -1
         self.since_reacquired = np.zeros(n, int)
         self.known_frames = np.zeros(n, int)    # frames whose distances this take taught
         self.adapt_tol = _tolerance(markerset, noise_m)
@@ -139,6 +140,9 @@ class Labeller:
         """Allowed deviation of a neighbour distance: spread of the body's motion, marker
         noise and, until the take's own distances are learned, the spread between
         subjects."""
+        if self._tol_cache is not None and self._tol_frames == self.frames:
+            return self._tol_cache          # known_frames only change in _commit/seed
+        self._tol_frames = self.frames
         known = self.known_frames >= 30
         if self._tol_known is not None and np.array_equal(known, self._tol_known):
             return self._tol_cache
@@ -159,6 +163,7 @@ class Labeller:
         self.snap[ok] = self.pos[None]
         self._learn_distances(self.pos, rate=1.0 if not self.adapted else self.adapt)
         self.known_frames[ok] = 10 ** 6
+        self._tol_frames = -1
         self.adapted = True
 
     def seed_take(self, xyz: np.ndarray) -> None:
@@ -170,6 +175,7 @@ class Labeller:
         self.mean_all = np.where(np.isfinite(med), med, self.mean_all)
         seen = np.isfinite(xyz).all(2).any(0)
         self.known_frames[seen] = 10 ** 6
+        self._tol_frames = -1
         self.adapt_tol = 3.0 * np.sqrt(self.ms.sd_m ** 2 + 2 * self.noise_m ** 2) + 0.004
         self.nb_mean = self.mean_all[np.arange(self.n)[:, None], self.nb]
         self.adapted = True
@@ -209,6 +215,7 @@ class Labeller:
         step[np.abs(step) > self.adapt_tol[np.ix_(idx, idx)]] = 0.0
         self.mean_all[np.ix_(idx, idx)] = sub + rate * step
         self.known_frames[idx] += 1
+        self._tol_frames = -1
         self.nb_mean = self.mean_all[np.arange(self.n)[:, None], self.nb]
 
     # ------------------------------------------------------------------ one frame
