@@ -486,7 +486,8 @@ class Labeller:
         proper rigid motion. Also decides which modules fit well enough to renew their
         shape (`_commit`)."""
         self._mod_fit_now = np.zeros(len(self.modules), bool)
-        if not self.module_check or not len(self.modules):
+        if not self.module_check or not len(self.modules) or \
+                not (self._new_now.any() or self.frames % 8 == 0):
             return False
         has = point_of >= 0
         w = (has[self.mod_idx] & self.mod_mask).astype(float)           # (M, W)
@@ -687,6 +688,17 @@ class Labeller:
             if full.any():
                 self.mod_shape[full] = np.where(self.mod_mask[full, :, None],
                                                 cur[self.mod_idx[full]], np.nan)
+        if self.compiled:
+            kern.commit_state(cur, has, self.pos, self.vel, self.age, self.snap,
+                              self.since_reacquired, self.nb, float(self.smooth))
+        else:
+            self._commit_state(cur, has, seen_prev)
+        if self.adapt > 0 and has.sum() > 3 and self.frames % 4 == 0:
+            self._learn_distances(cur, min(1.0, 4 * self.adapt))
+        self.frames += 1
+
+    def _commit_state(self, cur: np.ndarray, has: np.ndarray, seen_prev: np.ndarray) -> None:
+        """numpy twin of label_kernels.commit_state."""
         newvel = np.where(seen_prev[:, None], cur - self.pos, 0.0)
         self.vel = np.where(seen_prev[:, None], self.smooth * newvel + (1 - self.smooth) * self.vel,
                             np.where(has[:, None], 0.0, self.vel))
@@ -706,9 +718,6 @@ class Labeller:
         self.age = np.where(has, 0, self.age + 1)
         if steady.any():
             self.snap[steady] = cur[None]
-        if self.adapt > 0 and has.sum() > 3 and self.frames % 4 == 0:
-            self._learn_distances(cur, min(1.0, 4 * self.adapt))
-        self.frames += 1
 
 
 # ---------------------------------------------------------------------- rigid modules

@@ -314,3 +314,52 @@ def module_candidates(markers, mates, cur, P, mean_all, tol_all, cand):
                     break
             out[a, b] = ok
     return out
+
+
+@jit
+def commit_state(cur, has, pos, vel, age, snap, since, nb, smooth):
+    """Advance the tracker's state in place with this frame's labelled positions: the
+    velocity of markers seen twice in a row (smoothed), a found-again marker takes its
+    labelled neighbours' mean velocity, snapshots renewed for markers seen twice in a
+    row (or never snapshotted), positions and ages. Returns the markers seen in the
+    previous frame and this one."""
+    n = len(cur)
+    seen_prev = np.zeros(n, np.bool_)
+    for i in range(n):
+        seen_prev[i] = has[i] and age[i] == 0
+    for i in range(n):
+        if seen_prev[i]:
+            for c in range(3):
+                vel[i, c] = smooth * (cur[i, c] - pos[i, c]) + (1.0 - smooth) * vel[i, c]
+        elif has[i]:
+            vel[i] = 0.0
+    K = nb.shape[1]
+    re_vel = np.zeros((n, 3))
+    for i in range(n):
+        if has[i] and not seen_prev[i]:
+            c = 0
+            for k in range(K):
+                j = nb[i, k]
+                if has[j]:
+                    c += 1
+                    for d in range(3):
+                        re_vel[i, d] += vel[j, d]
+            for d in range(3):
+                re_vel[i, d] /= max(c, 1)
+    for i in range(n):
+        if has[i] and not seen_prev[i]:
+            vel[i] = re_vel[i]
+            since[i] = 0
+        else:
+            since[i] += 1
+        if not _finite3(vel[i]):
+            vel[i] = 0.0
+        steady = seen_prev[i] or (has[i] and not _finite3(snap[i, i]))
+        if has[i]:
+            pos[i] = cur[i]
+            age[i] = 0
+        else:
+            age[i] += 1
+        if steady:
+            snap[i] = cur
+    return seen_prev

@@ -203,6 +203,11 @@ def test_kernels_match_their_numpy_twins(cmu41, acro):
         got_ref, conf_ref = ref.update(p)
         assert np.array_equal(got_fast, got_ref)
         assert np.allclose(conf_fast, conf_ref)
+    # the state the commit kernel keeps
+    for name in ("pos", "vel", "snap", "mod_shape"):
+        assert np.allclose(getattr(fast, name), getattr(ref, name), equal_nan=True), name
+    for name in ("age", "since_reacquired"):
+        assert np.array_equal(getattr(fast, name), getattr(ref, name)), name
     cur = hidden.xyz_m[150]
     lost = np.nonzero(~np.isfinite(cur).all(1))[0]
     assert len(lost) >= 3
