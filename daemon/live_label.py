@@ -12,19 +12,19 @@ from the set alone go wrong far more often.
 
 Starting is the exception: labelling a frame from the marker set alone (no previous
 labels) searches the set's segments and takes a few hundred milliseconds, which would
-stall the stream. So a fresh labeller starts on a thread of its own (`_Search`): it
-labels the frame it was given, then catches up on every frame that came since (each a
-normal, sub-millisecond update) and is handed to the frame loop once it is current;
-until then frames go out without labelled markers. The same happens when the labeller
-has named nothing for `lost_s` seconds while markers are seen (the subject left and came
-back), and after a labeller failure (a bug, not a user error: logged once, never a
-stopped stream). A start waits until most of the set (`start_fraction` of its markers)
-has been seen for a quarter second in a row (or points for `settle_s`): labelling from
-the set alone is far less reliable on a partial view (the tracker's first frames come and
-go, a subject walks in), and a wrong start is carried along by the tracking; for the same
-reason a start is checked by two more, a quarter second apart (`_Start`). A run that
-is not paced by cameras (a simulation or replay as fast as possible, `background=False`)
-starts inline instead: nothing is missed and the labels are the same on every run.
+stall the stream. So when the daemon is paced by cameras the start runs on a thread of
+its own (`_Search`) and frames go out without labelled markers until it is done; a run as
+fast as possible (`background=False`: a simulation or replay) starts on the frame loop
+instead, so the labels are the same on every run. A start (`_Start`) keeps its result by
+track id, which the tracker keeps through the frames a search takes: it is accepted when
+a second search a quarter second later names the tracks both named alike (a start from
+the set alone can mistake a mirrored pair, and tracking would carry the mistake along),
+and the accepted labels seed the labeller on the current frame's tracks, so nothing is
+replayed and a busy machine only delays the start. Searches wait for a frame showing
+most of the set (`start_fraction` of its markers, or any after `settle_s`). A start is
+made again when the labeller has named nothing for `lost_s` while markers are seen (the
+subject left and came back), and after a labeller failure (a bug, not a user error:
+logged once, never a stopped stream).
 """
 
 from __future__ import annotations
@@ -83,70 +83,77 @@ def load(path: Path) -> MarkerSet:
 
 
 class _Start:
-    """Starting from the marker set alone, checked by further opinions.
+    """Starting from the marker set alone, by track: searches that must agree.
 
-    A start from the set alone can mistake a near-symmetric group (a wrist's two markers,
-    a foot's four mirrored) and the tracking then carries the mistake along. So the
-    candidate is tracked on, and every `check_frames` another start is made from that
-    frame's points alone (a frame showing most of the set, if one comes within
-    `settle_frames`): once `confirmations` starts in a row name every marker they and the
-    candidate both name alike, the candidate is accepted; at a disagreement the new start
-    becomes the candidate and is checked in its turn (after `max_tries` checks the
-    candidate is taken as it is). One labeller is tracked at a time, so a start costs one
-    update a frame plus one search per check."""
+    A search labels one frame's points from the set alone (a few hundred milliseconds);
+    its result is kept by track id, since the tracker keeps a marker's track through the
+    frames the search took. A start from the set alone can mistake a near-symmetric
+    group (a wrist's two markers, a foot's four mirrored), so it is accepted only when
+    the next search, `check_frames` later, names every track both named alike (at least
+    half the set); at a disagreement the newer search is checked in its turn (after
+    `max_tries` searches the newest is taken). Searches are made on frames showing most
+    of the set (`start_points`), or on any frame with points after `settle_frames`.
+    Nothing is replayed: the accepted labels seed a labeller on the current frame's
+    tracks, so a start costs two searches however busy the machine is."""
 
     def __init__(self, ms: MarkerSet, rate_hz: float, check_frames: int, start_points: int,
-                 settle_frames: int, confirmations: int = 2, max_tries: int = 8) -> None:
+                 settle_frames: int, max_tries: int = 6) -> None:
         self.ms, self.rate_hz = ms, rate_hz
-        self.confirmations, self.agreed = confirmations, 0
         self.check_frames, self.start_points = check_frames, start_points
         self.settle_frames, self.max_tries = settle_frames, max_tries
-        self.candidate: Labeller | None = None
-        self.since = 0
+        self.last = None  # frame number of the latest search
+        self.waited_from = None  # first frame offered since the latest search
+        self.ids = self.labels = None  # the candidate: labelled track ids and their labels
         self.tries = 0
-        self.accepted: Labeller | None = None
+        self.accepted = False
 
-    def step(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """This frame's labels by the candidate; makes the check when it is due."""
-        if self.candidate is None:
-            self.candidate = Labeller(self.ms, rate_hz=self.rate_hz)
-        labels, conf = self.candidate.update(xyz)
-        if self.accepted is not None:
-            return labels, conf
-        self.since += 1
-        due = self.since > self.check_frames and (
-            len(xyz) >= self.start_points or self.since > self.check_frames + self.settle_frames)
-        if not due:
-            return labels, conf
-        fresh = Labeller(self.ms, rate_hz=self.rate_hz)
-        second, conf2 = fresh.update(xyz)
-        both = (labels >= 0) & (second >= 0)
+    def want(self, frame: int, n_points: int) -> bool:
+        """Whether to search this frame (it is due and shows enough of the set)."""
+        if self.accepted or n_points < 3:
+            return False
+        if self.last is not None and frame - self.last < self.check_frames:
+            return False
+        if self.waited_from is None:
+            self.waited_from = frame
+        return n_points >= self.start_points or frame - self.waited_from >= self.settle_frames
+
+    def search(self, frame: int, xyz: np.ndarray, ids: np.ndarray) -> None:
+        """Label one frame from the set alone; check it against the candidate."""
+        labels = Labeller(self.ms, rate_hz=self.rate_hz).update(xyz)[0]
+        got = labels >= 0
+        ids, labels = ids[got], labels[got]
+        self.last, self.waited_from = frame, None
         self.tries += 1
-        # every marker both named, named alike: a swapped pair is two differences in 41
-        if both.sum() >= 3 and np.array_equal(labels[both], second[both]):
-            self.agreed += 1
-            self.since = 0
-            if self.agreed >= self.confirmations or self.tries >= self.max_tries:
-                self.accepted = self.candidate
-            return labels, conf
-        log.info("labelling: two starts from the marker set disagree on %d of %d markers; "
-                 "checking again", int(np.sum(labels[both] != second[both])), int(both.sum()))
-        self.candidate, self.since, self.agreed = fresh, 0, 0
-        if self.tries >= self.max_tries:
-            self.accepted = fresh
-        return second, conf2
+        if self.ids is not None:
+            common, a, b = np.intersect1d(self.ids, ids, return_indices=True)
+            if (len(common) >= max(3, self.ms.n // 2)
+                    and np.array_equal(self.labels[a], labels[b])):
+                self.accepted = True
+            else:
+                log.info("labelling: two starts from the marker set disagree on %d of %d "
+                         "tracks; checking again", int(np.sum(self.labels[a] != labels[b])),
+                         len(common))
+        self.ids, self.labels = ids, labels
+        self.accepted |= self.tries >= self.max_tries
+
+    def labeller(self, xyz: np.ndarray, ids: np.ndarray) -> Labeller:
+        """A labeller seeded with the accepted labels at this frame's tracks."""
+        seed = np.full((self.ms.n, 3), np.nan)
+        _, a, b = np.intersect1d(ids, self.ids, return_indices=True)
+        seed[self.labels[b]] = xyz[a]
+        lab = Labeller(self.ms, rate_hz=self.rate_hz)
+        lab.seed(seed)
+        return lab
 
 
 class _Search:
-    """A _Start run on a thread: the first frame, then every frame queued since, until the
-    start is accepted and current (see the module docstring)."""
+    """A _Start run on a thread: it searches the newest frame offered whenever one is
+    due, until the start is accepted."""
 
-    def __init__(self, start: _Start, first: np.ndarray, max_behind: int) -> None:
+    def __init__(self, start: _Start) -> None:
         self.start = start
-        self.queue: deque = deque([first])
-        self.max_behind = max_behind
         self.cond = threading.Condition()
-        self.ready = False  # accepted and caught up: the frame loop may take the labeller
+        self.latest = None  # (frame, xyz, ids) the newest frame offered
         self.cancelled = False
         self.error: BaseException | None = None
         self.thread = threading.Thread(target=self._run, name="label-start", daemon=True)
@@ -155,33 +162,29 @@ class _Search:
     def _run(self) -> None:
         while True:
             with self.cond:
-                while (not self.queue and not self.cancelled
-                       and self.start.accepted is None):
-                    self.cond.wait(0.5)  # the check needs later frames
+                while self.latest is None and not self.cancelled:
+                    self.cond.wait(0.5)
                 if self.cancelled:
                     return
-                if not self.queue:
-                    self.ready = True
-                    return
-                xyz = self.queue.popleft()
+                frame, xyz, ids = self.latest
+                self.latest = None
             try:
-                self.start.step(xyz)
+                if self.start.want(frame, len(xyz)):
+                    self.start.search(frame, xyz, ids)
             except Exception as exc:  # noqa: BLE001 - reported by the stage
                 self.error = exc
                 return
+            if self.start.accepted:
+                return
 
-    def offer(self, xyz: np.ndarray) -> Labeller | None:
-        """Hand the search this frame; the caught-up labeller when it is ready (the
-        frame is then left for the caller to label), else None (the frame is queued)."""
+    def offer(self, frame: int, xyz: np.ndarray, ids: np.ndarray) -> bool:
+        """Hand the search this frame; True once the start is accepted."""
+        if self.start.accepted:
+            return True
         with self.cond:
-            if self.ready:
-                return self.start.accepted
-            if len(self.queue) >= self.max_behind:  # too far behind: start again
-                self.cancelled = True
-            else:
-                self.queue.append(xyz)
-                self.cond.notify()
-            return None
+            self.latest = (frame, xyz, ids)
+            self.cond.notify()
+        return False
 
 
 class LiveLabeller:
@@ -195,24 +198,21 @@ class LiveLabeller:
         self.source = source  # the file it came from, for status
         self.names = list(markerset.labels)
         self.set_name = markerset.name
-        self.labeller: Labeller | None = None  # None while a search runs (or before one)
-        self.search: _Search | None = None  # a start on its thread (realtime)
-        self.inline: _Start | None = None  # a start on the frame loop (background=False)
+        self.labeller: Labeller | None = None  # None while starting (or before)
+        self.start: _Start | None = None  # the start in progress
+        self.search: _Search | None = None  # its thread (realtime)
         self.check_frames = max(1, int(round(check_s * self.rate_hz)))
         self.background = background
         self.start_points = max(3, int(np.ceil(start_fraction * markerset.n)))
         self.settle_frames = max(1, int(round(settle_s * self.rate_hz)))
-        self.waiting = 0  # frames with points seen, not yet started from
-        self.steady = 0  # frames in a row showing most of the set
         self.hold_until = 0  # after a failure: no new start before this frame
         self.lost_frames = max(1, int(round(lost_s * self.rate_hz)))
-        self.max_behind = max(16, int(5 * self.rate_hz))  # frames a search may queue
         self.time_ns: deque = deque(maxlen=4096)  # what the stage took, recent frames
         self.frames = 0
         self.labelled = 0  # markers labelled in the latest frame
         self.unlabelled_run = 0  # frames in a row with points seen and none labelled
         self.failures = 0
-        self.starts = 0  # searches started (from the marker set alone)
+        self.starts = 0  # starts from the marker set alone
         self._empty = LabelledMarkers(self.set_name, self.names, np.zeros(0, np.int64),
                                       np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64))
 
@@ -233,36 +233,8 @@ class LiveLabeller:
         return out
 
     def _label(self, xyz: np.ndarray, ids: np.ndarray) -> LabelledMarkers:
-        if (self.labeller is None and self.search is None and self.inline is None
-                and not self._may_start(len(xyz))):
+        if self.labeller is None and not self._started(xyz, ids):
             return self._empty
-        if self.labeller is None and not self.background:
-            if self.inline is None:
-                self.starts += 1
-                self.inline = self._start()
-            try:
-                labels, conf = self.inline.step(xyz)
-            except Exception as exc:  # noqa: BLE001 - a labelling bug must not stop the stream
-                self._failed(exc)
-                return self._empty
-            if self.inline.accepted is not None:
-                self.labeller, self.inline = self.inline.accepted, None
-            keep = labels >= 0
-            return LabelledMarkers(self.set_name, self.names, labels[keep].astype(np.int64),
-                                   xyz[keep], conf[keep], ids[keep])
-        if self.labeller is None:
-            if self.search is not None:
-                self.labeller = self.search.offer(xyz)
-                if self.search.error is not None:
-                    self._failed(self.search.error)
-                elif self.search.cancelled:
-                    self.search = None
-            if self.labeller is None:
-                if self.search is None:
-                    self.starts += 1
-                    self.search = _Search(self._start(), xyz, self.max_behind)
-                return self._empty
-            self.search = None
         try:
             labels, conf = self.labeller.update(xyz)
         except Exception as exc:  # noqa: BLE001 - a labelling bug must not stop the stream
@@ -273,43 +245,56 @@ class LiveLabeller:
             self.unlabelled_run = 0
         else:
             self.unlabelled_run += 1
-            if self.unlabelled_run >= self.lost_frames:  # lost the subject: search again
+            if self.unlabelled_run >= self.lost_frames:  # lost the subject: start again
                 self.labeller, self.unlabelled_run = None, 0
         return LabelledMarkers(self.set_name, self.names, labels[keep].astype(np.int64),
                                xyz[keep], conf[keep], ids[keep])
 
-    def _start(self) -> _Start:
-        return _Start(self.ms, self.rate_hz, self.check_frames, self.start_points,
-                      self.settle_frames)
-
-    def _may_start(self, n_points: int) -> bool:
-        """Whether this frame is one to start labelling from: most of the set seen for
-        `check_frames` in a row (the tracker's first frames come and go), or points seen
-        for `settle_frames` (see the module docstring)."""
-        if n_points < 3 or self.frames < self.hold_until:
-            self.waiting = self.steady = 0
+    def _started(self, xyz: np.ndarray, ids: np.ndarray) -> bool:
+        """Advance the start with this frame; True when the labeller is ready for it."""
+        if self.frames < self.hold_until:
             return False
-        self.waiting += 1
-        self.steady = self.steady + 1 if n_points >= self.start_points else 0
-        if self.steady >= self.check_frames or self.waiting >= self.settle_frames:
-            self.waiting = self.steady = 0
-            return True
-        return False
+        if self.start is None:
+            self.starts += 1
+            self.start = _Start(self.ms, self.rate_hz, self.check_frames, self.start_points,
+                                self.settle_frames)
+        try:
+            if self.background:
+                if self.search is None:
+                    self.search = _Search(self.start)
+                if self.search.error is not None:
+                    raise self.search.error
+                done = self.search.offer(self.frames, xyz, ids)
+            else:
+                if self.start.want(self.frames, len(xyz)):
+                    self.start.search(self.frames, xyz, ids)
+                done = self.start.accepted
+            if not done:
+                return False
+            self.labeller = self.start.labeller(xyz, ids)
+        except Exception as exc:  # noqa: BLE001 - a labelling bug must not stop the stream
+            self._failed(exc)
+            return False
+        self.start = self.search = None
+        return True
 
     def _failed(self, exc: BaseException) -> None:
         self.failures += 1
         if self.failures == 1:
             log.error("labelling failed (%s: %s); starting afresh from the marker set",
                       type(exc).__name__, exc, exc_info=exc)
-        self.labeller, self.search, self.inline = None, None, None
-        self.hold_until = self.frames + self.settle_frames  # a failing labeller: once a second
+        self.close()
+        self.labeller, self.start, self.search = None, None, None
+        self.hold_until = self.frames + self.settle_frames  # a failing labeller: not every frame
 
     def close(self) -> None:
-        """Stop a search in progress (the daemon stops, or a reload replaced this stage)."""
+        """Stop a start searching on its thread (the daemon stops, or a reload replaced
+        this stage)."""
         search = self.search
         if search is not None:
             with search.cond:
                 search.cancelled = True
+                search.cond.notify()
 
     def status(self) -> dict:
         t = np.array(list(self.time_ns), np.float64) * 1e-6  # list(): one atomic copy
