@@ -191,6 +191,14 @@ def _plain(value):
 
 # ---- the daemon ------------------------------------------------------------------------------
 
+def _paced(cfg: Config) -> bool:
+    """Whether frames come at the cameras' pace (live, or a simulation or replay in real
+    time) rather than as fast as the tracker goes."""
+    if cfg.sim is not None:
+        return cfg.sim.realtime
+    return cfg.replay.realtime if cfg.replay is not None else True
+
+
 def make_publishers(config: Config, bodies=(), markerset=None) -> list:
     """The configured outputs; `bodies` (BodyDef) name the trackers NatNet and VRPN serve,
     `markerset` (the live MarkerSet, if any) the labelled markers NatNet describes."""
@@ -344,10 +352,8 @@ class Daemon:
         if cfg.markerset is None:
             return None
         fps = self.scene.fps if self.scene is not None else cfg.fps
-        realtime = (cfg.sim.realtime if cfg.sim is not None
-                    else cfg.replay.realtime if cfg.replay is not None else True)
         return LiveLabeller(load_markerset(cfg.markerset), fps, str(cfg.markerset),
-                            background=realtime)
+                            background=_paced(cfg))
 
     @staticmethod
     def _set_key(cfg: Config):
@@ -396,8 +402,7 @@ class Daemon:
         fps = cfg.sim.fps if cfg.sim is not None else cfg.fps
         n_scene = frames or (int(duration_s * fps) + 10 if duration_s else None)
         self.setup(n_scene)
-        realtime = (cfg.sim.realtime if cfg.sim is not None
-                    else cfg.replay.realtime if cfg.replay is not None else True)
+        realtime = _paced(cfg)
         try:
             if realtime:
                 self._run_live(frames, duration_s, progress)
@@ -496,19 +501,12 @@ class Daemon:
         sd_notify("RELOADING=1")
         try:
             new = self.extend(load_config(self.config.path)) if self.config.path else self.config
+            key = self._set_key(new)
+            labelling = self._labeller(new) if key != self._markerset_key else self.labelling
         except UserError as exc:
             log.error("reload failed, keeping the running configuration: %s", exc)
             sd_notify("READY=1")
             return False
-        key = self._set_key(new)
-        labelling = self.labelling
-        if key != self._markerset_key:
-            try:
-                labelling = self._labeller(new)
-            except UserError as exc:
-                log.error("reload failed, keeping the running configuration: %s", exc)
-                sd_notify("READY=1")
-                return False
         bodies = self._bodies(new)
         self._warn_alike(bodies)
         changes = {} if labelling is self.labelling else {"labeller": labelling}
