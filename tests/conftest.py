@@ -50,3 +50,27 @@ def calibkit_cli(capsys):
 @pytest.fixture
 def mocapd_cli(capsys):
     return lambda *args: _run("daemon.cli", "mocapd", capsys, args)
+
+
+@pytest.fixture
+def natnet_listener():
+    """natnet_listener(command_port, data_port=command_port + 1, multicast=False,
+    timeout_s=3.0) -> (client, frames, descriptions): the real NatNet client library
+    (`natnet` package) connected to a server on 127.0.0.1, collecting what it receives;
+    call client.shutdown() when done."""
+    import natnet
+
+    def connect(command_port, data_port=None, multicast=False, timeout_s=3.0):
+        c = natnet.NatNetClient(server_ip_address="127.0.0.1", local_ip_address="127.0.0.1",
+                                command_port=command_port,
+                                data_port=command_port + 1 if data_port is None else data_port,
+                                use_multicast=multicast)
+        frames, descs = [], []
+        c.on_data_frame_received_event.handlers.append(frames.append)
+        c.on_data_description_received_event.handlers.append(descs.append)
+        c.connect(timeout=timeout_s)
+        c.request_modeldef()
+        c.run_async()
+        return c, frames, descs
+
+    return connect

@@ -12,7 +12,6 @@ import sys
 import time
 from pathlib import Path
 
-import natnet as natnet_client
 import numpy as np
 import pytest
 
@@ -223,8 +222,8 @@ def _udp_listener():
     return s
 
 
-def test_mocapd_publishes_named_markers_over_udp_and_natnet_and_reloads_the_set(tmp_path,
-                                                                               mocapd_cli):
+def test_mocapd_publishes_named_markers_over_udp_and_natnet_and_reloads_the_set(
+        tmp_path, mocapd_cli, natnet_listener):
     """The daemon tracks the walking person and a rigid body; UDP packets carry the named
     markers (checked against the simulator's truth), a natnet client reads the set by name
     in the descriptions and its markers in the frames; SIGHUP without the set stops the
@@ -271,14 +270,7 @@ def test_mocapd_publishes_named_markers_over_udp_and_natnet_and_reloads_the_set(
         st = json.loads((tmp_path / "status.json").read_text())["labelling"]
         assert st["markerset"] == "sim_person" and st["markers"] == MarkerSet.load(SET).labels
         assert st["path"] == str(tmp_path / "person.toml") and st["failures"] == 0
-        c = natnet_client.NatNetClient("127.0.0.1", "127.0.0.1", command_port=cmd,
-                                       data_port=cmd + 1, use_multicast=False)
-        frames, descs = [], []
-        c.on_data_frame_received_event.handlers.append(frames.append)
-        c.on_data_description_received_event.handlers.append(descs.append)
-        c.connect(timeout=5.0)
-        c.request_modeldef()
-        c.run_async()
+        c, frames, descs = natnet_listener(cmd, timeout_s=5.0)
         wait(lambda: len(frames) >= 60 and descs, 10, "NatNet frames")
         c.shutdown()
         # reload without the marker set: packets go back to bodies only

@@ -266,19 +266,6 @@ def test_crowded_frame_keeps_bodies_and_their_markers_within_the_size_field():
 
 # ---- the natnet client, unicast and multicast, joining and leaving -----------------------------
 
-def _client(pub, multicast: bool):
-    c = natnet_client.NatNetClient(server_ip_address="127.0.0.1", local_ip_address="127.0.0.1",
-                                   command_port=pub.command_port, data_port=pub.data_port,
-                                   use_multicast=multicast)
-    frames, descs = [], []
-    c.on_data_frame_received_event.handlers.append(frames.append)
-    c.on_data_description_received_event.handlers.append(descs.append)
-    c.connect(timeout=3.0)
-    c.request_modeldef()
-    c.run_async()
-    return c, frames, descs
-
-
 def _check_frames(frames, handed, occluded) -> None:
     assert frames
     for f in frames:
@@ -293,19 +280,19 @@ def _check_frames(frames, handed, occluded) -> None:
                                       r.poses.quaternion[r.poses.valid].astype(np.float32))
 
 
-def test_natnet_clients_unicast_and_multicast_join_and_leave():
+def test_natnet_clients_unicast_and_multicast_join_and_leave(natnet_listener):
     """A multicast client throughout, a unicast client that leaves, one that joins late:
     every frame each receives is the frame handed over, bodies included, occlusion shown as
     tracking-valid false; the stayer receives every frame, before and after the others."""
     scene = Scene()
     pub = loopback_publisher(scene)
     with Feeder(pub, scene) as feed:
-        stay, stay_frames, stay_desc = _client(pub, multicast=True)
-        leave, leave_frames, _ = _client(pub, multicast=False)
+        stay, stay_frames, stay_desc = natnet_listener(pub.command_port, pub.data_port, True)
+        leave, leave_frames, _ = natnet_listener(pub.command_port, pub.data_port)
         feed.wait_frames(60)
         leave.shutdown()
         left_at = max(feed.handed)
-        late, late_frames, late_desc = _client(pub, multicast=False)
+        late, late_frames, late_desc = natnet_listener(pub.command_port, pub.data_port)
         feed.wait_frames(100)
         stay.shutdown()
         late.shutdown()
@@ -322,11 +309,11 @@ def test_natnet_clients_unicast_and_multicast_join_and_leave():
     assert any(not f.rigid_bodies[-1].tracking_valid for f in stay_frames)
 
 
-def test_natnet_client_unicast_y_up():
+def test_natnet_client_unicast_y_up(natnet_listener):
     scene = Scene(n_bodies=1)
     pub = loopback_publisher(scene, up_axis="y", multicast=False)
     with Feeder(pub, scene) as feed:
-        c, frames, _ = _client(pub, multicast=False)
+        c, frames, _ = natnet_listener(pub.command_port, pub.data_port)
         feed.wait_frames(20)
         c.shutdown()
     assert frames
@@ -438,7 +425,7 @@ def test_motioncapture_natnet_unicast():
 
 # ---- the daemon end to end ---------------------------------------------------------------------
 
-def test_mocapd_serves_natnet_poses_matching_the_simulator(tmp_path):
+def test_mocapd_serves_natnet_poses_matching_the_simulator(tmp_path, natnet_listener):
     """`mocapd start --sim` with `[natnet]`: a unicast natnet client's poses equal what the
     daemon tracked (its own UDP packets of the same frames) and are the simulator's true
     poses (0.2 px noise: millimetres); model definitions name the bodies."""
@@ -480,14 +467,7 @@ def test_mocapd_serves_natnet_poses_matching_the_simulator(tmp_path):
                 assert time.monotonic() < deadline, "mocapd never answered NAT_CONNECT"
                 time.sleep(0.1)
         probe.close()
-        c = natnet_client.NatNetClient("127.0.0.1", "127.0.0.1", command_port=cmd,
-                                       data_port=cmd + 1, use_multicast=False)
-        frames, descs = [], []
-        c.on_data_frame_received_event.handlers.append(frames.append)
-        c.on_data_description_received_event.handlers.append(descs.append)
-        c.connect(timeout=5.0)
-        c.request_modeldef()
-        c.run_async()
+        c, frames, descs = natnet_listener(cmd, timeout_s=5.0)
         while proc.poll() is None and len(frames) < 150:
             drain()
             time.sleep(0.02)
@@ -532,14 +512,14 @@ def test_mocapd_serves_natnet_poses_matching_the_simulator(tmp_path):
     assert s.stamp_camera_mid_exposure <= s.stamp_data_received <= s.stamp_transmit
 
 
-def test_a_reloaded_server_takes_over_the_port_and_the_clients():
+def test_a_reloaded_server_takes_over_the_port_and_the_clients(natnet_listener):
     """A reload starts the new publisher while the old one runs (daemon.pipeline applies
     new publishers before stopping the old): the new one takes over the command socket and
     the subscribed clients at once, and the old one's stop closes none of it."""
     scene = Scene(n_bodies=1)
     old = loopback_publisher(scene, multicast=False)
     old.start()
-    c, frames, _ = _client(old, multicast=False)  # subscribed by keep-alives
+    c, frames, _ = natnet_listener(old.command_port, old.data_port)  # subscribed by keep-alives
     old.submit(scene.frame(0))
     deadline = time.monotonic() + 3
     while not frames and time.monotonic() < deadline:
