@@ -117,12 +117,22 @@ class Labeller:
         self.mates = (self.mod_of[:, None] == self.mod_of[None]) & (self.mod_of[:, None] >= 0)
         np.fill_diagonal(self.mates, False)
         self.mod_shape = np.full((M, width, 3), np.nan)     # this take's shape, once seen
+        self.mod_shape_first = self.mod_shape.copy()         # ... and the first one seen
         self.module_check = module_check
         self._mod_fit_now: np.ndarray | None = None
         self._maps_cache: dict = {}
         self.mod_ref = [_mds_shape(markerset.mean_m[np.ix_(m, m)]) for m in self.modules]
         self.mod_sigma = np.array([np.sqrt(np.mean(markerset.sd_m[np.ix_(m, m)] ** 2))
                                    for m in self.modules]).reshape(M) + noise_m
+        # the marker set's shape of each module, with its handedness, for modules not yet
+        # seen whole in this take; looser by the spread between subjects
+        self.mod_template = np.full((M, width, 3), np.nan)
+        self.mod_template_sigma = np.zeros(M)
+        for k, m in enumerate(self.modules):
+            self.mod_template[k, :len(m)] = _module_template(markerset, m)
+            sub = markerset.subject_sd_m[np.ix_(m, m)]
+            self.mod_template_sigma[k] = np.hypot(self.mod_sigma[k],
+                                                  max(np.sqrt(np.mean(sub ** 2)), 0.01))
         self.pos = np.full((n, 3), np.nan)
         self.vel = np.zeros((n, 3))
         self.age = np.full(n, 10 ** 6)
@@ -219,10 +229,12 @@ class Labeller:
         self.nb_mean = self.mean_all[np.arange(self.n)[:, None], self.nb]
 
     # ------------------------------------------------------------------ one frame
-    def update(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def update(self, points: np.ndarray, steps: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """Label one frame's points (k, 3): marker index per point (-1 = ghost/unknown)
-        and a confidence 0..1 per point."""
+        and a confidence 0..1 per point. `steps`: frames since the previous update (a
+        live stage that skipped frames), so that motion is predicted over the real gap."""
         P = np.asarray(points, float).reshape(-1, 3)
+        steps = max(1, int(steps))
         self._P = P
         k = len(P)
         n = self.n
@@ -232,7 +244,7 @@ class Labeller:
             got = lab >= 0
             cur[lab[got]] = P[got]
             ok = np.isfinite(cur).all(1)
-            self._commit(cur, ok)
+            self._commit(cur, ok, steps)
             return lab, np.where(got, 0.5, 0.0)
 
         marker_of = np.full(k, -1)
@@ -241,10 +253,11 @@ class Labeller:
         # 1. tracked markers: constant-velocity prediction, one global assignment
         tracked = np.nonzero(self.age <= 2)[0]
         if len(tracked) and k:
-            q = self.pos[tracked] + self.vel[tracked] * (self.age[tracked, None] + 1)
+            q = self.pos[tracked] + self.vel[tracked] * (self.age[tracked, None] + steps)
             diff = q[:, None] - P[None]
             cost = np.sqrt(np.einsum("tki,tki->tk", diff, diff))
-            cost[~(cost <= self.gate_m)] = BIG          # also NaN: no prediction
+            # the prediction's error grows with the time since the last update
+            cost[~(cost <= self.gate_m * steps)] = BIG     # also NaN: no prediction
             r, c = linear_sum_assignment(cost)
             good = cost[r, c] < BIG
             point_of[tracked[r[good]]] = c[good]
@@ -282,14 +295,16 @@ class Labeller:
                 cost = (dist / sigma[:, None]) ** 2 + 4.0 * cerr ** 2
             cost[(dist > gate[:, None]) | (cerr > self.candidate_limit)] = BIG
             # never seen since the start: found by distances alone, from >= 3 neighbours
-            fresh = ~np.isfinite(self.snap[lost, lost]).all(1)
+            never = ~np.isfinite(self.snap[lost, lost]).all(1)
+            fresh = never.copy()
             # long lost and nothing near its prediction: the prediction may be stale (a
             # ghost once taken for it); find it by its distances to everyone instead
             fresh |= (self.age[lost] > 20) & (cost >= BIG).all(1)
             if fresh.any():
                 cost[fresh] = self._fresh_cost(lost[fresh], P[free], cur)
             if self.module_reid:
-                self._module_assign(lost, P[free], cur, cost)
+                self._module_refind(lost, P[free], cur, cost, cerr)
+                self._module_assign(lost, P[free], cur, cost, never)
             r, c = linear_sum_assignment(cost)
             good = cost[r, c] < BIG
             # ambiguous: another lost marker fits the same point almost as well
@@ -310,7 +325,7 @@ class Labeller:
             err = self._structure_error(cur)
         has = point_of >= 0
         conf_m = np.where(has, np.exp(-2.0 * np.where(np.isnan(err), 0.5, err) ** 2), 0.0)
-        self._commit(cur, has)
+        self._commit(cur, has, steps)
         conf = np.zeros(k)
         conf[point_of[has]] = conf_m[has]
         return marker_of, conf
@@ -507,7 +522,14 @@ class Labeller:
         worst = r2.max(1) / self.mod_sigma[ks] ** 2
         # the shape is renewed only from a labelling that fits it closely: renewing it
         # from a looser fit lets a wrong labelling (a ghost, a rotation) become the shape
-        self._mod_fit_now[ks] = worst <= self.renew_sigma ** 2
+        fit = worst <= self.renew_sigma ** 2
+        # ... or its first shape in this take: a shape that followed the markers while they
+        # slid (a head band slipping) returns when they return
+        first = self.mod_shape_first[ks]
+        r2f = self._residuals(np.where(np.isnan(first), 0.0, first),
+                              np.where(np.isnan(X), 0.0, X), w[ks])
+        fit |= r2f.max(1) / self.mod_sigma[ks] ** 2 <= self.renew_sigma ** 2
+        self._mod_fit_now[ks] = fit
         done = False
         small = self.mod_mask[ks].sum(1) <= 5     # a back of 6+ markers bends too much
         for k in ks[(worst > 3.0 ** 2) & sus[ks] & small]:
@@ -536,6 +558,10 @@ class Labeller:
         b = int(np.argmin(tot))
         sigma = self.mod_sigma[k]
         if same[b] or r2[b].max() > (2.5 * sigma) ** 2 or tot[b] > 0.25 * ident:
+            return False
+        # a runner-up nearly as good (a flat module's mirror twin, a triangle of a
+        # four-marker module) means the fit cannot tell which relabelling is right
+        if len(tot) > 2 and np.partition(tot, 1)[1] < tot[b] + 9.0 * sigma ** 2:
             return False
         new_member = maps[b]                                              # for each point
         old_pos, old_vel = self.pos[idx].copy(), self.vel[idx].copy()
@@ -581,7 +607,8 @@ class Labeller:
             return done
         i, j = i[ok], j[ok]
         scores = kern.swap_scores if self.compiled else _swap_scores
-        keep, swap = scores(cur, i, j, self.swap_w, self.mean_all)
+        # a marker found again in this very frame (perhaps a ghost) is no witness
+        keep, swap = scores(cur, i, j, self.swap_w, self.mean_all, ~self._new_now)
         better = (swap < 0.25 * keep) & (keep - swap > 25.0)
         for a, b in zip(i[better], j[better], strict=True):
             if point_of[a] < 0 or point_of[b] < 0:
@@ -595,8 +622,87 @@ class Labeller:
             done = True
         return done
 
+    def _module_refind(self, lost: np.ndarray, Pf: np.ndarray, cur: np.ndarray,
+                       cost: np.ndarray, cerr: np.ndarray) -> None:
+        """A rigid module hidden whole (a forearm, a foot), or all but one marker of it,
+        is found again as a whole: 4 or more points (left-over ones, and the one marker
+        seen) that fit its shape in this take. Marker by marker it cannot be: its
+        markers' predictions are far off (a swinging arm) and their distances to the rest
+        of the body too loose to tell its points apart. Hypotheses grow member by member
+        through the pair distances; a best fit with no rival near it, and whose points no
+        other module claims, is forced into `cost`."""
+        if not len(self.modules) or len(Pf) < 3:
+            return
+        seen = np.isfinite(cur).all(1)
+        row_of = np.full(self.n, -1)
+        row_of[lost] = np.arange(len(lost))
+        F = len(Pf)
+        claims = []
+        for k, idx in enumerate(self.modules):
+            m = len(idx)
+            shown = seen[idx]
+            if m < 4 or shown.sum() > 1 or (row_of[idx[~shown]] < 0).any():
+                continue
+            shape = self.mod_shape[k, :m]
+            if not np.isfinite(shape).all():
+                continue
+            # the marker seen, if any, is a point every hypothesis keeps
+            Pa = np.vstack([Pf, cur[idx[shown]]])
+            D = _pair_distances(Pa)
+            rows = row_of[idx]
+            sigma = self.mod_sigma[k]
+            S = _pair_distances(shape)
+            tol = 3.0 * np.sqrt(2.0) * sigma + 0.005
+            hyps = np.full((1, 0), -1, int)
+            for j in range(m):
+                if shown[j]:
+                    opts = [np.full((len(hyps), 1), F)]
+                    choices = [F]
+                else:
+                    # points it may take: its distances to the labelled body fit loosely
+                    opts = [np.full((len(hyps), 1), -1)]
+                    choices = np.nonzero(cerr[rows[j]] <= 1.5)[0]
+                    opts = opts + [None] * len(choices)
+                for c, q in enumerate(choices):
+                    ok = ~(hyps == q).any(1)
+                    a = hyps >= 0
+                    d = np.where(a, D[q, np.maximum(hyps, 0)], 0.0)
+                    ok &= (~a | (np.abs(d - S[j, :j][None]) <= tol)).all(1)
+                    opts[c if shown[j] else c + 1] = np.where(ok, q, -2)[:, None]
+                hyps = np.vstack([np.hstack([hyps, o]) for o in opts])
+                hyps = hyps[(hyps[:, -1] != -2) & ((hyps < 0).sum(1) <= m - 4)]
+                if not len(hyps) or len(hyps) > 20000:
+                    break
+            if not len(hyps) or hyps.shape[1] < m:
+                continue
+            got = hyps >= 0
+            X = np.where(got[:, :, None], Pa[np.maximum(hyps, 0)], 0.0)
+            r2 = self._residuals(shape, X, got.astype(float))
+            score = r2.sum(1) / sigma ** 2 + 9.0 * (~got).sum(1)
+            score[(r2 > (2.5 * sigma) ** 2).any(1)] = np.inf
+            b = int(np.argmin(score))
+            if not np.isfinite(score[b]):
+                continue
+            best = hyps[b]
+            # a rival as good that labels a point otherwise (a flat module's mirror twin);
+            # one that only adds or leaves out a marker agrees with the best
+            differ = got & (hyps != best[None]) & ((best[None] >= 0) |
+                                                   np.isin(hyps, best[best >= 0]))
+            rival = differ.any(1) & (score < score[b] + 9.0)
+            if not rival.any():
+                claims.append((rows[~shown], best[~shown]))
+        used = [set(best[best >= 0].tolist()) for _, best in claims]
+        for c, (rows, best) in enumerate(claims):
+            if any(used[c] & u for d, u in enumerate(used) if d != c):
+                continue          # two modules (left and right forearm) claim a point
+            for j in range(len(rows)):
+                cost[rows[j]] = BIG
+                if best[j] >= 0:
+                    cost[:, best[j]] = BIG
+                    cost[rows[j], best[j]] = 0.0
+
     def _module_assign(self, lost: np.ndarray, Pf: np.ndarray, cur: np.ndarray,
-                       cost: np.ndarray) -> None:
+                       cost: np.ndarray, never: np.ndarray) -> None:
         """Re-identify the lost markers of each rigid module jointly: every assignment of
         its lost markers to candidate points (or to none) is scored by a proper rigid fit
         of the module's shape in this take to its labelled and assigned points. Marker by
@@ -613,7 +719,9 @@ class Labeller:
         # candidates: the marker's own gate, or (with 2+ module mates seen) distances to
         # its mates that fit, for all lost module markers at once
         lm_all = lost[inmod]
-        cand_all = cost[inmod] < BIG
+        # within the marker's own gate, or no gate (never seen in this take)
+        own_all = (cost[inmod] < BIG) | never[inmod][:, None]
+        cand_all = own_all.copy()
         if self.compiled:
             cand_all = kern.module_candidates(lm_all, self.mates, cur, Pf, self.mean_all,
                                               self.adapt_tol, cand_all)
@@ -633,13 +741,18 @@ class Labeller:
             anchors = idx[seen[idx]]
             rows = row_of[lm]
             cand = cand_all[sub_of[lm]]                                      # (l, F)
+            own = own_all[sub_of[lm]]
             n_cand = cand.sum(1)
             if not n_cand.any() or len(anchors) + (n_cand > 0).sum() < 3 \
                     or np.prod(n_cand + 1) > 4096:
                 continue
             shape = self.mod_shape[k, :len(idx)]
-            if not np.isfinite(shape).all():
-                continue      # not seen whole in this take yet: marker by marker
+            sigma = self.mod_sigma[k]
+            template = not np.isfinite(shape).all()
+            if template:
+                # not seen whole in this take yet: the marker set's shape, looser
+                shape = self.mod_template[k, :len(idx)]
+                sigma = self.mod_template_sigma[k]
             hyps = _injective_product([np.r_[-1, np.nonzero(c)[0]] for c in cand])
             H = len(hyps)
             x0 = cur[idx]
@@ -652,9 +765,18 @@ class Labeller:
                 X[got[:, j], pos[j]] = Pf[hyps[got[:, j], j]]
                 w[:, pos[j]] = got[:, j]
             r2 = self._residuals(shape, X, w)
-            sigma = self.mod_sigma[k]
+            first = self.mod_shape_first[k, :len(idx)]
+            if np.isfinite(first).all() and \
+                    np.abs(_pair_distances(first) - _pair_distances(shape)).max() > 2 * sigma:
+                # the shape followed markers that slid; the first one may fit again
+                r2f = self._residuals(first, X, w)
+                r2 = np.where((r2f.sum(1) < r2.sum(1))[:, None], r2f, r2)
             total = w.sum(1)
-            bad = ((r2 > (3.5 * sigma) ** 2).any(1)) | ((total < 3) & got.any(1))
+            # a point outside a marker's own gate, found by its distances to its mates,
+            # needs a fit that tests more than those distances (3 points have no more)
+            foreign = (got & ~own[np.arange(len(lm))[None], np.maximum(hyps, 0)]).any(1)
+            bad = ((r2 > (3.5 * sigma) ** 2).any(1)) | ((total < 3) & got.any(1)) | \
+                (foreign & (total < 4))
             score = r2.sum(1) / sigma ** 2 + 9.0 * (~got).sum(1)
             score[bad] = np.inf
             b = int(np.argmin(score))
@@ -664,19 +786,36 @@ class Labeller:
             used = best[best >= 0]
             conflict = (got & (hyps != best[None]) &
                         ((best[None] >= 0) | np.isin(hyps, used))).any(1)
-            near = conflict & (score < score[b] + 9.0)
+            # a rival that places fewer markers is no tie: it leaves a point unexplained
+            near = conflict & (score < score[b] + 6.0) & (got.sum(1) >= got[b].sum())
             agree = ~(near[:, None] & (hyps != best[None])).any(0)
             # a marker is decided here only where a fit could judge it (3+ points)
             judged = (got & (total >= 3)[:, None]).any(0) | (best >= 0)
+            # a fit of this take's shape to 4+ points decides; the marker set's shape, or
+            # 3 points, only offer the fit's cost against other lost markers' own costs
+            strong = not template and total[b] >= 4
+            fit_cost = r2[b].sum() / sigma ** 2
             for j in range(len(lm)):
                 if not judged[j]:
                     continue
                 cost[rows[j]] = BIG
                 if agree[j] and best[j] >= 0:
-                    cost[:, best[j]] = BIG
-                    cost[rows[j], best[j]] = 0.0
+                    if strong:
+                        cost[:, best[j]] = BIG
+                        cost[rows[j], best[j]] = 0.0
+                    else:
+                        cost[rows[j], best[j]] = fit_cost
+            # a point that the module's best fit and every rival as close place on one
+            # of its markers is the module's, even when they disagree on which one, unless
+            # a marker outside the module fits it better on its own
+            rivals = hyps[near | (np.arange(H) == b)]
+            outside = np.ones(len(cost), bool)
+            outside[rows] = False
+            for q in used:
+                if (rivals == q).any(1).all():
+                    cost[outside & (cost[:, q] >= fit_cost), q] = BIG
 
-    def _commit(self, cur: np.ndarray, has: np.ndarray) -> None:
+    def _commit(self, cur: np.ndarray, has: np.ndarray, steps: int = 1) -> None:
         seen_prev = has & (self.age == 0)
         if len(self.modules):
             steady_now = seen_prev[self.mod_idx] | ~self.mod_mask
@@ -688,23 +827,26 @@ class Labeller:
             if full.any():
                 self.mod_shape[full] = np.where(self.mod_mask[full, :, None],
                                                 cur[self.mod_idx[full]], np.nan)
+                new = full & ~(np.isfinite(self.mod_shape_first).all(2) | ~self.mod_mask).all(1)
+                self.mod_shape_first[new] = self.mod_shape[new]
         if self.compiled:
             kern.commit_state(cur, has, self.pos, self.vel, self.age, self.snap,
-                              self.since_reacquired, self.nb, float(self.smooth))
+                              self.since_reacquired, self.nb, float(self.smooth), steps)
         else:
-            self._commit_state(cur, has, seen_prev)
+            self._commit_state(cur, has, seen_prev, steps)
         if self.adapt > 0 and has.sum() > 3 and self.frames % 4 == 0:
             self._learn_distances(cur, min(1.0, 4 * self.adapt))
         self.frames += 1
 
-    def _commit_state(self, cur: np.ndarray, has: np.ndarray, seen_prev: np.ndarray) -> None:
+    def _commit_state(self, cur: np.ndarray, has: np.ndarray, seen_prev: np.ndarray,
+                      steps: int) -> None:
         """numpy twin of label_kernels.commit_state."""
-        newvel = np.where(seen_prev[:, None], cur - self.pos, 0.0)
+        newvel = np.where(seen_prev[:, None], (cur - self.pos) / steps, 0.0)
         self.vel = np.where(seen_prev[:, None], self.smooth * newvel + (1 - self.smooth) * self.vel,
                             np.where(has[:, None], 0.0, self.vel))
         # a reacquired marker takes its neighbours' velocity
         re = has & ~seen_prev
-        self.since_reacquired = np.where(re, 0, self.since_reacquired + 1)
+        self.since_reacquired = np.where(re, 0, self.since_reacquired + steps)
         if re.any():
             nbv = self.vel[self.nb[re]]
             ok = has[self.nb[re]]
@@ -715,7 +857,7 @@ class Labeller:
                                                               np.arange(self.n)]).all(1))
         self.vel[~np.isfinite(self.vel).all(1)] = 0.0
         self.pos = np.where(has[:, None], cur, self.pos)
-        self.age = np.where(has, 0, self.age + 1)
+        self.age = np.where(has, 0, self.age + steps)
         if steady.any():
             self.snap[steady] = cur[None]
 
@@ -754,10 +896,10 @@ def _module_candidates(lm_all, mates_all, cur, Pf, mean_all, tol_all, cand):
     return cand
 
 
-def _swap_scores(cur, i, j, swap_w, mean_all):
+def _swap_scores(cur, i, j, swap_w, mean_all, witness):
     """numpy twin of label_kernels.swap_scores."""
     x = np.nan_to_num(cur)
-    seen = np.isfinite(cur).all(1)
+    seen = np.isfinite(cur).all(1) & witness
     di = np.linalg.norm(cur[i][:, None] - x[None], axis=2)       # (p, n)
     dj = np.linalg.norm(cur[j][:, None] - x[None], axis=2)
     wi = swap_w[i] * seen[None]
@@ -768,6 +910,39 @@ def _swap_scores(cur, i, j, swap_w, mean_all):
     keep = (wi * (di - mi) ** 2 + wj * (dj - mj) ** 2).sum(1)
     swap = (wi * (dj - mi) ** 2 + wj * (di - mj) ** 2).sum(1)
     return keep, swap
+
+
+def _module_template(ms: MarkerSet, module: np.ndarray) -> np.ndarray:
+    """A module's shape from the marker set's mean distances (classical MDS), turned to
+    the handedness the marker set learned: distances alone cannot tell a foot from its
+    mirror image. The handedness comes from a segment of 4+ markers inside the module
+    (its Procrustes-mean shape, learned with proper rotations) or else from the chiral
+    and swap-witness tetrahedra inside it (a vote)."""
+    X = _mds_shape(ms.mean_m[np.ix_(module, module)])
+    X -= X.mean(0)
+    mirror = X * np.array([1.0, 1.0, -1.0])
+    for sg in ms.segments:
+        members = list(sg.markers)
+        if len(members) >= 4 and set(members) <= set(module.tolist()):
+            pos = np.searchsorted(module, members)
+            ref = np.asarray(sg.shape_m, float)[None]
+            r = _rigid_residuals(ref, np.stack([X[pos], mirror[pos]]),
+                                 np.ones((2, len(pos))), True).sum(1)
+            return X if r[0] <= r[1] else mirror
+    quads = np.concatenate([ms.chiral, ms.pair_quads]).astype(int)
+    signs = np.concatenate([ms.chiral_sign, ms.pair_sign])
+    inside = np.isin(quads, module).all(1)
+    if inside.any():
+        local = np.searchsorted(module, quads[inside])
+        vote = np.sum(np.sign(signed_volume(X, local)) == signs[inside])
+        if 2 * vote < inside.sum():
+            return mirror
+    return X
+
+
+def _pair_distances(X: np.ndarray) -> np.ndarray:
+    """All pairwise distances (m, m) of points (m, 3)."""
+    return np.sqrt(((X[:, None] - X[None]) ** 2).sum(2))
 
 
 def _mds_shape(mean: np.ndarray) -> np.ndarray:

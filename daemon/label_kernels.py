@@ -247,16 +247,17 @@ def fresh_cost(markers, P, cur, anchors, tol_all, mean_all, margin, big):
 
 
 @jit
-def swap_scores(cur, I, J, swap_w, mean_all):
+def swap_scores(cur, I, J, swap_w, mean_all, witness):
     """For pairs (I[p], J[p]) of labelled markers: the weighted squared distance errors
-    to every other labelled marker as labelled (keep) and with the two swapped (swap)."""
+    to every other labelled marker that may witness (`witness`) as labelled (keep) and
+    with the two swapped (swap)."""
     p = len(I)
     n = len(cur)
     keep = np.zeros(p)
     swap = np.zeros(p)
     seen = np.empty(n, np.bool_)
     for x in range(n):
-        seen[x] = _finite3(cur[x])
+        seen[x] = _finite3(cur[x]) and witness[x]
     for q in range(p):
         i = I[q]
         j = J[q]
@@ -317,12 +318,13 @@ def module_candidates(markers, mates, cur, P, mean_all, tol_all, cand):
 
 
 @jit
-def commit_state(cur, has, pos, vel, age, snap, since, nb, smooth):
+def commit_state(cur, has, pos, vel, age, snap, since, nb, smooth, steps):
     """Advance the tracker's state in place with this frame's labelled positions: the
     velocity of markers seen twice in a row (smoothed), a found-again marker takes its
     labelled neighbours' mean velocity, snapshots renewed for markers seen twice in a
-    row (or never snapshotted), positions and ages. Returns the markers seen in the
-    previous frame and this one."""
+    row (or never snapshotted), positions and ages; `steps` frames passed since the
+    previous update (a live stage that fell behind). Returns the markers seen in the
+    previous update and this one."""
     n = len(cur)
     seen_prev = np.zeros(n, np.bool_)
     for i in range(n):
@@ -330,7 +332,8 @@ def commit_state(cur, has, pos, vel, age, snap, since, nb, smooth):
     for i in range(n):
         if seen_prev[i]:
             for c in range(3):
-                vel[i, c] = smooth * (cur[i, c] - pos[i, c]) + (1.0 - smooth) * vel[i, c]
+                vel[i, c] = smooth * (cur[i, c] - pos[i, c]) / steps + \
+                    (1.0 - smooth) * vel[i, c]
         elif has[i]:
             vel[i] = 0.0
     K = nb.shape[1]
@@ -351,7 +354,7 @@ def commit_state(cur, has, pos, vel, age, snap, since, nb, smooth):
             vel[i] = re_vel[i]
             since[i] = 0
         else:
-            since[i] += 1
+            since[i] += steps
         if not _finite3(vel[i]):
             vel[i] = 0.0
         steady = seen_prev[i] or (has[i] and not _finite3(snap[i, i]))
@@ -359,7 +362,7 @@ def commit_state(cur, has, pos, vel, age, snap, since, nb, smooth):
             pos[i] = cur[i]
             age[i] = 0
         else:
-            age[i] += 1
+            age[i] += steps
         if steady:
             snap[i] = cur
     return seen_prev

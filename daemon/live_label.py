@@ -213,6 +213,7 @@ class LiveLabeller:
         self.unlabelled_run = 0  # frames in a row with points seen and none labelled
         self.failures = 0
         self.starts = 0  # starts from the marker set alone
+        self._last_t_ns = None  # capture time of the previous frame
         self._empty = LabelledMarkers(self.set_name, self.names, np.zeros(0, np.int64),
                                       np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64))
 
@@ -227,16 +228,22 @@ class LiveLabeller:
             seen = seen & ~np.isin(ids, held[held >= 0])
         xyz = np.asarray(tr.xyz)[seen]
         self.frames += 1
-        out = self._label(xyz, ids[seen])
+        # frames the loop skipped to stay live: the labeller predicts motion over them
+        t_ns = getattr(result, "t_ns", None)
+        steps = 1
+        if t_ns is not None and self._last_t_ns is not None and t_ns > self._last_t_ns:
+            steps = max(1, int(round((t_ns - self._last_t_ns) * 1e-9 * self.rate_hz)))
+        self._last_t_ns = t_ns
+        out = self._label(xyz, ids[seen], steps)
         self.labelled = len(out.index)
         self.time_ns.append(time.monotonic_ns() - t0)
         return out
 
-    def _label(self, xyz: np.ndarray, ids: np.ndarray) -> LabelledMarkers:
+    def _label(self, xyz: np.ndarray, ids: np.ndarray, steps: int = 1) -> LabelledMarkers:
         if self.labeller is None and not self._started(xyz, ids):
             return self._empty
         try:
-            labels, conf = self.labeller.update(xyz)
+            labels, conf = self.labeller.update(xyz, steps)
         except Exception as exc:  # noqa: BLE001 - a labelling bug must not stop the stream
             self._failed(exc)
             return self._empty
