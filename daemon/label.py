@@ -304,7 +304,7 @@ class Labeller:
                 cost[fresh] = self._fresh_cost(lost[fresh], P[free], cur)
             if self.module_reid:
                 self._module_refind(lost, P[free], cur, cost, cerr)
-                self._module_assign(lost, P[free], cur, cost, never)
+                self._module_assign(lost, P[free], cur, cost, never, point_of, marker_of)
             r, c = linear_sum_assignment(cost)
             good = cost[r, c] < BIG
             # ambiguous: another lost marker fits the same point almost as well
@@ -634,43 +634,50 @@ class Labeller:
         if not len(self.modules) or len(Pf) < 3:
             return
         seen = np.isfinite(cur).all(1)
+        # modules of 4+ markers with at most one marker seen (most frames: none)
+        width = self.mod_mask.sum(1)
+        hidden = (width >= 4) & ((seen[self.mod_idx] & self.mod_mask).sum(1) <= 1)
+        if not hidden.any():
+            return
         row_of = np.full(self.n, -1)
         row_of[lost] = np.arange(len(lost))
         F = len(Pf)
         claims = []
-        for k, idx in enumerate(self.modules):
+        for k in np.nonzero(hidden)[0]:
+            idx = self.modules[k]
             m = len(idx)
             shown = seen[idx]
-            if m < 4 or shown.sum() > 1 or (row_of[idx[~shown]] < 0).any():
+            if (row_of[idx[~shown]] < 0).any():
                 continue
             shape = self.mod_shape[k, :m]
             if not np.isfinite(shape).all():
                 continue
+            rows = row_of[idx]
+            if (cerr[rows[~shown]] <= 1.5).any(0).sum() + shown.sum() < 4:
+                continue                 # not 4 points it could take
             # the marker seen, if any, is a point every hypothesis keeps
             Pa = np.vstack([Pf, cur[idx[shown]]])
             D = _pair_distances(Pa)
-            rows = row_of[idx]
             sigma = self.mod_sigma[k]
             S = _pair_distances(shape)
             tol = 3.0 * np.sqrt(2.0) * sigma + 0.005
             hyps = np.full((1, 0), -1, int)
             for j in range(m):
                 if shown[j]:
-                    opts = [np.full((len(hyps), 1), F)]
-                    choices = [F]
+                    q, keep_none = np.array([F]), False
                 else:
                     # points it may take: its distances to the labelled body fit loosely
-                    opts = [np.full((len(hyps), 1), -1)]
-                    choices = np.nonzero(cerr[rows[j]] <= 1.5)[0]
-                    opts = opts + [None] * len(choices)
-                for c, q in enumerate(choices):
-                    ok = ~(hyps == q).any(1)
-                    a = hyps >= 0
-                    d = np.where(a, D[q, np.maximum(hyps, 0)], 0.0)
-                    ok &= (~a | (np.abs(d - S[j, :j][None]) <= tol)).all(1)
-                    opts[c if shown[j] else c + 1] = np.where(ok, q, -2)[:, None]
-                hyps = np.vstack([np.hstack([hyps, o]) for o in opts])
-                hyps = hyps[(hyps[:, -1] != -2) & ((hyps < 0).sum(1) <= m - 4)]
+                    q, keep_none = np.nonzero(cerr[rows[j]] <= 1.5)[0], True
+                a = hyps >= 0                                                # (h, j)
+                d = D[q[:, None, None], np.maximum(hyps, 0)[None]]             # (c, h, j)
+                ok = (~a[None] | (np.abs(d - S[j, :j]) <= tol)).all(2)
+                ok &= ~(hyps[None] == q[:, None, None]).any(2)
+                c, h = np.nonzero(ok)
+                grown = [np.hstack([hyps[h], q[c][:, None]])]
+                if keep_none:
+                    grown.append(np.hstack([hyps, np.full((len(hyps), 1), -1)]))
+                hyps = np.vstack(grown)
+                hyps = hyps[(hyps < 0).sum(1) <= m - 4]
                 if not len(hyps) or len(hyps) > 20000:
                     break
             if not len(hyps) or hyps.shape[1] < m:
@@ -701,8 +708,79 @@ class Labeller:
                     cost[:, best[j]] = BIG
                     cost[rows[j], best[j]] = 0.0
 
+    def _suspects_relabelled(self, idx, lm, rows, cand, shape, sigma, kept_score, Pf, cur,
+                             cost, point_of, marker_of) -> bool:
+        """The module's markers found again lately (suspects) decided again with its
+        lost ones: a wrist's two markers, found one at a time beside the finger marker
+        alone, are easily taken for each other, and only the module's next marker to show
+        tells. Every assignment of suspects and lost markers to the suspects' points and
+        the lost markers' candidates is fitted; one that moves a suspect is applied when it
+        fits 4+ points and beats keeping the suspects (`kept_score`) by 9 units, with no
+        rival as good that places them otherwise."""
+        seen = np.isfinite(cur).all(1)
+        sus = idx[seen[idx] & (self.since_reacquired[idx] < self.suspect_frames)]
+        if not len(sus) or len(sus) + len(lm) > 5:
+            return False
+        F = len(Pf)
+        pts = point_of[sus]
+        Pa = np.vstack([Pf, self._P[pts]])
+        options = [np.r_[-1, F + np.arange(len(sus))] for _ in sus] + \
+            [np.r_[-1, np.nonzero(c)[0], F + np.arange(len(sus))] for c in cand]
+        members = np.r_[sus, lm]
+        hyps = _injective_product(options)
+        if len(hyps) > 4096:
+            return False
+        moved = (hyps[:, :len(sus)] != F + np.arange(len(sus))[None]).any(1)
+        if not moved.any():
+            return False
+        hyps, H = hyps[moved], int(moved.sum())
+        local = np.searchsorted(idx, members) if np.all(np.diff(idx) > 0) else \
+            np.array([list(idx).index(m) for m in members])
+        fixed = seen[idx] & ~np.isin(idx, sus)
+        x0 = np.where(fixed[:, None], cur[idx], 0.0)
+        X = np.broadcast_to(x0, (H, len(idx), 3)).copy()
+        w = np.broadcast_to(fixed, (H, len(idx))).astype(float)
+        got = hyps >= 0
+        for j in range(len(members)):
+            X[got[:, j], local[j]] = Pa[hyps[got[:, j], j]]
+            w[:, local[j]] = got[:, j]
+        r2 = self._residuals(shape, X, w)
+        score = r2.sum(1) / sigma ** 2 + 9.0 * (~got).sum(1)
+        score[(r2 > (3.5 * sigma) ** 2).any(1) | (w.sum(1) < 4)] = np.inf
+        b = int(np.argmin(score))
+        if not score[b] < kept_score - 9.0:
+            return False
+        best = hyps[b]
+        differ = got & (hyps != best[None]) & ((best[None] >= 0) |
+                                                np.isin(hyps, best[best >= 0]))
+        if (differ.any(1) & (score < score[b] + 9.0)).any():
+            return False
+        # apply: the suspects' points go where the fit puts them; the lost markers'
+        # free points are forced into `cost`
+        old_pos, old_vel = self.pos[sus].copy(), self.vel[sus].copy()
+        point_of[sus] = -1
+        marker_of[pts] = -1
+        cur[sus] = np.nan
+        for j, mkr in enumerate(members):
+            q = best[j]
+            if q >= F:                                    # a suspect's point
+                s_old = q - F
+                point_of[mkr] = pts[s_old]
+                marker_of[pts[s_old]] = mkr
+                cur[mkr] = self._P[pts[s_old]]
+                self.pos[mkr] = old_pos[s_old]
+                self.vel[mkr] = old_vel[s_old]
+        for j in range(len(lm)):
+            cost[rows[j]] = BIG
+            q = best[len(sus) + j]
+            if 0 <= q < F:
+                cost[:, q] = BIG
+                cost[rows[j], q] = 0.0
+        return True
+
     def _module_assign(self, lost: np.ndarray, Pf: np.ndarray, cur: np.ndarray,
-                       cost: np.ndarray, never: np.ndarray) -> None:
+                       cost: np.ndarray, never: np.ndarray, point_of=None,
+                       marker_of=None) -> None:
         """Re-identify the lost markers of each rigid module jointly: every assignment of
         its lost markers to candidate points (or to none) is scored by a proper rigid fit
         of the module's shape in this take to its labelled and assigned points. Marker by
@@ -779,6 +857,10 @@ class Labeller:
                 (foreign & (total < 4))
             score = r2.sum(1) / sigma ** 2 + 9.0 * (~got).sum(1)
             score[bad] = np.inf
+            if not template and point_of is not None and self._suspects_relabelled(
+                    idx, lm, rows, cand, shape, sigma, score.min(), Pf, cur, cost,
+                    point_of, marker_of):
+                continue
             b = int(np.argmin(score))
             if not np.isfinite(score[b]):
                 continue
