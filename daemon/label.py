@@ -1145,10 +1145,45 @@ def initial_labels(P: np.ndarray, ms: MarkerSet, n_hypotheses: int = 24,
                 best = (total, marker_point)
     if best is None:
         return (lab, np.inf) if return_cost else lab
-    mp = best[1]
+    mp = _order_modules(P, ms, best[1].copy())
     got = mp >= 0
     lab[mp[got]] = np.nonzero(got)[0]
     return (lab, best[0]) if return_cost else lab
+
+
+def _order_modules(P: np.ndarray, ms: MarkerSet, marker_point: np.ndarray) -> np.ndarray:
+    """Within each rigid module of 4-5 markers labelled whole, the order of its points
+    that fits the marker set's shape (with its handedness) best, when clearly better
+    than the order found: growing one marker at a time by distances can turn a foot's
+    labels around its tetrahedron (ankle, heel, 5th metatarsal and toe at similar
+    distances from the shank markers)."""
+    for module in rigid_modules(ms):
+        if not 4 <= len(module) <= 5 or (marker_point[module] < 0).any():
+            continue
+        sub = ms.subject_sd_m[np.ix_(module, module)]
+        sigma = np.hypot(np.sqrt(np.mean(ms.sd_m[np.ix_(module, module)] ** 2)) + 0.003,
+                         max(np.sqrt(np.mean(sub ** 2)), 0.01))
+        perm = _better_order(_module_template(ms, module), sigma, P[marker_point[module]])
+        if perm is not None:
+            marker_point[module] = marker_point[module][perm]
+    return marker_point
+
+
+def _better_order(shape: np.ndarray, sigma: float, X: np.ndarray) -> np.ndarray | None:
+    """The order of points X (m, 3), as labelled, that fits the marker set's `shape` of
+    their module best by a proper rigid motion, if clearly better than the order given;
+    else None. The set's shape is a mean over subjects (~15-20 mm RMS off a body), so:
+    at most half the given order's squared residual, no runner-up within 1.5x (a flat
+    module's mirror twin), and no residual over 3.5 sigma."""
+    from itertools import permutations
+    perms = np.array(list(permutations(range(len(X)))))          # perms[0]: as given
+    r2 = _rigid_residuals(shape, X[perms], np.ones(perms.shape, float), True)
+    tot = r2.sum(1)
+    b = int(np.argmin(tot))
+    if b == 0 or tot[b] > 0.5 * tot[0] or r2[b].max() > (3.5 * sigma) ** 2 or \
+            np.partition(tot, 1)[1] < 1.5 * tot[b]:
+        return None
+    return perms[b]
 
 
 def _grow(P: np.ndarray, D: np.ndarray, ms: MarkerSet, tol: np.ndarray,
