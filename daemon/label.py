@@ -111,6 +111,7 @@ class Labeller:
         for k, m in enumerate(self.modules):
             self.mod_idx[k, :len(m)] = m
             self.mod_mask[k, :len(m)] = True
+        self.mod_width = self.mod_mask.sum(1)
         self.mod_of = np.full(n, -1)
         for k, m in enumerate(self.modules):
             self.mod_of[m] = k
@@ -635,8 +636,7 @@ class Labeller:
             return
         seen = np.isfinite(cur).all(1)
         # modules of 4+ markers with at most one marker seen (most frames: none)
-        width = self.mod_mask.sum(1)
-        hidden = (width >= 4) & ((seen[self.mod_idx] & self.mod_mask).sum(1) <= 1)
+        hidden = (self.mod_width >= 4) & ((seen[self.mod_idx] & self.mod_mask).sum(1) <= 1)
         if not hidden.any():
             return
         row_of = np.full(self.n, -1)
@@ -857,11 +857,14 @@ class Labeller:
                 (foreign & (total < 4))
             score = r2.sum(1) / sigma ** 2 + 9.0 * (~got).sum(1)
             score[bad] = np.inf
-            if not template and point_of is not None and self._suspects_relabelled(
-                    idx, lm, rows, cand, shape, sigma, score.min(), Pf, cur, cost,
-                    point_of, marker_of):
-                continue
             b = int(np.argmin(score))
+            # markers found lately are decided again only when keeping them leaves a lost
+            # marker with candidates unplaced (the fit then may say they are mixed up)
+            if not template and point_of is not None and \
+                    (not np.isfinite(score[b]) or ((hyps[b] < 0) & (n_cand > 0)).any()) and \
+                    self._suspects_relabelled(idx, lm, rows, cand, shape, sigma, score[b],
+                                              Pf, cur, cost, point_of, marker_of):
+                continue
             if not np.isfinite(score[b]):
                 continue
             best = hyps[b]
