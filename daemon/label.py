@@ -131,9 +131,7 @@ class Labeller:
         self.mod_template_sigma = np.zeros(M)
         for k, m in enumerate(self.modules):
             self.mod_template[k, :len(m)] = _module_template(markerset, m)
-            sub = markerset.subject_sd_m[np.ix_(m, m)]
-            self.mod_template_sigma[k] = np.hypot(self.mod_sigma[k],
-                                                  max(np.sqrt(np.mean(sub ** 2)), 0.01))
+            self.mod_template_sigma[k] = _template_sigma(markerset, m, noise_m)
         self.pos = np.full((n, 3), np.nan)
         self.vel = np.zeros((n, 3))
         self.age = np.full(n, 10 ** 6)
@@ -997,6 +995,15 @@ def _swap_scores(cur, i, j, swap_w, mean_all, witness):
     return keep, swap
 
 
+def _template_sigma(ms: MarkerSet, module: np.ndarray, noise_m: float = 0.003) -> float:
+    """How far a body's module may sit from the marker set's shape of it: its markers'
+    spread and noise, and the spread between subjects (at least 10 mm: a set learned
+    from one subject knows none)."""
+    sd = np.sqrt(np.mean(ms.sd_m[np.ix_(module, module)] ** 2)) + noise_m
+    sub = np.sqrt(np.mean(ms.subject_sd_m[np.ix_(module, module)] ** 2))
+    return float(np.hypot(sd, max(sub, 0.01)))
+
+
 def _module_template(ms: MarkerSet, module: np.ndarray) -> np.ndarray:
     """A module's shape from the marker set's mean distances (classical MDS), turned to
     the handedness the marker set learned: distances alone cannot tell a foot from its
@@ -1163,10 +1170,8 @@ def _order_modules(P: np.ndarray, ms: MarkerSet, marker_point: np.ndarray) -> np
     for module in rigid_modules(ms):
         if not 4 <= len(module) <= 5 or (marker_point[module] < 0).any():
             continue
-        sub = ms.subject_sd_m[np.ix_(module, module)]
-        sigma = np.hypot(np.sqrt(np.mean(ms.sd_m[np.ix_(module, module)] ** 2)) + 0.003,
-                         max(np.sqrt(np.mean(sub ** 2)), 0.01))
-        perm = _better_order(_module_template(ms, module), sigma, P[marker_point[module]])
+        perm = _better_order(_module_template(ms, module), _template_sigma(ms, module),
+                             P[marker_point[module]])
         if perm is not None:
             marker_point[module] = marker_point[module][perm]
     return marker_point
