@@ -122,7 +122,6 @@ class Labeller:
         self.module_check = module_check
         self._mod_fit_now: np.ndarray | None = None
         self._maps_cache: dict = {}
-        self.mod_ref = [_mds_shape(markerset.mean_m[np.ix_(m, m)]) for m in self.modules]
         self.mod_sigma = np.array([np.sqrt(np.mean(markerset.sd_m[np.ix_(m, m)] ** 2))
                                    for m in self.modules]).reshape(M) + noise_m
         # the marker set's shape of each module, with its handedness, for modules not yet
@@ -524,10 +523,12 @@ class Labeller:
         fit = worst <= self.renew_sigma ** 2
         # ... or its first shape in this take: a shape that followed the markers while they
         # slid (a head band slipping) returns when they return
-        first = self.mod_shape_first[ks]
-        r2f = self._residuals(np.where(np.isnan(first), 0.0, first),
-                              np.where(np.isnan(X), 0.0, X), w[ks])
-        fit |= r2f.max(1) / self.mod_sigma[ks] ** 2 <= self.renew_sigma ** 2
+        miss = np.nonzero(~fit)[0]
+        if len(miss):
+            first = self.mod_shape_first[ks[miss]]
+            r2f = self._residuals(np.where(np.isnan(first), 0.0, first),
+                                  np.where(np.isnan(X[miss]), 0.0, X[miss]), w[ks[miss]])
+            fit[miss] = r2f.max(1) / self.mod_sigma[ks[miss]] ** 2 <= self.renew_sigma ** 2
         self._mod_fit_now[ks] = fit
         done = False
         small = self.mod_mask[ks].sum(1) <= 5     # a back of 6+ markers bends too much

@@ -19,6 +19,15 @@ def _finite3(x) -> bool:
 
 
 @jit
+def _dist3(a, b) -> float:
+    """Distance between two points (3,), without numpy's per-call overhead."""
+    dx = a[0] - b[0]
+    dy = a[1] - b[1]
+    dz = a[2] - b[2]
+    return np.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+@jit
 def structure_error(cur, nb, nb_mean, tol):
     """Per marker: mean over its labelled neighbours of |d - mean| / tolerance, each
     capped at 3; NaN for a marker or with no labelled neighbour."""
@@ -33,10 +42,7 @@ def structure_error(cur, nb, nb_mean, tol):
             j = nb[i, k]
             if not _finite3(cur[j]):
                 continue
-            dx = cur[i, 0] - cur[j, 0]
-            dy = cur[i, 1] - cur[j, 1]
-            dz = cur[i, 2] - cur[j, 2]
-            e = abs(np.sqrt(dx * dx + dy * dy + dz * dz) - nb_mean[i, k]) / tol[i, k]
+            e = abs(_dist3(cur[i], cur[j]) - nb_mean[i, k]) / tol[i, k]
             s += min(e, 3.0)
             c += 1
         if c:
@@ -65,10 +71,7 @@ def candidate_error(markers, P, cur, nb, nb_mean, tol):
                 j = nb[m, kk]
                 if not _finite3(cur[j]):
                     continue
-                dx = P[b, 0] - cur[j, 0]
-                dy = P[b, 1] - cur[j, 1]
-                dz = P[b, 2] - cur[j, 2]
-                e = abs(np.sqrt(dx * dx + dy * dy + dz * dz) - nb_mean[m, kk]) / tol[m, kk]
+                e = abs(_dist3(P[b], cur[j]) - nb_mean[m, kk]) / tol[m, kk]
                 s += min(e, 3.0)
                 q += min(9.0 * e * e, 16.0)
                 c += 1
@@ -222,10 +225,7 @@ def fresh_cost(markers, P, cur, anchors, tol_all, mean_all, margin, big):
                 if not seen[j]:
                     continue
                 w = 1.0 / (tol_all[m, j] * tol_all[m, j])
-                dx = P[b, 0] - cur[j, 0]
-                dy = P[b, 1] - cur[j, 1]
-                dz = P[b, 2] - cur[j, 2]
-                e = np.sqrt(dx * dx + dy * dy + dz * dz) - mean_all[m, j]
+                e = _dist3(P[b], cur[j]) - mean_all[m, j]
                 s += min(e * e * w * 9.0, 16.0) * w
             c = s / den
             if c < 1.0:
@@ -268,14 +268,8 @@ def swap_scores(cur, I, J, swap_w, mean_all, witness):
             wj = swap_w[j, x] if x != i else 0.0
             if wi == 0.0 and wj == 0.0:
                 continue
-            dx = cur[i, 0] - cur[x, 0]
-            dy = cur[i, 1] - cur[x, 1]
-            dz = cur[i, 2] - cur[x, 2]
-            di = np.sqrt(dx * dx + dy * dy + dz * dz)
-            dx = cur[j, 0] - cur[x, 0]
-            dy = cur[j, 1] - cur[x, 1]
-            dz = cur[j, 2] - cur[x, 2]
-            dj = np.sqrt(dx * dx + dy * dy + dz * dz)
+            di = _dist3(cur[i], cur[x])
+            dj = _dist3(cur[j], cur[x])
             mi = mean_all[i, x]
             mj = mean_all[j, x]
             keep[q] += wi * (di - mi) ** 2 + wj * (dj - mj) ** 2
@@ -306,10 +300,7 @@ def module_candidates(markers, mates, cur, P, mean_all, tol_all, cand):
             for y in range(n):
                 if not mates[x, y] or not _finite3(cur[y]):
                     continue
-                dx = P[b, 0] - cur[y, 0]
-                dy = P[b, 1] - cur[y, 1]
-                dz = P[b, 2] - cur[y, 2]
-                d = np.sqrt(dx * dx + dy * dy + dz * dz)
+                d = _dist3(P[b], cur[y])
                 if abs(d - mean_all[x, y]) > tol_all[x, y]:
                     ok = False
                     break

@@ -53,6 +53,22 @@ def mocapd_cli(capsys):
 
 
 @pytest.fixture
+def start_refused(tmp_path, mocapd_cli):
+    """`mocapd start --config PATH --sim` that must refuse: exit code 2, one line on
+    stderr, nothing opened (no runtime directory). Returns that line."""
+    def run(path) -> str:
+        runtime = tmp_path / "rt"
+        r = mocapd_cli("start", "--config", path, "--sim", "--frames", 5, "--runtime-dir",
+                       runtime)
+        assert r.code == 2
+        lines = r.err.strip().splitlines()
+        assert len(lines) == 1, r.err
+        assert not runtime.exists()  # nothing opened before the check
+        return lines[0]
+    return run
+
+
+@pytest.fixture
 def natnet_listener():
     """natnet_listener(command_port, data_port=command_port + 1, multicast=False,
     timeout_s=3.0) -> (client, frames, descriptions): the real NatNet client library
