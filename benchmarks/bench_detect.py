@@ -31,10 +31,10 @@ from calibkit.detect import (
     auto_threshold,
     detect,
     detect_reference,
-    match_to_truth,
 )
 from calibkit.masks import build_mask
-from calibkit.spots import render_spots, render_spots_float
+from calibkit.synthetic.spots import render_spots, render_spots_float
+from calibkit.synthetic.truthcheck import match_to_truth
 
 SIZE = (640, 480)
 N_MARKERS = 40

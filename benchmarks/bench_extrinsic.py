@@ -27,9 +27,9 @@ import time
 import numpy as np
 
 from calibkit import extrinsic as ex
-from calibkit import sim_projector as sp
 from calibkit.clitools import print_table, write_json
 from calibkit.compare import compare_rigs
+from calibkit.synthetic import projector as sp
 from projector.patterns import coded_schedule
 
 PROJ = (1280, 800)
@@ -90,7 +90,8 @@ def run(v: Variant, seed: int, noise_px: float = 0.2) -> dict:
 def with_wand(seed: int, n_frames: int) -> dict:
     """The default calibration, then a wand dance (true labels, 0.2 px) solved together
     with the plane dots (extrinsic.bundle_data + join_bundle_data), no world transform."""
-    from calibkit import bundle, sim
+    from calibkit import bundle
+    from calibkit.synthetic import sim
     from calibkit.wand_solve import labelled_wand_data
 
     v = Variant("default")

@@ -31,8 +31,8 @@ import time
 
 import numpy as np
 
-from calibkit import sim
 from calibkit.clitools import print_table, write_json
+from calibkit.synthetic import sim
 from daemon.pipeline import FrameResult
 from daemon.publish import natnet, vrpn
 from daemon.publish.packet import decode

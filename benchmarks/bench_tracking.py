@@ -32,9 +32,9 @@ from pathlib import Path
 
 import numpy as np
 
-from calibkit import sim
 from calibkit.clitools import print_table, write_json
 from calibkit.correspondence import match_frame
+from calibkit.synthetic import sim
 from daemon.publish.packet import decode
 from daemon.publish.udp import result_packet
 from daemon.rigid import BodyDef, RigidTracker
@@ -66,7 +66,7 @@ def scene(size, n_frames, seed=0):
 
 
 class Score:
-    """Errors against the truth and identity swaps (as daemon.sources.Evaluator counts
+    """Errors against the truth and identity swaps (as daemon.synthetic.evaluator.Evaluator counts
     them: a track whose marker changes; a valid body holding another marker's track).
     Poses off by more than 2 cm or 5 degrees are counted as gross errors, apart."""
 

@@ -3,7 +3,7 @@
 Scene (issue 3's target): 8 cameras round a 4 m volume, 50 markers placed at random in
 every frame (no temporal help), 0.3 px centroid noise, each marker hidden in 20 % of the
 cameras, 2 stray blobs per camera per frame. Scored against the simulator's truth
-(calibkit.truthcheck): recall over the markers that >= 3 cameras saw, ghost points (no
+(calibkit.synthetic.truthcheck): recall over the markers that >= 3 cameras saw, ghost points (no
 true marker within 10 mm), 3D error RMS of the rest.
 
 Runs, single-threaded, each `--repeats` times (median time):
@@ -28,12 +28,12 @@ from itertools import combinations
 import cv2
 import numpy as np
 
-from calibkit import sim
 from calibkit.clitools import print_table, write_json
 from calibkit.correspondence import CorrespondenceConfig, match_frame, match_frames
 from calibkit.geometry import RigArrays, triangulate
 from calibkit.observations import Truth
-from calibkit.truthcheck import score_points
+from calibkit.synthetic import sim
+from calibkit.synthetic.truthcheck import score_points
 
 
 def scene(n_frames: int, seed: int = 0):

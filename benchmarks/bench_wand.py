@@ -43,11 +43,12 @@ from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 from scipy.spatial.transform import Rotation
 
-from calibkit import bundle, sim
+from calibkit import bundle
 from calibkit.camera import Rig
 from calibkit.clitools import print_table, write_json
 from calibkit.compare import compare_rigs
 from calibkit.geometry import RigArrays
+from calibkit.synthetic import sim
 from calibkit.wand_report import evaluate
 from calibkit.wand_solve import calibrate
 

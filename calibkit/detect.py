@@ -957,24 +957,3 @@ def _detect_multi(image: np.ndarray, base_pix: np.ndarray, threshold: float,
     labels = np.concatenate(lab_parts)
     regions = _Regions.from_pixels(image, pix, labels, len(found))
     return _measure(image, regions, config, threshold, mask, background)
-
-
-def match_to_truth(uv: np.ndarray, truth_uv: np.ndarray,
-                   max_dist_px: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
-    """Pair detected centroids with true centres: mutual nearest neighbours within max_dist_px.
-
-    Returns (detected index, true index) arrays of the pairs; the simulator's tests,
-    benchmarks and `calibkit detect --sim` score recall, false blobs and centroid error
-    from them.
-    """
-    from scipy.spatial import cKDTree
-
-    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
-    truth_uv = np.asarray(truth_uv, dtype=np.float64).reshape(-1, 2)
-    if len(uv) == 0 or len(truth_uv) == 0:
-        z = np.zeros(0, dtype=np.int64)
-        return z, z
-    d_t, to_truth = cKDTree(truth_uv).query(uv)
-    _, to_det = cKDTree(uv).query(truth_uv)
-    det = np.flatnonzero((to_det[to_truth] == np.arange(len(uv))) & (d_t <= max_dist_px))
-    return det, to_truth[det]

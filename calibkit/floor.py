@@ -17,7 +17,8 @@ import numpy as np
 
 from calibkit.camera import Rig
 from calibkit.errors import UserError
-from calibkit.sim import MARKER_RADIUS_M
+
+LFRAME_MARKER_RADIUS_M = 0.007  # a 14 mm ball: its centre stands this high over the floor
 
 
 @dataclass(frozen=True)
@@ -27,7 +28,7 @@ class LFrame:
 
     long_m: float = 0.5
     short_m: float = 0.3
-    marker_height_m: float = MARKER_RADIUS_M
+    marker_height_m: float = LFRAME_MARKER_RADIUS_M
 
     def points(self, origin=(0.0, 0.0), yaw_rad: float = 0.0) -> np.ndarray:
         """The three marker centres (corner, long, short) in a world frame, for simulation."""
@@ -121,7 +122,7 @@ def static_markers(rig: Rig, obs, min_frames: int = 3, cluster_m: float = 0.01) 
 
 
 def frame_from_wand_on_floor(placements: list[tuple[np.ndarray, np.ndarray]], rig: Rig,
-                             marker_height_m: float = MARKER_RADIUS_M
+                             marker_height_m: float = LFRAME_MARKER_RADIUS_M
                              ) -> tuple[np.ndarray, np.ndarray]:
     """The wand laid on the floor in two or more places (not parallel): the floor is the
     plane through all of them; marker 0 of the first placement is the origin and the first

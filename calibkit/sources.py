@@ -26,14 +26,12 @@ VIDEO_SUFFIXES = {".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v", ".mpg", ".mpe
 @dataclass(frozen=True, eq=False)
 class Frame:
     """One image from one camera. t_ns: capture time in nanoseconds (monotonic clock for
-    live devices, from the frame rate or the container's timestamps for files). truth_uv:
-    the true marker centres (simulated frames only)."""
+    live devices, from the frame rate or the container's timestamps for files)."""
 
     camera: str
     index: int
     t_ns: int
     image: np.ndarray
-    truth_uv: np.ndarray | None = None
 
 
 class FrameSource:
@@ -169,54 +167,6 @@ class DeviceSource(_CaptureSource):
                 break
             yield Frame(self.camera, i, t_ns, image)
             i += 1
-
-
-class SimSource(FrameSource):
-    """Frames of one simulated camera looking at markers (calibkit.sim), with the truth.
-
-    xyz: (F, N, 3) marker positions per frame, or (N, 3) for static markers shown for
-    `n_frames` frames. Extra keyword arguments go to calibkit.sim.render_frame.
-    """
-
-    def __init__(self, camera, xyz: np.ndarray, n_frames: int | None = None,
-                 fps: float = 100.0, seed: int = 0, **render_kwargs) -> None:
-        xyz = np.asarray(xyz, dtype=np.float64)
-        if xyz.ndim == 2:
-            xyz = np.broadcast_to(xyz, (n_frames or 1, *xyz.shape))
-        elif n_frames is not None:
-            xyz = xyz[:n_frames]
-        self.cam = camera
-        self.camera = camera.name
-        self.xyz = xyz
-        self.fps = fps
-        self.seed = seed
-        self.render_kwargs = render_kwargs
-
-    def __iter__(self) -> Iterator[Frame]:
-        from calibkit.sim import render_frame
-
-        for i, pts in enumerate(self.xyz):
-            image, uv, visible = render_frame(self.cam, pts, seed=self.seed + i,
-                                              **self.render_kwargs)
-            yield Frame(self.camera, i, round(i * 1e9 / self.fps), image,
-                        np.asarray(uv)[np.asarray(visible, dtype=bool)])
-
-
-def sim_source(n_markers: int = 40, n_frames: int = 1, camera: int | str = 0,
-               seed: int = 0, **render_kwargs) -> SimSource:
-    """The default simulated scene: static markers in the sim rig's volume, seen by one camera."""
-    from calibkit import sim
-
-    rig = sim.make_rig(seed=seed)
-    try:
-        cam = rig[camera]
-    except (IndexError, KeyError) as exc:
-        raise UserError(f"the simulated rig has no camera {camera!r}; it has "
-                        f"{', '.join(rig.names)}") from exc
-    truth = sim.static_markers(n_markers, n_frames=n_frames, seed=seed)
-    frames = np.unique(truth.frame)
-    xyz = np.stack([truth.at_frame(int(f))[1] for f in frames])
-    return SimSource(cam, xyz, seed=seed, **render_kwargs)
 
 
 def open_source(spec: str | Path, fps: float = 30.0) -> FrameSource:

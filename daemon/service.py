@@ -25,7 +25,7 @@ import numpy as np
 from calibkit.camera import Rig
 from calibkit.errors import UserError
 from daemon.config import Config, default_runtime_dir, load_config
-from daemon.live_label import LabelScore, LiveLabeller
+from daemon.live_label import LiveLabeller
 from daemon.live_label import load as load_markerset
 from daemon.pipeline import CaptureThread, FrameSet, Multiplexer, Pipeline, latency_figures
 from daemon.publish.mavlink import MavlinkPublisher
@@ -35,14 +35,10 @@ from daemon.publish.serial import SerialPublisher
 from daemon.publish.udp import UdpPublisher
 from daemon.publish.vrpn import VrpnPublisher
 from daemon.rigid import alike_bodies
-from daemon.sources import (
-    DetectCamera,
-    Evaluator,
-    ReplayScene,
-    SimCamera,
-    SimScene,
-    missing_plugins,
-)
+from daemon.sources import DetectCamera, ReplayScene, missing_plugins
+from daemon.synthetic.evaluator import Evaluator
+from daemon.synthetic.labelling import LabelScore
+from daemon.synthetic.scene import SimCamera, SimScene
 
 log = logging.getLogger("mocapd")
 SOCKET_NAME = "mocapd.sock"

@@ -10,10 +10,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibkit import bundle, sim
+from calibkit import bundle
 from calibkit.camera import Rig
 from calibkit.geometry import rigid_fit
 from calibkit.observations import Truth
+from calibkit.synthetic import sim
 from calibkit.wand import WandSpec
 
 SPACING = (0.0, 0.2, 0.5)

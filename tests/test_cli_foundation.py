@@ -8,10 +8,10 @@ import json
 import numpy as np
 import pytest
 
-from calibkit import sim
 from calibkit.camera import Rig
 from calibkit.compare import compare_rigs, transform_camera
 from calibkit.recording import load_observations, load_truth_csv
+from calibkit.synthetic import sim
 
 
 @pytest.fixture()

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibkit import sim
 from calibkit.camera import Camera, Rig, look_at, rvec_from_rotation
 from calibkit.correspondence import match_frame, match_frames
 from calibkit.observations import Truth
-from calibkit.truthcheck import score_points
+from calibkit.synthetic import sim
+from calibkit.synthetic.truthcheck import score_points
 
 
 @pytest.fixture(scope="module")

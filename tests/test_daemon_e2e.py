@@ -15,7 +15,7 @@ import numpy as np
 
 from daemon.config import SimConfig
 from daemon.publish import packet
-from daemon.sources import SimScene
+from daemon.synthetic.scene import SimScene
 
 ROOT = Path(__file__).resolve().parents[1]
 SIM = dict(cameras=6, bodies=2, markers_per_body=4, fps=120.0, noise_px=0.2, seed=11)
@@ -229,7 +229,7 @@ def test_camera_dropout_and_a_consumer_that_stops_reading(tmp_path):
 
 def test_fast_sim_run_writes_pose_errors(tmp_path, mocapd_cli):
     """The `calibkit demo` path: --sim --rig --frames --json, no real-time pacing."""
-    from calibkit import sim
+    from calibkit.synthetic import sim
 
     rig = sim.make_rig(6, 4.0, seed=2)
     rig.save(tmp_path / "rig.toml")
@@ -276,8 +276,8 @@ def test_install_unit(tmp_path, mocapd_cli):
 def test_replay_a_recording(tmp_path, mocapd_cli):
     """A recording (as `mocapd record` writes) played back as fast as possible, with the
     bodies defined in the configuration."""
-    from calibkit import sim
     from calibkit.recording import save_observations
+    from calibkit.synthetic import sim
 
     rig = sim.make_rig(6, 4.0, seed=8)
     rig.save(tmp_path / "rig.toml")
@@ -309,7 +309,7 @@ def test_live_cameras_with_a_missing_plugin(tmp_path, mocapd_cli):
     pypylon (not installed here): it is reported and skipped, the other runs."""
     import cv2
 
-    from calibkit import sim
+    from calibkit.synthetic import sim
 
     rig = sim.make_rig(3, 4.0, seed=8)
     rig.save(tmp_path / "rig.toml")

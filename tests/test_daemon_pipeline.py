@@ -92,7 +92,7 @@ def test_updates_closer_than_a_frame_move_the_velocity_less():
     """A still marker seen every 1 ms (a set per camera report) with 0.3 px noise: weighed
     by the frame period, its velocity stays near zero; weighed as whole frames it is thrown
     around by noise / 1 ms."""
-    from calibkit import sim
+    from calibkit.synthetic import sim
     from daemon.tracker import Tracker
 
     rig = sim.make_rig(6, 4.0, seed=3)

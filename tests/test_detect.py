@@ -15,11 +15,11 @@ from calibkit.detect import (
     detect,
     detect_reference,
     label_pixels,
-    match_to_truth,
 )
 from calibkit.errors import UserError
 from calibkit.masks import build_mask, load_mask, save_mask
-from calibkit.spots import render_spots, render_spots_float
+from calibkit.synthetic.spots import render_spots, render_spots_float
+from calibkit.synthetic.truthcheck import match_to_truth
 
 SIZE = (640, 480)
 

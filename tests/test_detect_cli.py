@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from calibkit.detect import match_to_truth
 from calibkit.sources import Frame, FrameSource
-from calibkit.spots import render_spots, render_spots_float
+from calibkit.synthetic.spots import render_spots, render_spots_float
+from calibkit.synthetic.truthcheck import match_to_truth
 
 SIZE = (320, 240)
 
@@ -123,11 +123,12 @@ def test_sim_option_scores_against_truth(calibkit_cli, tmp_path, monkeypatch):
 
     class Scene(FrameSource):
         camera = "cam0"
+        truth_uv: dict = {}
 
         def __iter__(self):
             for i in range(2):
-                img, uv = _scene(30 + i)
-                yield Frame("cam0", i, i * 10_000_000, img, uv)
+                img, self.truth_uv[i] = _scene(30 + i)
+                yield Frame("cam0", i, i * 10_000_000, img)
 
     monkeypatch.setattr(cmd, "sim_source", lambda **kw: Scene())
     res = calibkit_cli("detect", "--sim", "--frames", "2", "--json", tmp_path / "s.json")

@@ -1,4 +1,4 @@
-"""The simulator's scorer (daemon.sources.Evaluator): pose errors and identity swaps it
+"""The simulator's scorer (daemon.synthetic.evaluator.Evaluator): pose errors and identity swaps it
 must count, from hand-made frames whose answers are known."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from daemon.pipeline import FrameResult
 from daemon.rigid import BodyPoses
-from daemon.sources import Evaluator
+from daemon.synthetic.evaluator import Evaluator
 from daemon.tracker import TrackFrame
 
 

@@ -1,4 +1,4 @@
-"""calibkit.extrinsic against the simulated projector's truth (calibkit.sim_projector)."""
+"""calibkit.extrinsic against the simulated projector's truth (calibkit.synthetic.projector)."""
 
 from __future__ import annotations
 
@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from calibkit import extrinsic as ex
-from calibkit import sim_projector as sp
 from calibkit.camera import Rig, look_at, rvec_from_rotation
 from calibkit.compare import compare_rigs
 from calibkit.errors import UserError
+from calibkit.synthetic import projector as sp
 from projector.patterns import coded_schedule
 
 PROJ = (1280, 800)
@@ -328,7 +328,8 @@ def test_example_reference_file_matches_the_simulator():
 def test_plane_dots_hold_the_world_frame_in_a_wand_bundle():
     """The dots joined to a wand solve (bundle_data + join_bundle_data): no world transform
     afterwards, yet the cameras stay in the tape's frame, and agree better at head height."""
-    from calibkit import bundle, sim
+    from calibkit import bundle
+    from calibkit.synthetic import sim
     from calibkit.wand_solve import labelled_wand_data
 
     scene = sp.make_scene(4, seed=3)

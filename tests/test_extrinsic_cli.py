@@ -84,7 +84,7 @@ def test_template_then_unmeasured_file_is_refused(calibkit_cli, tmp_path):
     text = tpl.read_text()
     assert text.count("[[floor]]") == 16 and "size = [1920, 1080]" in text
     rig = tmp_path / "intr.toml"
-    from calibkit import sim
+    from calibkit.synthetic import sim
 
     sim.make_rig(2).save(rig)
     res = calibkit_cli("extrinsic", "--projector", "--refs", tpl, "--intrinsics", rig,
@@ -119,7 +119,7 @@ def test_refs_without_table_reject_table_flag(calibkit_cli, tmp_path):
     pts = ((0, 0), (500, 0), (0, 500), (500, 500), (250, 250))
     refs.write_text("".join(f"[[floor]]\npx = [{u}, {v}]\nxy_m = [{u / 100}, "
                             f"{v / 100 + 0.001 * np.sin(u)}]\n" for u, v in pts))
-    from calibkit import sim
+    from calibkit.synthetic import sim
 
     sim.make_rig(2).save(tmp_path / "intr.toml")
     line = _one_line_error(calibkit_cli("extrinsic", "--projector", "--refs", refs,
@@ -133,7 +133,7 @@ def test_refs_without_table_reject_table_flag(calibkit_cli, tmp_path):
 
 
 def test_intrinsics_without_the_cameras_are_refused(calibkit_cli, tmp_path):
-    from calibkit import sim
+    from calibkit.synthetic import sim
 
     rig = sim.make_rig(2)
     Rig(tuple(c.replace(name=f"other{i}") for i, c in enumerate(rig))).save(tmp_path / "i.toml")
@@ -150,8 +150,8 @@ def test_live_path_with_a_stand_in_projector_and_cameras(calibkit_cli, tmp_path,
     import projector.display
     import projector.screens
     from calibkit import extrinsic as ex
-    from calibkit import sim_projector as sp
     from calibkit.sources import Frame
+    from calibkit.synthetic import projector as sp
 
     four = sp.make_scene(4, size=(320, 240), table_height_m=None, seed=2)
     scene = sp.ProjectorScene(Rig((four.rig[0], four.rig[2])), four.projector, None)

@@ -19,8 +19,8 @@ from calibkit.intrinsic import (
     monitor_plane_view,
 )
 from calibkit.settle import SettleDetector, signature_noise
-from calibkit.sim import MonitorView, monitor_points, monitor_views
-from calibkit.sim_monitor import MonitorSimConfig, default_sim_camera, make_monitor_sim
+from calibkit.synthetic.monitor import MonitorSimConfig, default_sim_camera, make_monitor_sim
+from calibkit.synthetic.sim import MonitorView, monitor_points, monitor_views
 from projector.display import Dots
 from projector.patterns import coded_schedule, grid_positions
 
@@ -88,7 +88,7 @@ def test_monitor_out_of_view_is_a_clear_error():
     cam = default_sim_camera((320, 240))
     away = MonitorView(np.eye(3), np.array([5.0, 5.0, 1.0]))  # far off to the side
     config = MonitorSimConfig(**SMALL)
-    from calibkit.sim_monitor import MonitorSim
+    from calibkit.synthetic.monitor import MonitorSim
 
     schedule = coded_schedule(config.screen_px, 80.0, 2, 6.0)
     with MonitorSim(cam, [away], config) as sim:

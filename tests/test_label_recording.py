@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibkit import sim, sim_person
 from calibkit.recording import save_observations
+from calibkit.synthetic import person as sim_person
+from calibkit.synthetic import sim
 from daemon.c3dio import Take, read_take, write_take
 
 RATE = 120.0

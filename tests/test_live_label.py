@@ -15,13 +15,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibkit import sim_person
+from calibkit.synthetic import person as sim_person
 from daemon.config import SimConfig, parse_config
 from daemon.live_label import LiveLabeller, load, resolve, shipped_sets
 from daemon.markerset import MarkerSet
 from daemon.publish import natnet as nn
 from daemon.publish import packet
-from daemon.sources import SimScene
+from daemon.synthetic.scene import SimScene
 from daemon.tracker import TrackFrame
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -150,7 +150,7 @@ def test_stage_searches_again_after_losing_the_subject_and_survives_a_failure():
 
 
 def test_the_shipped_person_set_is_what_sim_person_set_learns():
-    from daemon.live_label import sim_person_set
+    from daemon.synthetic.labelling import sim_person_set
 
     shipped, learned = load(SET), sim_person_set()
     assert shipped.labels == learned.labels == sim_person.MARKERS

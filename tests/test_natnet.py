@@ -19,13 +19,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from calibkit import sim
+from calibkit.synthetic import sim
 from daemon.config import SimConfig
 from daemon.pipeline import FrameResult
 from daemon.publish import natnet as nn
 from daemon.publish import packet
 from daemon.rigid import BodyDef, BodyPoses, matrix_from_quaternion, quaternion_xyzw
-from daemon.sources import SimScene
+from daemon.synthetic.scene import SimScene
 from daemon.tracker import TrackFrame
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from calibkit import sim
 from calibkit.camera import BASLER_658x492_DIST, Rig
 from calibkit.errors import UserError
+from calibkit.synthetic import sim
 
 
 @pytest.fixture()

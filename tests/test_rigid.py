@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from calibkit import sim
+from calibkit.synthetic import sim
 from daemon.rigid import (
     BodyDef,
     RigidConfig,

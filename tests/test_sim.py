@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibkit import sim
 from calibkit.errors import UserError
 from calibkit.observations import Truth
+from calibkit.synthetic import sim
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibkit import sim_person
+from calibkit.synthetic import person as sim_person
 from daemon.c3dio import Take, euler_zxy_matrix, read_bvh, write_take
 from daemon.skeleton import (
     CMU41_MODEL,

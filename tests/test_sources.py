@@ -2,25 +2,24 @@
 
 from __future__ import annotations
 
-import sys
-import types
-
 import cv2
 import numpy as np
 import pytest
 
 from calibkit.camera import Camera
-from calibkit.detect import detect, match_to_truth
+from calibkit.detect import detect
 from calibkit.errors import UserError
 from calibkit.sources import (
     DeviceSource,
     FolderSource,
     ImageSource,
-    SimSource,
     VideoSource,
     open_source,
 )
-from calibkit.spots import render_spots
+from calibkit.synthetic import frames as frames_module
+from calibkit.synthetic.frames import SimSource
+from calibkit.synthetic.spots import render_spots
+from calibkit.synthetic.truthcheck import match_to_truth
 
 
 def _frame(seed: int, size=(160, 120)):
@@ -120,22 +119,22 @@ def test_sim_source_follows_the_simulator_contract(monkeypatch):
         img = render_spots(camera.size, uv[visible], 3.0, rng=seed)
         return img, uv, visible
 
-    monkeypatch.setitem(sys.modules, "calibkit.sim",
-                        types.SimpleNamespace(render_frame=render_frame))
+    monkeypatch.setattr(frames_module, "render_frame", render_frame)
     xyz = np.array([[0.0, 0.0, 0.0], [0.2, 0.1, 0.0], [5.0, 0.0, 0.0]])  # the last is outside
     src = SimSource(cam, xyz, n_frames=3, fps=100.0, seed=7, noise_sigma=1.0)
     frames = list(src)
     assert [f.index for f in frames] == [0, 1, 2]
     assert [f.t_ns for f in frames] == [0, 10_000_000, 20_000_000]
     assert [c[1] for c in calls] == [7, 8, 9] and calls[0][2] == {"noise_sigma": 1.0}
-    assert all(f.camera == "cam3" and len(f.truth_uv) == 2 for f in frames)
+    assert all(f.camera == "cam3" for f in frames)
+    assert all(len(src.truth_uv[f.index]) == 2 for f in frames)
     b = detect(frames[0].image)
-    det, _ = match_to_truth(b.uv, frames[0].truth_uv)
+    det, _ = match_to_truth(b.uv, src.truth_uv[0])
     assert len(det) == 2
 
 
 def test_sim_source_with_the_simulator():
-    from calibkit.sources import sim_source
+    from calibkit.synthetic.frames import sim_source
 
     with pytest.raises(UserError, match="no camera"):
         sim_source(camera="cam42")
@@ -146,11 +145,12 @@ def test_sim_source_with_the_simulator():
     for f in frames:
         assert f.image.dtype == np.uint8 and f.image.shape == (480, 640)
         b = detect(f.image)
-        det, tru = match_to_truth(b.uv, f.truth_uv)
-        errors.append(b.uv[det] - f.truth_uv[tru])
-        n_true += len(f.truth_uv)
+        det, tru = match_to_truth(b.uv, src.truth_uv[f.index])
+        errors.append(b.uv[det] - src.truth_uv[f.index][tru])
+        n_true += len(src.truth_uv[f.index])
         n_false += len(b) - len(det)
-        assert len(det) >= len(f.truth_uv) - 1  # a marker cut by the image edge may be lost
+        # a marker cut by the image edge may be lost
+        assert len(det) >= len(src.truth_uv[f.index]) - 1
     err = np.concatenate(errors)
     assert n_true > 20 and n_false == 0
     # The simulated markers are small (radius ~1 px at 3-5 m) and dim, so 2 DN of noise

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibkit.spots import render_spots, render_spots_float
+from calibkit.synthetic.spots import render_spots, render_spots_float
 
 
 def _centroid(image: np.ndarray, background: float) -> np.ndarray:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibkit import sim
+from calibkit.synthetic import sim
 from daemon.tracker import Tracker, TrackerConfig
 
 FPS = 240.0

@@ -18,7 +18,7 @@ from test_natnet import Feeder, Scene, finish, run_motioncapture  # shared scene
 from daemon.config import SimConfig
 from daemon.publish import packet, vrpn
 from daemon.rigid import BodyDef
-from daemon.sources import SimScene
+from daemon.synthetic.scene import SimScene
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -6,11 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibkit import floor, sim, wand_report
+from calibkit import floor, wand_report
 from calibkit.camera import Rig, rotation_from_rvec
 from calibkit.errors import UserError
 from calibkit.geometry import rigid_fit
 from calibkit.observations import Observations, Truth
+from calibkit.synthetic import sim
 from calibkit.wand import CaptureMonitor, WandSpec, identify, initial_poses
 from calibkit.wand_solve import calibrate
 

@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from calibkit import sim
 from calibkit.camera import Rig
 from calibkit.recording import load_observations, save_observations
+from calibkit.synthetic import sim
 
 
 def _one_line_error(result) -> None:

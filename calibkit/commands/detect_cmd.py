@@ -11,11 +11,13 @@ import numpy as np
 import typer
 
 from calibkit.clitools import Progress, print_table, write_json
-from calibkit.detect import Blobs, DetectorConfig, detect, match_to_truth
+from calibkit.detect import Blobs, DetectorConfig, detect
 from calibkit.errors import UserError
 from calibkit.fileio import write_bytes_atomic
 from calibkit.masks import build_mask, load_mask, save_mask
-from calibkit.sources import Frame, FrameSource, open_source, sim_source
+from calibkit.sources import Frame, FrameSource, open_source
+from calibkit.synthetic.frames import sim_source
+from calibkit.synthetic.truthcheck import match_to_truth
 
 
 def parse_threshold(text: str) -> float | str:
@@ -155,7 +157,7 @@ def register(app: typer.Typer) -> None:
             progress.finish()
         if not results:
             raise UserError(f"{source} gave no frames")
-        _report(results, json_path)
+        _report(results, getattr(src, "truth_uv", None), json_path)
 
     @app.command("mask")
     def mask_command(
@@ -190,14 +192,17 @@ def register(app: typer.Typer) -> None:
                                    "masked_fraction": fraction, "areas": n_regions})
 
 
-def _truth_figures(results: list[tuple[Frame, Blobs]]) -> dict | None:
-    if any(f.truth_uv is None for f, _ in results):
+def _truth_figures(results: list[tuple[Frame, Blobs]],
+                   truth_uv: dict[int, np.ndarray] | None) -> dict | None:
+    """Recall, false blobs and centroid error against a simulated source's true centres."""
+    if truth_uv is None or any(f.index not in truth_uv for f, _ in results):
         return None
     errors, n_true, n_found, n_false = [], 0, 0, 0
     for frame, blobs in results:
-        det, tru = match_to_truth(blobs.uv, frame.truth_uv)
-        errors.append(blobs.uv[det] - frame.truth_uv[tru])
-        n_true += len(frame.truth_uv)
+        true_uv = truth_uv[frame.index]
+        det, tru = match_to_truth(blobs.uv, true_uv)
+        errors.append(blobs.uv[det] - true_uv[tru])
+        n_true += len(true_uv)
         n_found += len(det)
         n_false += len(blobs) - len(det)
     err = np.concatenate(errors) if errors else np.zeros((0, 2))
@@ -206,8 +211,9 @@ def _truth_figures(results: list[tuple[Frame, Blobs]]) -> dict | None:
             "false_blobs": n_false, "centroid_rms_px": rms}
 
 
-def _report(results: list[tuple[Frame, Blobs]], json_path: Path | None) -> None:
-    truth = _truth_figures(results)
+def _report(results: list[tuple[Frame, Blobs]], truth_uv: dict[int, np.ndarray] | None,
+            json_path: Path | None) -> None:
+    truth = _truth_figures(results, truth_uv)
     if len(results) == 1:
         frame, blobs = results[0]
         several = len(set(blobs.label.tolist())) > 1

@@ -216,7 +216,7 @@ def register(app: typer.Typer) -> None:
             raise UserError("--ref-sigma-mm and --height-sigma-mm must be positive")
         truth = None
         if sim:
-            from calibkit import sim_projector as sp
+            from calibkit.synthetic import projector as sp
 
             if not 0 <= table_height < 2.0:
                 raise UserError(f"--table-height must be in [0, 2) m, got {table_height}")
@@ -258,7 +258,7 @@ def register(app: typer.Typer) -> None:
         schedule = _schedule(proj_px, step, shifts, radius)
         tsched = ex.table_schedule(schedule, table_map) if table_map is not None else None
         if sim and render:
-            from calibkit import sim_projector as sp
+            from calibkit.synthetic import projector as sp
 
             cfg = sp.ProjectorSimConfig(projector_px=proj_px, seed=seed)
             with sp.ProjectorRigSim(scene, cfg) as dev:
@@ -271,7 +271,7 @@ def register(app: typer.Typer) -> None:
             floor_dots, table_dots = fcap.cameras, None if tcap is None else tcap.cameras
             frames = fcap.frames + (tcap.frames if tcap is not None else 0)
         elif sim:
-            from calibkit import sim_projector as sp
+            from calibkit.synthetic import projector as sp
 
             floor_dots = sp.simulated_dots(scene, schedule.points_xy, False, noise_px,
                                            seed=seed)

@@ -9,13 +9,14 @@ from typing import Annotated
 import numpy as np
 import typer
 
-from calibkit import floor, sim
+from calibkit import floor
 from calibkit.camera import Rig, rotation_from_rvec, rvec_from_rotation
 from calibkit.clitools import print_table, write_json
 from calibkit.commands.common import parse_floats, truth_rig_path
 from calibkit.errors import UserError
 from calibkit.observations import Truth
 from calibkit.recording import load_observations
+from calibkit.synthetic import sim
 
 
 def register(app: typer.Typer) -> None:

@@ -186,7 +186,7 @@ def register(app: typer.Typer) -> None:
             plane_views = found
         elif sim:
             from calibkit.commands.common import parse_size
-            from calibkit.sim_monitor import MonitorSimConfig, make_monitor_sim
+            from calibkit.synthetic.monitor import MonitorSimConfig, make_monitor_sim
 
             img_size = parse_size(size)
             cfg = MonitorSimConfig(latency_s=latency_ms / 1000.0, noise_dn=noise, seed=seed)

@@ -15,7 +15,7 @@ from calibkit.correspondence import CorrespondenceConfig, FramePoints, match_fra
 from calibkit.errors import UserError
 from calibkit.fileio import atomic_write
 from calibkit.recording import load_observations
-from calibkit.truthcheck import nearest_truth, score_points
+from calibkit.synthetic.truthcheck import nearest_truth, score_points
 
 COLUMNS = ("frame", "x", "y", "z", "reproj_px", "ray_mm", "n_cameras", "cameras")
 

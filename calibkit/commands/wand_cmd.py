@@ -11,13 +11,14 @@ from typing import Annotated
 import numpy as np
 import typer
 
-from calibkit import floor, sim
+from calibkit import floor
 from calibkit.camera import Rig
 from calibkit.clitools import Progress, print_table, write_json
 from calibkit.commands.common import parse_floats, truth_rig_path
 from calibkit.errors import UserError
 from calibkit.observations import Observations, Truth
 from calibkit.recording import RecordingWriter, load_observations
+from calibkit.synthetic import sim
 from calibkit.wand import CaptureMonitor, WandSpec, identify
 
 CHUNK_FRAMES = 50  # simulated frames handed to the capture loop at a time

@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from calibkit.observations import Observations, Truth
 
@@ -81,3 +82,22 @@ def score_points(frame: np.ndarray, xyz: np.ndarray, truth: Truth,
         error_mm_rms=float(np.sqrt(np.mean(err_mm**2))) if len(err_mm) else float("nan"),
         error_mm_median=float(np.median(err_mm)) if len(err_mm) else float("nan"),
         markers_seen_3=seen3, recall_3=recall, tolerance_mm=tolerance_mm)
+
+
+def match_to_truth(uv: np.ndarray, truth_uv: np.ndarray,
+                   max_dist_px: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
+    """Pair detected centroids with true centres: mutual nearest neighbours within max_dist_px.
+
+    Returns (detected index, true index) arrays of the pairs; the simulator's tests,
+    benchmarks and `calibkit detect --sim` score recall, false blobs and centroid error
+    from them.
+    """
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    truth_uv = np.asarray(truth_uv, dtype=np.float64).reshape(-1, 2)
+    if len(uv) == 0 or len(truth_uv) == 0:
+        z = np.zeros(0, dtype=np.int64)
+        return z, z
+    d_t, to_truth = cKDTree(truth_uv).query(uv)
+    _, to_det = cKDTree(uv).query(truth_uv)
+    det = np.flatnonzero((to_det[to_truth] == np.arange(len(uv))) & (d_t <= max_dist_px))
+    return det, to_truth[det]

@@ -9,7 +9,7 @@ table top with it through the projector's lens, and gives each camera an 8-bit i
 what it sees, with its own latency, exposure blend and sensor noise, so the whole capture
 (settle detection, detection, coded identification) runs as it would on hardware.
 
-Geometry: the projector is an inverse camera (calibkit.sim.make_projector); the table is a
+Geometry: the projector is an inverse camera (calibkit.synthetic.sim.make_projector); the table is a
 box from the floor to `Table.height_m` whose top is lit and whose sides are dark; it hides
 what is behind it from a camera and casts a shadow on the floor from the projector.
 """
@@ -22,9 +22,9 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from calibkit import sim
 from calibkit.camera import Camera, Rig
-from calibkit.sim import Table
+from calibkit.synthetic import sim
+from calibkit.synthetic.sim import Table
 
 SUPERSAMPLE = 3
 

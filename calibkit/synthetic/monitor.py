@@ -7,7 +7,7 @@ included) to the monitor plane; the screen image is sampled there on a 3 x 3 sub
 camera pixel (area integration, so there is no pixel locking), then blurred by the lens and
 given sensor noise. Time is simulated too: the display shows a requested pattern only after
 its latency, a camera frame exposed across the switch records a blend, frames can be
-dropped, and between views the user tilts the monitor (calibkit.sim.monitor_views).
+dropped, and between views the user tilts the monitor (calibkit.synthetic.sim.monitor_views).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from calibkit.camera import Camera
-from calibkit.sim import MonitorView, monitor_points, monitor_views
+from calibkit.synthetic.sim import MonitorView, monitor_points, monitor_views
 from projector.display import Dots, OffscreenDisplay
 
 SUPERSAMPLE = 3

@@ -313,7 +313,7 @@ def render_frame(camera: Camera, xyz: np.ndarray, marker_radius_m: float = MARKE
     covered by a nearer marker's disc is hidden, and so is one behind any of `occluders`
     ((K, 4) spheres: x, y, z, radius in metres, e.g. a body or an arm).
     """
-    from calibkit.spots import render_spots
+    from calibkit.synthetic.spots import render_spots
 
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     n = len(xyz)
