@@ -145,7 +145,7 @@ def test_floor_from_an_lframe():
 
 def test_floor_from_the_wand_laid_twice_and_from_plane_points():
     rig = sim.make_rig(5, 4.0, seed=4)
-    h = floor.MARKER_RADIUS_M
+    h = floor.LFRAME_MARKER_RADIUS_M
     first = np.array([[0.0, 0.0, h], [0.2, 0.0, h], [0.5, 0.0, h]])
     second = np.array([[-0.5, 0.5, h], [-0.5, 0.7, h], [-0.5, 1.0, h]])
     n = 20
