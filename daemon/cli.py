@@ -12,6 +12,7 @@ COMMAND_MODULES = (
     "rigid_cmd",
     "unit_cmd",
     "markerset_cmd",
+    "evaluate_cmd",
 )
 
 app = build_app("mocapd", "Track markers and rigid bodies with a calibrated rig and serve "
