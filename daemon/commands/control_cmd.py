@@ -7,7 +7,8 @@ from typing import Annotated
 
 import typer
 
-from calibkit.clitools import print_table, write_json
+from calibkit.clitools import write_json
+from daemon.console import print_table
 
 RuntimeDir = Annotated[Path | None, typer.Option(
     "--runtime-dir", help="Folder of the daemon's control socket (as given to start).")]

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import ipaddress
-import logging
-import sys
 from dataclasses import replace
 from pathlib import Path
 from typing import Annotated
@@ -12,7 +10,7 @@ from typing import Annotated
 import typer
 
 from calibkit.camera import Rig
-from calibkit.clitools import Progress, print_table, write_json
+from calibkit.clitools import write_json
 from calibkit.errors import UserError
 from daemon.config import (
     Config,
@@ -27,20 +25,8 @@ from daemon.config import (
     parse_address,
     parse_serial,
 )
-
-
-def setup_logging(verbose: bool) -> None:
-    root = logging.getLogger("mocapd")
-    ours = [h for h in root.handlers if getattr(h, "_mocapd", False)]
-    if ours:
-        ours[0].stream = sys.stderr  # the current stderr (test runners replace it)
-    else:
-        handler = logging.StreamHandler(sys.stderr)
-        handler.setFormatter(logging.Formatter("mocapd: %(message)s"))
-        handler._mocapd = True
-        root.addHandler(handler)
-    root.setLevel(logging.DEBUG if verbose else logging.INFO)
-    root.propagate = False
+from daemon.console import Progress, print_table
+from daemon.logs import setup_logging
 
 
 def protocol_outputs(natnet: str | None, natnet_up: str | None, vrpn: list[str]):
