@@ -21,8 +21,10 @@ opens. docs/daemon.md documents every key.
                 "basler:SERIAL", "genicam:SERIAL"), fps, threshold, min_area, max_area
     [replay]    path (a .mcrec recording), realtime
     [[udp]]     address = "HOST:PORT", rate_hz, ttl, bodies, interface, markers
-    [[serial]]  device, baud, rate_hz, bodies
-    [[mavlink]] device, baud, body, message, frame, rate_hz, system_id, component_id
+    [[serial]]  device, baud, rate_hz ("auto" or Hz), bodies
+    [[mavlink]] device (a UART, or udpin:/udpout:/tcp:HOST:PORT), baud, body, message,
+                frame, rate_hz ("auto" or Hz), system_id, component_id,
+                origin = [lat_deg, lon_deg, alt_m]                          (docs/protocol.md)
     [natnet]    interface, command_port, data_port, multicast, group, up_axis, ttl, rate_hz,
                 legacy_unlabeled, marker_sets, markerset_id     (docs/natnet.md)
     [[vrpn]]    address = "HOST:PORT", rate_hz, udp                           (docs/vrpn.md)
@@ -98,20 +100,21 @@ class UdpOut:
 class SerialOut:
     device: str
     baud: int = 115200
-    rate_hz: float = 100.0
+    rate_hz: float | None = None  # None: "auto", the highest rate the line carries (<= 100)
     bodies: tuple[int, ...] | None = None
 
 
 @dataclass(frozen=True)
 class MavlinkOut:
-    device: str
+    device: str  # a UART, or mavutil's udpin:/udpout:/udp:/tcp:HOST:PORT
     body: int
     baud: int = 921600
     message: str = "vision_position_estimate"
     frame: str = "enu"
-    rate_hz: float = 50.0
+    rate_hz: float | None = None  # None: "auto", 50 Hz or what a UART carries
     system_id: int = 1
     component_id: int = 197
+    origin: tuple[float, float, float] | None = None  # lat deg, lon deg, alt m (MSL)
 
 
 @dataclass(frozen=True)
@@ -235,9 +238,10 @@ def parse_address(text: str, what: str = "address") -> tuple[str, int]:
 
 
 def parse_serial(text: str, default_baud: int = 115200) -> tuple[str, int]:
-    """'DEV[:BAUD]' -> (device, baud); pyserial URLs (socket://, loop://) are kept whole."""
+    """'DEV[:BAUD]' -> (device, baud); pyserial URLs (socket://, loop://) and mavutil's
+    network addresses (udpin:HOST:PORT, udpout:..., tcp:...) are kept whole."""
     text = str(text)
-    if "://" not in text:
+    if "://" not in text and not text.startswith(("udp:", "udpin:", "udpout:", "tcp:")):
         dev, sep, baud = text.rpartition(":")
         if sep and baud.isdigit() and dev:
             return dev, int(baud)
@@ -454,24 +458,63 @@ def _udp(w, t, p) -> UdpOut:
                   _bool(w, t, "markers", p, True))
 
 
+def _rate(w, t, p):
+    """rate_hz: "auto" (None: fitted to the line when the outputs are made) or Hz >= 0."""
+    if t.get("rate_hz") == "auto":
+        return None
+    if isinstance(t.get("rate_hz"), str):
+        w.fail(p + "rate_hz", f'expected "auto" or a rate in Hz, got {t["rate_hz"]!r}')
+    return _number(w, t, "rate_hz", p, None, lo=0)
+
+
 def _serial(w, t, p) -> SerialOut:
     _check_keys(w, t, {"device", "baud", "rate_hz", "bodies"}, p)
     return SerialOut(_string(w, t, "device", p), _number(w, t, "baud", p, 115200, int, 50),
-                     _number(w, t, "rate_hz", p, 100.0, lo=0), _ids(w, t, "bodies", p))
+                     _rate(w, t, p), _ids(w, t, "bodies", p))
 
 
 def _mavlink(w, t, p) -> MavlinkOut:
     _check_keys(w, t, {"device", "baud", "body", "message", "frame", "rate_hz", "system_id",
-                       "component_id"}, p)
+                       "component_id", "origin"}, p)
     if "body" not in t:
         w.fail(p + "body", "missing (the id of the rigid body to send)")
-    return MavlinkOut(_string(w, t, "device", p), _number(w, t, "body", p, 0, int, 0, 65535),
+    device = _string(w, t, "device", p)
+    try:
+        mavlink_device(device)
+    except ValueError as exc:
+        w.fail(p + "device", str(exc))
+    origin = None
+    if "origin" in t:
+        o = t["origin"]
+        if not (isinstance(o, list) and len(o) == 3 and all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) for v in o)
+                and -90 <= o[0] <= 90 and -180 <= o[1] <= 180 and -1000 <= o[2] <= 10000):
+            w.fail(p + "origin", "expected [latitude_deg, longitude_deg, altitude_m] "
+                                 f"(-90..90, -180..180, -1000..10000), got {o!r}")
+        origin = tuple(float(v) for v in o)
+    return MavlinkOut(device, _number(w, t, "body", p, 0, int, 0, 65535),
                       _number(w, t, "baud", p, 921600, int, 50),
                       _string(w, t, "message", p, "vision_position_estimate", MESSAGES),
                       _string(w, t, "frame", p, "enu", tuple(WORLD_TO_NED)),
-                      _number(w, t, "rate_hz", p, 50.0, lo=0),
+                      _rate(w, t, p),
                       _number(w, t, "system_id", p, 1, int, 1, 255),
-                      _number(w, t, "component_id", p, 197, int, 0, 255))
+                      _number(w, t, "component_id", p, 197, int, 0, 255), origin)
+
+
+def mavlink_device(text: str) -> str:
+    """A [[mavlink]] device as mavutil opens it: a UART path, or udpin:/udp: (listen),
+    udpout: (send to), tcp: (connect to) with HOST:PORT; ValueError with the reason."""
+    scheme, sep, rest = text.partition(":")
+    if not sep or scheme not in ("udp", "udpin", "udpout", "tcp"):
+        if text.startswith(("tcpin:", "udpbcast:", "mcast:", "ws:", "wss:", "wsserver:")):
+            raise ValueError(f"{scheme}: is not supported; use a UART path, udpin:, udpout: "
+                             "or tcp: with HOST:PORT")
+        return text  # a UART path
+    try:
+        parse_address(rest)
+    except ValueError as exc:
+        raise ValueError(f"{scheme}: {exc}") from None
+    return text
 
 
 def _natnet(w, t, p) -> NatnetOut:

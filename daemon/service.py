@@ -28,6 +28,7 @@ from daemon.config import Config, default_runtime_dir, load_config
 from daemon.live_label import LiveLabeller
 from daemon.live_label import load as load_markerset
 from daemon.pipeline import CaptureThread, FrameSet, Multiplexer, Pipeline, latency_figures
+from daemon.publish.line import fit_mavlink, fit_serial
 from daemon.publish.mavlink import MavlinkPublisher
 from daemon.publish.natnet import NatNetPublisher
 from daemon.publish.recorder import RecorderPublisher
@@ -199,15 +200,19 @@ def make_publishers(config: Config, bodies=(), markerset=None) -> list:
     """The configured outputs; `bodies` (BodyDef) name the trackers NatNet and VRPN serve,
     `markerset` (the live MarkerSet, if any) the labelled markers NatNet describes."""
     pubs = []
+    fps = config.sim.fps if config.sim is not None else config.fps
     for u in config.udp:
         pubs.append(UdpPublisher([(u.host, u.port)], ttl=u.ttl, rate_hz=u.rate_hz,
                                  bodies=u.bodies, name=f"udp:{u.host}:{u.port}",
                                  interface=u.interface, markers=u.markers))
-    for s in config.serial:
+    for i, s in enumerate(config.serial):
+        n = sum(1 for b in bodies if s.bodies is None or b.id in s.bodies)
+        s = _fitted(f"serial[{i}] ({s.device})", fit_serial, s, n, fps)
         pubs.append(SerialPublisher(s.device, s.baud, s.rate_hz, s.bodies))
-    for m in config.mavlink:
+    for i, m in enumerate(config.mavlink):
+        m = _fitted(f"mavlink[{i}] ({m.device})", fit_mavlink, m, fps)
         pubs.append(MavlinkPublisher(m.device, m.body, m.baud, m.rate_hz, m.message, m.frame,
-                                     m.system_id, m.component_id))
+                                     m.system_id, m.component_id, origin=m.origin))
     if config.natnet is not None:
         n = config.natnet
         pubs.append(NatNetPublisher(bodies, n.interface, n.command_port, n.data_port,
@@ -221,6 +226,18 @@ def make_publishers(config: Config, bodies=(), markerset=None) -> list:
         pubs.append(VrpnPublisher(bodies, v.host, v.port, v.rate_hz, v.udp,
                                   name=f"vrpn:{v.host}:{v.port}"))
     return pubs
+
+
+def _fitted(name: str, fit, out, *args):
+    """An output's rate checked against its serial line (daemon.publish.line); a rate
+    that cannot fit is the user's to fix (UserError)."""
+    try:
+        out, note = fit(out, *args)
+    except ValueError as exc:
+        raise UserError(f"{name}: {exc}") from None
+    if note:
+        log.info("%s: %s", name, note)
+    return out
 
 
 class Daemon:
@@ -505,13 +522,19 @@ class Daemon:
             return False
         bodies = self._bodies(new)
         self._warn_alike(bodies)
+        try:
+            publishers = make_publishers(new, bodies, labelling.ms if labelling else None)
+        except UserError as exc:
+            log.error("reload failed, keeping the running configuration: %s", exc)
+            if labelling is not self.labelling and labelling is not None:
+                labelling.close()
+            sd_notify("READY=1")
+            return False
         changes = {} if labelling is self.labelling else {"labeller": labelling}
         if changes and self.labelling is not None:
             self.labelling.close()  # a start still searching on its thread stops
         self.labelling, self._markerset_key = labelling, key
-        self.pipeline.replace(bodies=bodies, publishers=make_publishers(new, bodies,
-                                                                        self._markerset()),
-                              **changes)
+        self.pipeline.replace(bodies=bodies, publishers=publishers, **changes)
         self.config = new
         log.info("configuration reloaded: %d rigid bodies, %d outputs%s", len(bodies),
                  len(new.udp) + len(new.serial) + len(new.mavlink),

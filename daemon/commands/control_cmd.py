@@ -7,7 +7,8 @@ from typing import Annotated
 
 import typer
 
-from calibkit.clitools import print_table, write_json
+from calibkit.clitools import write_json
+from daemon.console import print_table
 
 RuntimeDir = Annotated[Path | None, typer.Option(
     "--runtime-dir", help="Folder of the daemon's control socket (as given to start).")]
@@ -32,6 +33,9 @@ def register(app: typer.Typer) -> None:
             print_table([[o["name"], "yes" if o["connected"] else "no", o["sent"], o["dropped"],
                           o["last_error"] or "-"] for o in st["outputs"]],
                         ["output", "open", "sent", "dropped", "last error"])
+        for o in st["outputs"]:
+            if "autopilot" in o:
+                typer.echo(link_line(o))
         if st.get("recording"):
             typer.echo(f"recording to {st['recording']}")
         if json_path is not None:
@@ -65,3 +69,19 @@ def register(app: typer.Typer) -> None:
             raise UserError("give a PATH to record to, or --stop")
         answer = request(runtime_dir, {"cmd": "record", "path": str(path.resolve())})
         typer.echo(f"mocapd: recording to {answer['path']}")
+
+
+def link_line(o: dict) -> str:
+    """A MAVLink output's conversation with its autopilot, in one line."""
+    ap = o["autopilot"]
+    if ap is None:
+        heard = "no autopilot heartbeat yet"
+    else:
+        heard = (f"autopilot {ap['system_id']}/{ap['component_id']} ({ap['autopilot']}, "
+                 f"{ap['type']}, {ap['state']}{', armed' if ap['armed'] else ''}), "
+                 f"heartbeat {ap['age_s']:.1f} s ago, {ap['heartbeats']} heard")
+    rtt = o["timesync_rtt_ms"]
+    sync = f"TIMESYNC {o['timesync_answered']} answered" + (
+        f", round trip {rtt:.2f} ms" if rtt is not None else "")
+    return f"{o['name']}: {heard}; {sync}; {o['messages_sent']} sent; origin sent " \
+           f"{o['origin_sent']}x"

@@ -10,11 +10,11 @@ import tomli_w
 import tomllib
 import typer
 
-from calibkit.clitools import print_table
 from calibkit.commands.common import parse_floats
 from calibkit.errors import UserError
 from calibkit.fileio import write_text_atomic
 from daemon.config import load_config, parse_config
+from daemon.console import print_table
 
 rigid_app = typer.Typer(help="Rigid-body definitions in the configuration.",
                         no_args_is_help=True)

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import ipaddress
-import logging
-import sys
 from dataclasses import replace
 from pathlib import Path
 from typing import Annotated
@@ -12,7 +10,7 @@ from typing import Annotated
 import typer
 
 from calibkit.camera import Rig
-from calibkit.clitools import Progress, print_table, write_json
+from calibkit.clitools import write_json
 from calibkit.errors import UserError
 from daemon.config import (
     Config,
@@ -24,23 +22,12 @@ from daemon.config import (
     UdpOut,
     VrpnOut,
     load_config,
+    mavlink_device,
     parse_address,
     parse_serial,
 )
-
-
-def setup_logging(verbose: bool) -> None:
-    root = logging.getLogger("mocapd")
-    ours = [h for h in root.handlers if getattr(h, "_mocapd", False)]
-    if ours:
-        ours[0].stream = sys.stderr  # the current stderr (test runners replace it)
-    else:
-        handler = logging.StreamHandler(sys.stderr)
-        handler.setFormatter(logging.Formatter("mocapd: %(message)s"))
-        handler._mocapd = True
-        root.addHandler(handler)
-    root.setLevel(logging.DEBUG if verbose else logging.INFO)
-    root.propagate = False
+from daemon.console import Progress, print_table
+from daemon.logs import setup_logging
 
 
 def protocol_outputs(natnet: str | None, natnet_up: str | None, vrpn: list[str]):
@@ -73,7 +60,7 @@ def protocol_outputs(natnet: str | None, natnet_up: str | None, vrpn: list[str])
 def command_line_additions(udp: list[str], serial: list[str], mavlink: list[str],
                            mavlink_body: int | None, mavlink_message: str | None,
                            natnet: str | None = None, natnet_up: str | None = None,
-                           vrpn: list[str] = ()):
+                           vrpn: list[str] = (), mavlink_origin: str | None = None):
     """A function that adds the flags' outputs to a Config (and again after a reload)."""
     out_natnet, outs_vrpn = protocol_outputs(natnet, natnet_up, list(vrpn))
     outs_udp = []
@@ -87,7 +74,19 @@ def command_line_additions(udp: list[str], serial: list[str], mavlink: list[str]
     outs_mav = []
     for t in mavlink:
         dev, baud = parse_serial(t, 921600)
-        outs_mav.append((dev, baud))
+        try:
+            outs_mav.append((mavlink_device(dev), baud))
+        except ValueError as exc:
+            raise UserError(f"--mavlink: {exc}") from None
+    origin = None
+    if mavlink_origin is not None:
+        try:
+            origin = tuple(float(v) for v in mavlink_origin.split(","))
+            if len(origin) != 3 or not (-90 <= origin[0] <= 90 and -180 <= origin[1] <= 180):
+                raise ValueError
+        except ValueError:
+            raise UserError("--mavlink-origin: expected LAT,LON,ALT (degrees, degrees, metres "
+                            f"above sea level), got {mavlink_origin!r}") from None
     if mavlink_message is not None and mavlink_message not in (
             "vision_position_estimate", "odometry", "att_pos_mocap"):
         raise UserError("--mavlink-message must be vision_position_estimate, odometry or "
@@ -97,8 +96,8 @@ def command_line_additions(udp: list[str], serial: list[str], mavlink: list[str]
         body = mavlink_body
         if body is None:
             body = cfg.bodies[0].id if cfg.bodies else 1
-        mav = tuple(MavlinkOut(d, body, b, mavlink_message or "vision_position_estimate")
-                    for d, b in outs_mav)
+        mav = tuple(MavlinkOut(d, body, b, mavlink_message or "vision_position_estimate",
+                               origin=origin) for d, b in outs_mav)
         cfg = replace(cfg, udp=cfg.udp + tuple(outs_udp), serial=cfg.serial + tuple(outs_serial),
                       mavlink=cfg.mavlink + mav, vrpn=cfg.vrpn + outs_vrpn)
         if out_natnet is not None:  # the flag's address and ports; the rest from [natnet]
@@ -131,7 +130,8 @@ def register(app: typer.Typer) -> None:
             "--serial", help="Send COBS-framed packets on DEV[:BAUD] (repeatable).")]
         = [],  # noqa: B006
         mavlink: Annotated[list[str], typer.Option(
-            "--mavlink", help="Send MAVLink to a flight controller on DEV[:BAUD].")]
+            "--mavlink", help="Send MAVLink to a flight controller on DEV[:BAUD], or "
+                              "udpin:/udpout:/tcp:HOST:PORT (repeatable).")]
         = [],  # noqa: B006
         mavlink_body: Annotated[int | None, typer.Option(
             "--mavlink-body", help="Rigid body id for --mavlink (default: the first).")]
@@ -139,6 +139,9 @@ def register(app: typer.Typer) -> None:
         mavlink_message: Annotated[str | None, typer.Option(
             "--mavlink-message", help="vision_position_estimate, odometry or "
                                       "att_pos_mocap.")] = None,
+        mavlink_origin: Annotated[str | None, typer.Option(
+            "--mavlink-origin", help="LAT,LON,ALT of the world's origin, sent to the "
+                                     "autopilot as its GPS origin and home.")] = None,
         natnet: Annotated[str | None, typer.Option(
             "--natnet", help="Serve NatNet 4.1 (OptiTrack clients) on this local interface "
                              "address, IFACE[:COMMAND_PORT] (default ports 1510/1511).")]
@@ -189,7 +192,7 @@ def register(app: typer.Typer) -> None:
         if mode is not None and mode not in ("triggered", "greedy"):
             raise UserError(f"--mode must be triggered or greedy, got {mode!r}")
         extend = command_line_additions(udp, serial, mavlink, mavlink_body, mavlink_message,
-                                        natnet, natnet_up, vrpn)
+                                        natnet, natnet_up, vrpn, mavlink_origin)
         base = load_config(config)
 
         def full(cfg: Config) -> Config:

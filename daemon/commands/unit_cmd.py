@@ -1,4 +1,11 @@
-"""`mocapd install-unit`: write a systemd unit (Type=notify, watchdog, reload on SIGHUP)."""
+"""`mocapd install-unit`: write a systemd unit (Type=notify, watchdog, reload on SIGHUP).
+
+Why quoting matters: systemd splits ExecStart= at spaces and expands `%` specifiers and
+`$` variables in it, so a configuration under "/srv/mocap lab/" or a `%` in a path would
+start something else, or nothing. Every word is quoted the way systemd.service(5)
+describes; the command printed afterwards is the one for the manager that reads the file
+(the user's, or the system's).
+"""
 
 from __future__ import annotations
 
@@ -12,8 +19,26 @@ import typer
 from calibkit.errors import UserError
 from calibkit.fileio import write_text_atomic
 
+USER_DIR = ".config/systemd/user"
 
-def unit_text(config: Path, executable: str, watchdog_s: int = 5,
+
+def systemd_quote(word: str) -> str:
+    """One ExecStart= word as systemd reads it back: `%` and `$` doubled (no specifier, no
+    variable), in double quotes with `\\` and `"` escaped when it holds a space, a quote
+    or a backslash. A control character (a newline) cannot be written: UserError."""
+    if any(ord(c) < 32 or ord(c) == 127 for c in word):
+        raise UserError(f"cannot write {word!r} into a systemd unit (a control character)")
+    word = word.replace("%", "%%").replace("$", "$$")
+    if word and not any(c in word for c in ' \t"\'\\;'):
+        return word
+    return '"' + word.replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+def exec_line(words: list[str]) -> str:
+    return " ".join(systemd_quote(w) for w in words)
+
+
+def unit_text(config: Path, executable: list[str], watchdog_s: int = 5,
               wanted_by: str = "default.target") -> str:
     # A system unit runs the tracking ahead of ordinary work on the machine: under load a
     # frame loop at the default priority waits for the CPU and the latency tail grows from
@@ -28,7 +53,7 @@ Wants=network-online.target
 [Service]
 Type=notify
 NotifyAccess=main
-ExecStart={executable} start --config {config}
+ExecStart={exec_line([*executable, 'start', '--config', str(config)])}
 ExecReload=/bin/kill -HUP $MAINPID
 RuntimeDirectory=mocapd
 RuntimeDirectoryMode=0700
@@ -51,15 +76,26 @@ def register(app: typer.Typer) -> None:
             "--out", help="Unit file to write (default: the user's systemd folder).")] = None,
         watchdog: Annotated[int, typer.Option("--watchdog-s", help="WatchdogSec.")] = 5,
     ) -> None:
-        """Write mocapd.service; then `systemctl --user daemon-reload` and enable it."""
+        """Write mocapd.service and print the systemctl commands that enable it."""
         if not config.exists():
             raise UserError(f"{config}: no such configuration file")
         if watchdog < 1:
             raise UserError(f"--watchdog-s must be at least 1, got {watchdog}")
-        exe = shutil.which("mocapd") or f"{sys.executable} -m daemon.cli"
-        target = out or Path.home() / ".config/systemd/user/mocapd.service"
-        wanted = "default.target" if out is None or ".config/systemd/user" in str(target) \
-            else "multi-user.target"
-        write_text_atomic(target, unit_text(config.resolve(), exe, watchdog, wanted))
-        typer.echo(f"wrote {target}\nthen: systemctl --user daemon-reload && "
-                   "systemctl --user enable --now mocapd")
+        exe = shutil.which("mocapd")
+        command = [exe] if exe else [sys.executable, "-m", "daemon.cli"]
+        target = out or Path.home() / USER_DIR / "mocapd.service"
+        user = USER_DIR in target.resolve().as_posix()
+        write_text_atomic(target, unit_text(config.resolve(), command, watchdog,
+                                            "default.target" if user else "multi-user.target"))
+        typer.echo(f"wrote {target}\nthen: {follow_up(target, user)}")
+
+
+def follow_up(target: Path, user: bool) -> str:
+    """The commands that load and start the unit just written, for its manager: the
+    user's (`--user`) or the system's; a system unit outside systemd's own folder is
+    linked in first."""
+    ctl = "systemctl --user" if user else "systemctl"
+    path = target.resolve()
+    link = "" if user or path.parent == Path("/etc/systemd/system") else (
+        f"{ctl} link {systemd_quote(str(path))} && ")
+    return f"{link}{ctl} daemon-reload && {ctl} enable --now {path.name}"

@@ -5,16 +5,25 @@ ATT_POS_MOCAP (ArduPilot). Our world is z up; `frame` says how its axes lie: "en
 (x east, y north) or "flu" (x forward/north, y left/west). Positions go to NED and the
 body's axes from FLU to FRD. Covariance is unknown: its first element is NaN, as the
 MAVLink spec says. An invalid body sends nothing (an autopilot must not fuse a stale pose).
+
+The link (daemon.publish.mavlink_link) lives on its own thread from start: HEARTBEAT,
+TIMESYNC answers and the origin go out whether or not a pose does, and a link that fails
+(a UART unplugged, a TCP peer gone) is reopened there once a second.
 """
 
 from __future__ import annotations
 
+import logging
 import math
+import threading
+import time
 
 import numpy as np
 
 from daemon.publish.base import Publisher
-from daemon.publish.serial import open_port
+from daemon.publish.mavlink_link import MavlinkLink
+
+log = logging.getLogger("mocapd.publish")
 
 MESSAGES = ("vision_position_estimate", "odometry", "att_pos_mocap")
 WORLD_TO_NED = {
@@ -68,22 +77,45 @@ def mavlink_message(mav, message: str, t_us: int, position, rotation, frame: str
 
 
 class MavlinkPublisher(Publisher):
-    """One body's pose to a flight controller on a serial port (or a pyserial URL)."""
+    """One body's pose to a flight controller on a UART, or over UDP or TCP (mavutil's
+    udpin:/udpout:/tcp: addresses), with the link's HEARTBEAT, TIMESYNC and origin."""
 
     def __init__(self, device: str, body: int, baud: int = 921600, rate_hz: float = 50.0,
                  message: str = "vision_position_estimate", frame: str = "enu",
-                 system_id: int = 1, component_id: int = 197, name: str | None = None) -> None:
+                 system_id: int = 1, component_id: int = 197, name: str | None = None,
+                 origin: tuple[float, float, float] | None = None) -> None:
         super().__init__(rate_hz=rate_hz)
-        from pymavlink.dialects.v20 import common as mavlink2
-
         self.device, self.body, self.baud = device, body, baud
         self.message, self.frame = message, frame
-        self.mav = mavlink2.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
+        self.link = MavlinkLink(device, baud, system_id, component_id, origin)
+        self.mav = self.link.mav
         self.name = name or f"mavlink:{device}"
-        self.port = None
+        self._link_stop = threading.Event()
+        self._link_thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        self._link_thread = threading.Thread(target=self._run_link, name=f"link-{self.name}",
+                                             daemon=True)
+        self._link_thread.start()
+        super().start()
+
+    def stop(self, timeout: float = 2.0) -> None:
+        self._link_stop.set()
+        if self._link_thread is not None:
+            self._link_thread.join(timeout)
+        super().stop(timeout)  # the queued poses, then close
+        self.link.close()
 
     def open(self) -> None:
-        self.port = open_port(self.device, self.baud)
+        """The link thread opens the link; poses only use it."""
+        if not self.link.is_open:
+            raise OSError("link not open")
+
+    def _deliver(self, result) -> None:
+        if not self.link.is_open:  # down: the link thread reports and reopens it
+            self.dropped += 1
+            return
+        super()._deliver(result)
 
     def send(self, result) -> None:
         p = result.poses
@@ -92,11 +124,36 @@ class MavlinkPublisher(Publisher):
             return
         i = hit[0]
         t_us = int(result.t_ns // 1000)
-        msg = mavlink_message(self.mav, self.message, t_us, p.position[i], p.rotation[i],
-                              self.frame)
-        self.port.write(msg.pack(self.mav))
+        self.link.send(mavlink_message(self.mav, self.message, t_us, p.position[i],
+                                       p.rotation[i], self.frame))
 
     def close(self) -> None:
-        if self.port is not None:
-            self.port.close()
-            self.port = None
+        self.link.close()
+
+    def status(self) -> dict:
+        return {**super().status(), **self.link.status()}
+
+    def _run_link(self) -> None:
+        while not self._link_stop.is_set():
+            if not self.link.is_open:  # at most once per retry_s (also after a failed send)
+                if time.monotonic() < self._next_open:
+                    self._link_stop.wait(0.05)
+                    continue
+                try:
+                    self.link.open()
+                    self.connected = True
+                    log.info("%s: open", self.name)
+                except Exception as exc:  # noqa: BLE001 - any failure is retried
+                    self._failed(f"cannot open: {exc}")
+                    self._next_open = time.monotonic() + self.retry_s
+                    continue
+            try:
+                wait = self.link.tick()
+                self.link.poll(min(wait, 0.05))
+            except (OSError, ValueError) as exc:  # a closed port or socket, a dead UART
+                if self._link_stop.is_set():
+                    break
+                self._failed(f"link failed: {exc}")
+                self.link.close()
+                self.connected = False
+                self._next_open = time.monotonic() + self.retry_s
