@@ -8,8 +8,9 @@ this machine, and on Linux it receives multicast only when bound to the wildcard
 for which the namespace routes the multicast range to loopback. Nothing leaves it.
 
 The sample is driven as a person would: `c` (configuration: it asks the bitstream
-version), `s` (data descriptions), in unicast `3` then `4` (bitstream 3.1, then 4.1 again)
-and `q` at the end. It prints "MoCap Frame: N" for each frame it has parsed; an error in
+version), `s` (data descriptions), with `--switch-versions` in unicast `3` then `4`
+(bitstream 3.1, then 4.1 again), and `q` at the end. It prints "MoCap Frame: N" for each
+frame it has parsed; an error in
 parsing prints ERROR/WARNING or a traceback. Counted: frames parsed, frame numbers missing
 between the first and the last (UDP loss), duplicates, error lines.
 
@@ -151,7 +152,7 @@ def run(args) -> dict:
             sample.wait()
             reader.join(5)
         steps = [(2.0, "c"), (4.0, "s")]
-        if not multicast:
+        if args.switch_versions and not multicast:
             steps += [(args.seconds * 0.4, "3"), (args.seconds * 0.7, "4")]
         t0 = time.monotonic()
         for at, key in steps:
@@ -201,6 +202,10 @@ def main(argv=None) -> int:
     ap.add_argument("--echo-ms", type=float, default=100.0)
     ap.add_argument("--json", default=None)
     ap.add_argument("--log", default=None, help="write the sample's output here")
+    ap.add_argument("--switch-versions", action="store_true",
+                    help="unicast: also press 3 (bitstream 3.1) and later 4 (4.1); the "
+                         "sample parses in the new version from the moment it asks, so "
+                         "frames already on their way can be misread")
     args = ap.parse_args(argv)
     if not os.environ.get("SOAK_NATNET_NETNS"):
         return in_namespace(argv)

@@ -102,6 +102,8 @@ class Commands:
             return code(0)  # no analog devices
         if word in LIVE_NOOPS:
             return code(OK)
+        if word in ("editmode", "setplaybacktakename"):
+            return code(FAILED)  # no takes to play back: live only
         if word in ("subscribetodata", "subscribebyid", "subscribeddataonly"):
             return code(self._subscribe(word, args, addr, unicast))
         if word == "setrecordtakename":
