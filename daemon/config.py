@@ -26,7 +26,7 @@ opens. docs/daemon.md documents every key.
                 frame, rate_hz ("auto" or Hz), system_id, component_id,
                 origin = [lat_deg, lon_deg, alt_m]                          (docs/protocol.md)
     [natnet]    interface, command_port, data_port, multicast, group, up_axis, ttl, rate_hz,
-                legacy_unlabeled, marker_sets, markerset_id     (docs/natnet.md)
+                legacy_unlabeled, marker_sets, markerset_id, record_dir   (docs/natnet.md)
     [[vrpn]]    address = "HOST:PORT", rate_hz, udp                           (docs/vrpn.md)
 """
 
@@ -130,6 +130,7 @@ class NatnetOut:
     legacy_unlabeled: bool = False
     marker_sets: bool = True
     markerset_id: int = 65535  # model id of the live marker set's labelled markers
+    record_dir: Path | None = None  # where StartRecording records (None: it answers -1)
 
 
 @dataclass(frozen=True)
@@ -328,7 +329,7 @@ def parse_config(data: dict, path: Path | None = None, base: Path | None = None)
         changes["replay"] = ReplayIn(base / _string(w, t, "path", "replay."),
                                      _bool(w, t, "realtime", "replay.", True))
     if "natnet" in data:
-        changes["natnet"] = _natnet(w, _table(w, data, "natnet"), "natnet.")
+        changes["natnet"] = _natnet(w, _table(w, data, "natnet"), "natnet.", base)
         taken = {b.id for b in changes["bodies"]}
         if "markerset" in changes and changes["natnet"].markerset_id in taken:
             w.fail("natnet.markerset_id", f"{changes['natnet'].markerset_id} is a rigid "
@@ -517,7 +518,7 @@ def mavlink_device(text: str) -> str:
     return text
 
 
-def _natnet(w, t, p) -> NatnetOut:
+def _natnet(w, t, p, base: Path | None = None) -> NatnetOut:
     d = NatnetOut()
     _check_keys(w, t, {f.name for f in fields(NatnetOut)}, p)
     group = _string(w, t, "group", p, d.group)
@@ -535,7 +536,9 @@ def _natnet(w, t, p) -> NatnetOut:
                      _number(w, t, "rate_hz", p, d.rate_hz, lo=0),
                      _bool(w, t, "legacy_unlabeled", p, d.legacy_unlabeled),
                      _bool(w, t, "marker_sets", p, d.marker_sets),
-                     _number(w, t, "markerset_id", p, d.markerset_id, int, 1, 65535))
+                     _number(w, t, "markerset_id", p, d.markerset_id, int, 1, 65535),
+                     (base or Path.cwd()) / _string(w, t, "record_dir", p)
+                     if "record_dir" in t else None)
 
 
 def _ipv4(text: str) -> bool:

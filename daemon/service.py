@@ -196,9 +196,10 @@ def _paced(cfg: Config) -> bool:
     return cfg.replay.realtime if cfg.replay is not None else True
 
 
-def make_publishers(config: Config, bodies=(), markerset=None) -> list:
+def make_publishers(config: Config, bodies=(), markerset=None, control=None) -> list:
     """The configured outputs; `bodies` (BodyDef) name the trackers NatNet and VRPN serve,
-    `markerset` (the live MarkerSet, if any) the labelled markers NatNet describes."""
+    `markerset` (the live MarkerSet, if any) the labelled markers NatNet describes,
+    `control` (Daemon.handle) is how NatNet's StartRecording records."""
     pubs = []
     fps = config.sim.fps if config.sim is not None else config.fps
     for u in config.udp:
@@ -221,7 +222,8 @@ def make_publishers(config: Config, bodies=(), markerset=None) -> list:
                                     marker_sets=n.marker_sets,
                                     markerset=None if markerset is None else
                                     (markerset.name, list(markerset.labels)),
-                                    markerset_id=n.markerset_id))
+                                    markerset_id=n.markerset_id, fps=fps,
+                                    record_dir=n.record_dir, control=control))
     for v in config.vrpn:
         pubs.append(VrpnPublisher(bodies, v.host, v.port, v.rate_hz, v.udp,
                                   name=f"vrpn:{v.host}:{v.port}"))
@@ -300,7 +302,7 @@ class Daemon:
                             else None)
         hooks = [h for h in (self.evaluator, self.label_score) if h is not None]
         self.pipeline = Pipeline(self.rig, cfg.tracker, cfg.rigid, bodies,
-                                 make_publishers(cfg, bodies, self._markerset()),
+                                 make_publishers(cfg, bodies, self._markerset(), self.handle),
                                  hooks=hooks, labeller=self.labelling)
         self._warm_up()
         runtime = cfg.runtime_dir or default_runtime_dir()
@@ -523,7 +525,8 @@ class Daemon:
         bodies = self._bodies(new)
         self._warn_alike(bodies)
         try:
-            publishers = make_publishers(new, bodies, labelling.ms if labelling else None)
+            publishers = make_publishers(new, bodies, labelling.ms if labelling else None,
+                                         self.handle)
         except UserError as exc:
             log.error("reload failed, keeping the running configuration: %s", exc)
             if labelling is not self.labelling and labelling is not None:

@@ -236,12 +236,17 @@ def test_command_port_requests():
         return pub.handle(struct.pack("<HH", nn.NAT_REQUEST, len(raw)) + raw, addr)
 
     assert command("Bitstream,4.1") == nn.message(nn.NAT_RESPONSE, struct.pack("<i", 0))
-    assert command("Bitstream,4.2") == nn.message(nn.NAT_RESPONSE, struct.pack("<i", -1))
-    assert command("Bitstream") == nn.message(nn.NAT_RESPONSE, b"Bitstream,4.1\0")
+    # a multicast listener may take 4.2 (the same frames, newer descriptions), not 3.1
+    assert command("Bitstream,4.2") == nn.message(nn.NAT_RESPONSE, struct.pack("<i", 0))
+    assert command("Bitstream,3.1") == nn.message(nn.NAT_RESPONSE, struct.pack("<i", -1))
+    assert command("Bitstream,4.0") == nn.message(nn.NAT_RESPONSE, struct.pack("<i", -1))
+    # the query's text has no NUL: the SDK's PacketClient reads to the datagram's end
+    assert command("Bitstream") == nn.message(nn.NAT_RESPONSE, b"Bitstream,4.2")
     # the NatNet SDK's connect carries "Ping" and the version it wants in 270 bytes
     sdk_connect = b"Ping".ljust(265, b"\0") + bytes([4, 1, 0, 0]) + b"\0\0"
     assert pub.handle(struct.pack("<HH", nn.NAT_CONNECT, 271) + sdk_connect,
                       addr)[:2] == b"\x01\x00"
+    assert command("Bitstream") == nn.message(nn.NAT_RESPONSE, b"Bitstream,4.1")  # reset
     assert command("TimelinePlay") == nn.message(nn.NAT_RESPONSE, struct.pack("<i", 0))
     assert command("SelfDestruct")[:2] == struct.pack("<H", nn.NAT_UNRECOGNIZED_REQUEST)
     assert pub.handle(struct.pack("<HH", 77, 0), addr)[:2] == struct.pack("<H", 100)

@@ -111,7 +111,14 @@ class MavlinkLink:
 
     def send(self, msg) -> None:
         with self._lock:
-            self.mav.send(msg)
+            seq = self.mav.seq
+            try:
+                self.mav.send(msg)
+            except Exception:
+                # a write that failed may have put part of the message on the wire: its
+                # number is spent, so the autopilot counts a loss, never a repeat
+                self.mav.seq = (seq + 1) % 256
+                raise
 
     # ---- reading and the periodic messages -------------------------------------------------
 

@@ -1,30 +1,29 @@
-"""NatNet 4.1 server: what OptiTrack's Motive streams, so NatNet clients read mocapd unchanged.
+"""NatNet server: what OptiTrack's Motive streams and answers, so NatNet clients read mocapd.
 
-Why 4.1 and not the newest: clients written against 4.1 (libmotioncapture, the `natnet`
-package, lab scripts built on NatNet SDK 4.1's PacketClient) cannot parse 4.2's rigid-body
-descriptions (4.2 inserted a quaternion), while every newer client still reads 4.1.
+Why 4.1 by default and others on request: clients written against 4.1 (libmotioncapture,
+the `natnet` package, lab scripts built on NatNet SDK 4.1's PacketClient) cannot parse
+4.2's rigid-body descriptions, while every newer client reads 4.1 and can ask for what it
+wants ("Bitstream,4.2"). The server info announces 4.1, multicast carries 4.1; a unicast
+client that asks gets its own version (3.0, 3.1, 4.1, 4.2 and later: natnet_wire.py).
 
-The protocol, as the SDK's packet parsers read it (all little-endian; every message starts
-with uint16 message id and uint16 payload size):
+The command port (UDP, default 1510): NAT_CONNECT and NAT_DISCOVERY get NAT_SERVERINFO
+(application name, versions, the clock frequency of the tick stamps, the data port,
+multicast or not, the group); NAT_REQUEST_MODELDEF gets NAT_MODELDEF in the sender's
+version; NAT_ECHOREQUEST gets NAT_ECHORESPONSE (its stamp back and our clock on arrival:
+what NatNet clients' clock synchronisation, and so SecondsSinceHostTimestamp, rests on);
+NAT_KEEPALIVE subscribes the sender to unicast frames for `keepalive_timeout_s`;
+NAT_REQUEST_FRAMEOFDATA gets the latest frame; NAT_DISCONNECT (and the "Disconnect"
+command) unsubscribes; NAT_REQUEST carries Motive's command strings
+(natnet_commands.py: Bitstream, FrameRate, subscriptions, recording, ...).
 
-- command port (UDP, default 1510): a client sends NAT_CONNECT and gets NAT_SERVERINFO
-  (application name, versions, the clock frequency of the frame's tick stamps, the data
-  port, whether data is multicast, the group); NAT_REQUEST_MODELDEF gets NAT_MODELDEF (a
-  marker set per body and "all", then the rigid bodies: name, id, parent, offset, marker
-  positions; with a marker set configured, one more marker set named after it with its
-  markers by name, before "all"); NAT_KEEPALIVE subscribes the
-  sending address to unicast frames for `keepalive_timeout_s`; NAT_REQUEST_FRAMEOFDATA gets
-  the latest frame; NAT_DISCONNECT unsubscribes.
-- frames (NAT_FRAMEOFDATA) go to the multicast group on the data port (default
-  239.255.42.99:1511) and to every subscribed unicast address. With multicast off they
-  also go to the data port of each connected client's address, where libmotioncapture
-  listens without sending keep-alives (dropped when that port refuses them). Each carries
-  the frame number, the marker sets, rigid bodies (id, position, quaternion x y z w, mean
-  marker error, tracking-valid flag), labelled markers (a body's markers as (body id << 16
-  | member); a marker the marker set named as (markerset_id << 16 | its index in the set
-  + 1); the others flagged unlabelled with their track id), a timestamp and three
-  clock ticks (mid-exposure, data received, transmit; nanoseconds of the monotonic clock,
-  frequency 1e9) from which clients compute camera-to-client latency.
+Frames (NAT_FRAMEOFDATA) go to the multicast group on the data port (default
+239.255.42.99:1511) and to every keep-alive subscriber, each in its version and with what
+it subscribed to. With multicast off they also go to the data port of each connected
+client's address, where libmotioncapture listens without sending keep-alives (dropped
+when that port refuses them). Each carries the frame number, marker sets, rigid bodies,
+labelled markers, the SMPTE timecode of the capture time (UTC time of day), the three
+clock ticks (mid-exposure, data received, transmit; monotonic ns, frequency 1e9) and from
+4.1 the precision timestamp (UTC seconds and nanoseconds of the capture).
 
 Bodies that are not tracked are sent with the valid flag cleared and a zero pose: clients
 (libmotioncapture, the NatNet SDK) then drop them rather than reuse a stale pose.
@@ -45,282 +44,51 @@ import struct
 import threading
 import time
 
-import numpy as np
-
 from daemon.publish.base import Publisher
+from daemon.publish.natnet_commands import Commands, code
+from daemon.publish.natnet_wire import (
+    DEFAULT_VERSION,
+    EVERYTHING,
+    MARKERSET_ID,
+    MAX_PAYLOAD,
+    NAT_CONNECT,
+    NAT_DISCONNECT,
+    NAT_DISCOVERY,
+    NAT_ECHOREQUEST,
+    NAT_ECHORESPONSE,
+    NAT_FRAMEOFDATA,
+    NAT_KEEPALIVE,
+    NAT_MODELDEF,
+    NAT_REQUEST,
+    NAT_REQUEST_FRAMEOFDATA,
+    NAT_REQUEST_MODELDEF,
+    NAT_RESPONSE,
+    NAT_SERVERINFO,
+    NAT_UNRECOGNIZED_REQUEST,
+    NATNET_VERSION,
+    Y_UP,
+    MarkerModel,
+    View,
+    axes,
+    echo_response,
+    frame_payload,
+    message,
+    model_definitions,
+    precision_timestamp,
+    server_info,
+    timecode,
+)
+
+__all__ = ["NatNetPublisher", "MARKERSET_ID", "MAX_PAYLOAD", "NAT_CONNECT", "NAT_DISCONNECT",
+           "NAT_DISCOVERY", "NAT_ECHOREQUEST", "NAT_ECHORESPONSE", "NAT_FRAMEOFDATA",
+           "NAT_KEEPALIVE", "NAT_MODELDEF", "NAT_REQUEST", "NAT_REQUEST_FRAMEOFDATA",
+           "NAT_REQUEST_MODELDEF", "NAT_RESPONSE", "NAT_SERVERINFO",
+           "NAT_UNRECOGNIZED_REQUEST", "Y_UP", "MarkerModel", "frame_payload", "message",
+           "model_definitions", "server_info"]
 
 log = logging.getLogger("mocapd.publish")
 
-NAT_CONNECT = 0
-NAT_SERVERINFO = 1
-NAT_REQUEST = 2
-NAT_RESPONSE = 3
-NAT_REQUEST_MODELDEF = 4
-NAT_MODELDEF = 5
-NAT_REQUEST_FRAMEOFDATA = 6
-NAT_FRAMEOFDATA = 7
-NAT_MESSAGESTRING = 8
-NAT_DISCONNECT = 9
-NAT_KEEPALIVE = 10
-NAT_UNRECOGNIZED_REQUEST = 100
-
-NATNET_VERSION = (4, 1, 0, 0)
-SERVER_VERSION = (1, 0, 0, 0)
-APP_NAME = b"mocapd"
-CLOCK_HZ = 1_000_000_000  # the tick stamps are time.monotonic_ns()
-MAX_PAYLOAD = 65535  # the header's size field is a uint16
 DIRECT_GRACE_S = 3.0  # a keep-alive-less unicast client has this long to open its data port
-
-# marker parameter bits (NatNet's sMarker.params)
-MARKER_OCCLUDED = 0x01
-MARKER_PC_SOLVED = 0x02
-MARKER_HAS_MODEL = 0x08
-MARKER_UNLABELED = 0x10
-
-MARKERSET_ID = 65535  # default model id of the live marker set's labelled markers
-
-# z-up (ours) -> Motive's y-up: (x, y, z) -> (x, z, -y)
-Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
-
-# commands Motive answers that mean nothing here (no timeline, no recording): acknowledged
-_NOOP_COMMANDS = ("timelineplay", "timelinestop", "setplaybackcurrentframe", "subscribetodata",
-                  "subscribebyid", "subscribeddataonly", "startrecording", "stoprecording",
-                  "livemode", "editmode", "setrecordtakename", "setcurrentsession")
-
-
-def message(msg_id: int, payload: bytes) -> bytes:
-    """One NatNet message: id, payload size, payload."""
-    if len(payload) > MAX_PAYLOAD:
-        raise ValueError(f"NatNet payload of {len(payload)} bytes exceeds {MAX_PAYLOAD}")
-    return struct.pack("<HH", msg_id, len(payload)) + payload
-
-
-def server_info(data_port: int, multicast: bool, group: str) -> bytes:
-    """NAT_SERVERINFO: sServerDescription as the SDK lays it out (279 bytes)."""
-    payload = (APP_NAME.ljust(256, b"\0") + bytes(SERVER_VERSION) + bytes(NATNET_VERSION)
-               + struct.pack("<QHB", CLOCK_HZ, data_port, 1 if multicast else 0)
-               + socket.inet_aton(group))
-    return message(NAT_SERVERINFO, payload)
-
-
-_AXES = {"z": np.eye(3), "y": Y_UP}
-
-
-def axes(up_axis: str) -> np.ndarray:
-    if up_axis not in _AXES:
-        raise ValueError(f"up_axis must be 'z' or 'y', got {up_axis!r}")
-    return _AXES[up_axis]
-
-
-def rotate_quaternion(q: np.ndarray, M: np.ndarray) -> np.ndarray:
-    """Quaternions (x, y, z, w) of M R M^T: the rotation axis turns with M, angle unchanged."""
-    out = np.empty_like(q)
-    out[..., :3] = q[..., :3] @ M.T
-    out[..., 3] = q[..., 3]
-    return out
-
-
-def marker_set_names(bodies, markerset=None) -> list[tuple[str, list[str]]]:
-    """Motive's marker sets: one per rigid body (its markers, `Marker1`...), the live
-    marker set (name, marker names) if one is configured, and `all`."""
-    sets = [(b.name, [f"Marker{j + 1}" for j in range(len(b.markers))]) for b in bodies]
-    if markerset is not None:
-        sets.append((markerset[0], list(markerset[1])))
-    if sets:
-        sets.append(("all", [f"{name}_{m}" for name, ms in sets for m in ms]))
-    return sets
-
-
-def model_definitions(bodies, up_axis: str = "z", marker_sets: bool = True,
-                      markerset=None) -> bytes:
-    """NAT_MODELDEF: the marker sets (unless turned off; `markerset` (name, marker names)
-    adds the live marker set's), then the rigid bodies (BodyDef: name, id, markers in the
-    body frame).
-
-    Offsets are zero and the markers are given relative to the body's pivot, because
-    clients (libmotioncapture) add the offset to every reported position."""
-    M = axes(up_axis)
-    sets = marker_set_names(bodies, markerset) if marker_sets else []
-    parts = [struct.pack("<i", len(sets) + len(bodies))]
-    for name, names in sets:
-        desc = (name.encode("utf-8") + b"\0" + struct.pack("<i", len(names))
-                + b"".join(m.encode("utf-8") + b"\0" for m in names))
-        parts.append(struct.pack("<ii", 0, len(desc)) + desc)  # type 0: marker set
-    for b in bodies:
-        markers = (np.asarray(b.markers, float) - np.asarray(b.pivot, float)) @ M.T
-        k = len(markers)
-        desc = (b.name.encode("utf-8") + b"\0"
-                + struct.pack("<iifffi", int(b.id), -1, 0.0, 0.0, 0.0, k)
-                + markers.astype("<f4").tobytes()
-                + np.zeros(k, "<i4").tobytes()
-                + b"".join(f"Marker{j + 1}".encode() + b"\0" for j in range(k)))
-        parts.append(struct.pack("<ii", 1, len(desc)) + desc)  # type 1: rigid body
-    return message(NAT_MODELDEF, b"".join(parts))
-
-
-def _block(count: int, data: bytes) -> bytes:
-    """A 4.1 data block: element count, byte size, the elements."""
-    return struct.pack("<ii", count, len(data)) + data
-
-
-def _records(*columns) -> bytes:
-    """Packed records (no padding, as NatNet lays them out) from per-field columns."""
-    n = len(columns[0])
-    return np.concatenate([np.ascontiguousarray(c).reshape(n, -1).view(np.uint8)
-                           for c in columns], axis=1).tobytes()
-
-
-_IDENTITY_Q = np.array([0.0, 0.0, 0.0, 1.0])
-_FIXED_BYTES = 4 + 8 * 8 + 54  # frame number, eight block headers, the suffix
-_LABELLED = MARKER_PC_SOLVED | MARKER_HAS_MODEL
-_UNLABELLED = MARKER_PC_SOLVED | MARKER_UNLABELED
-
-
-class MarkerModel:
-    """The bodies' markers relative to their pivots, padded to (B, K, 3), for the frames'
-    marker sets; and the live marker set's name and size, if one is configured."""
-
-    def __init__(self, bodies, markerset=None) -> None:
-        self.set_name = None if markerset is None else markerset[0].encode("utf-8") + b"\0"
-        self.set_size = 0 if markerset is None else len(markerset[1])
-        self.ids = np.array([int(b.id) for b in bodies], np.int64)
-        self.names = [b.name.encode("utf-8") + b"\0" for b in bodies]
-        self.counts = np.array([len(b.markers) for b in bodies], np.int64)
-        k = int(self.counts.max(initial=0))
-        self.local = np.zeros((len(bodies), k, 3))
-        for i, b in enumerate(bodies):
-            self.local[i, :len(b.markers)] = np.asarray(b.markers, float) - b.pivot
-
-
-def marker_sets_block(result, model: MarkerModel, M: np.ndarray | None) -> tuple[int, bytes]:
-    """The frame's marker sets: each body's markers where it is tracked (the track's
-    position when seen, else where the fitted pose puts it), zeros when it is not; the
-    live marker set's markers where labelled this frame, zeros where not; then `all`.
-    Nothing when the frame's bodies are not the model's."""
-    p = result.poses
-    if (not len(model.ids) and model.set_name is None) or not np.array_equal(
-            np.asarray(p.ids), model.ids):
-        return 0, b""
-    valid = np.asarray(p.valid, bool)
-    k = model.local.shape[1]
-    xyz = np.einsum("bij,bkj->bki", np.asarray(p.rotation, float), model.local)
-    xyz += np.asarray(p.position, float)[:, None, :]
-    tracks = np.asarray(p.tracks)[:, :k]
-    tr = result.tracks
-    ids = np.asarray(tr.ids)
-    if len(ids) and (tracks >= 0).any():
-        at = np.minimum(np.searchsorted(ids, tracks), len(ids) - 1)  # track ids are sorted
-        hit = (tracks >= 0) & (ids[at] == tracks) & np.asarray(tr.seen, bool)[at]
-        xyz[hit] = np.asarray(tr.xyz)[at[hit]]
-    xyz[~valid] = 0.0
-    if M is not None:
-        xyz = xyz @ M.T
-    xyz = np.nan_to_num(xyz).astype("<f4")
-    parts = [name + struct.pack("<i", c) + xyz[i, :c].tobytes()
-             for i, (name, c) in enumerate(zip(model.names, model.counts, strict=True))]
-    chunks = [xyz[i, :c] for i, c in enumerate(model.counts)]
-    if model.set_name is not None:
-        named = np.zeros((model.set_size, 3))
-        lab = getattr(result, "labelled", None)
-        if lab is not None and len(lab.index):
-            ok = np.asarray(lab.index) < model.set_size  # a set swapped by a reload
-            named[np.asarray(lab.index)[ok]] = np.asarray(lab.xyz)[ok]
-        if M is not None:
-            named = named @ M.T
-        named = named.astype("<f4")
-        parts.append(model.set_name + struct.pack("<i", model.set_size) + named.tobytes())
-        chunks.append(named)
-    everything = np.concatenate(chunks).astype("<f4")
-    parts.append(b"all\0" + struct.pack("<i", len(everything)) + everything.tobytes())
-    return len(parts), b"".join(parts)
-
-
-def frame_payload(result, up_axis: str = "z", legacy_unlabeled: bool = False,
-                  t0_ns: int = 0, transmit_ns: int | None = None,
-                  models_changed: bool = False, marker_model: MarkerModel | None = None,
-                  markerset_id: int = MARKERSET_ID) -> bytes:
-    """The NAT_FRAMEOFDATA payload for a FrameResult (daemon.pipeline); with a
-    MarkerModel, the bodies' (and the live marker set's) marker sets too. Markers the
-    live marker set named (result.labelled) are labelled (markerset_id << 16 | index + 1)
-    unless a body holds them."""
-    M = axes(up_axis)
-    turn = up_axis != "z"
-    p = result.poses
-    valid = np.asarray(p.valid, bool)
-    n = len(valid)
-    pos, q = np.asarray(p.position, float), np.asarray(p.quaternion, float)
-    if turn:
-        pos, q = pos @ M.T, rotate_quaternion(q, M)
-    # rigid bodies, 38 bytes: id, x y z, qx qy qz qw, mean error, params (bit 0: valid);
-    # an invalid body keeps a zero pose (its NaNs never reach the wire)
-    rigid = _records(np.asarray(p.ids).astype("<i4"),
-                     np.where(valid[:, None], pos, 0.0).astype("<f4"),
-                     np.where(valid[:, None], q, _IDENTITY_Q).astype("<f4"),
-                     np.where(valid, p.error_m, 0.0).astype("<f4"),
-                     valid.astype("<i2")) if n else b""
-
-    # labelled markers, 26 bytes: id, x y z, size, params, residual. The seen tracks; those
-    # a body holds are (body id << 16 | member), the others unlabelled with their track id
-    tr = result.tracks
-    seen = np.asarray(tr.seen, bool)
-    ids, xyz = np.asarray(tr.ids)[seen], np.asarray(tr.xyz)[seen]
-    if turn:
-        xyz = xyz @ M.T
-    m = len(ids)
-    labels = ids & 0xFFFF
-    is_label = np.zeros(m, bool)
-    tracks = np.asarray(p.tracks)
-    held = tracks >= 0
-    if m and held.any():
-        member = (np.asarray(p.ids, np.int64)[:, None] << 16) | np.arange(1, held.shape[1] + 1)
-        tid = tracks[held]
-        at = np.minimum(np.searchsorted(ids, tid), m - 1)  # track ids are sorted
-        hit = ids[at] == tid
-        labels[at[hit]] = member[held][hit]
-        is_label[at[hit]] = True
-    lab = getattr(result, "labelled", None)
-    if m and lab is not None and len(lab.index):
-        tid = np.asarray(lab.track)
-        at = np.minimum(np.searchsorted(ids, tid), m - 1)
-        hit = (ids[at] == tid) & ~is_label[at]
-        labels[at[hit]] = (int(markerset_id) << 16) | (np.asarray(lab.index)[hit] + 1)
-        is_label[at[hit]] = True
-    legacy = xyz[~is_label].astype("<f4") if legacy_unlabeled else np.zeros((0, 3), "<f4")
-    n_sets, sets = (marker_sets_block(result, marker_model, M if turn else None)
-                    if marker_model is not None else (0, b""))
-    # the size field is 16 bits: past ~2000 markers, send the bodies' markers first and as
-    # many others as fit (the bodies and marker sets always go)
-    fixed = _FIXED_BYTES + 38 * n + len(sets)
-    legacy = legacy[:max(0, (MAX_PAYLOAD - fixed) // 2 // 12)]
-    fit = max(0, (MAX_PAYLOAD - fixed - 12 * len(legacy)) // 26)
-    if m > fit:
-        keep = np.sort(np.argsort(~is_label, kind="stable")[:fit])
-        labels, xyz, is_label, m = labels[keep], xyz[keep], is_label[keep], fit
-    zeros = np.zeros(m, "<f4")
-    labelled = _records(labels.astype("<u4"), xyz.astype("<f4"), zeros,
-                        np.where(is_label, _LABELLED, _UNLABELLED).astype("<i2"),
-                        zeros) if m else b""
-
-    t_ns = int(result.t_ns)
-    # timecode, subframe, timestamp (s), the three ticks, the precision (PTP) timestamp
-    # seconds and fraction that 4.1 added (0: none), params (bit 1: models changed), and
-    # the end-of-data tag
-    suffix = struct.pack("<IIdQQQIIhi", 0, 0, (t_ns - t0_ns) * 1e-9, t_ns,
-                         int(result.arrival_ns),
-                         int(transmit_ns if transmit_ns is not None else time.monotonic_ns()),
-                         0, 0, 0x02 if models_changed else 0, 0)
-    head = struct.pack("<i", int(result.frame) & 0x7FFFFFFF)
-    body = (head
-            + _block(n_sets, sets)
-            + _block(len(legacy), legacy.tobytes())  # legacy unlabelled markers
-            + _block(n, rigid)
-            + _block(0, b"")  # skeletons
-            + _block(0, b"")  # assets (4.1)
-            + _block(m, labelled)
-            + _block(0, b"")  # force plates
-            + _block(0, b"")  # devices
-            + suffix)
-    return body
 
 
 class NatNetPublisher(Publisher):
@@ -339,9 +107,12 @@ class NatNetPublisher(Publisher):
                  rate_hz: float = 0.0, legacy_unlabeled: bool = False,
                  keepalive_timeout_s: float = 10.0, name: str = "natnet",
                  marker_sets: bool = True, markerset=None,
-                 markerset_id: int = MARKERSET_ID) -> None:
+                 markerset_id: int = MARKERSET_ID, fps: float = 240.0,
+                 record_dir=None, control=None) -> None:
         """`markerset`: (name, marker names) of the live marker set, if one is configured;
-        its labelled markers carry model id `markerset_id`."""
+        its labelled markers carry model id `markerset_id`. `fps`: the cameras' rate
+        (FrameRate, the timecode's subframes); `record_dir` and `control` (the daemon's
+        control handler): where and how StartRecording records."""
         # if the port is taken (another program; a server of another process), retry soon
         super().__init__(rate_hz=rate_hz, retry_s=0.1)
         axes(up_axis)
@@ -365,9 +136,15 @@ class NatNetPublisher(Publisher):
         self._cmd_thread: threading.Thread | None = None
         self._cmd_stop = threading.Event()
         self.markerset, self.markerset_id = markerset, markerset_id
-        self._modeldef = model_definitions(self.bodies, up_axis, marker_sets, markerset)
+        self.fps = float(fps)
+        self.marker_sets = marker_sets
+        self._modeldefs: dict[tuple[int, int], bytes] = {}
         self._marker_model = MarkerModel(self.bodies, markerset) if marker_sets else None
         self._info = server_info(data_port, multicast, group)
+        self.commands = Commands(fps, self.bodies, record_dir, control)
+        # the capture clock (monotonic) to UTC, for the timecode and precision timestamp
+        self._wall_offset_ns = time.time_ns() - time.monotonic_ns()
+        self.echoes = 0
 
     # ---- lifecycle: the command port is open from start, not from the first frame ---------
 
@@ -471,9 +248,24 @@ class NatNetPublisher(Publisher):
         first = self.t0_ns is None
         if first:
             self.t0_ns = int(result.t_ns)
-        data = message(NAT_FRAMEOFDATA, frame_payload(
-            result, self.up_axis, self.legacy_unlabeled, self.t0_ns, models_changed=first,
-            marker_model=self._marker_model, markerset_id=self.markerset_id))
+        wall_ns = int(result.t_ns) + self._wall_offset_ns
+        common = dict(up_axis=self.up_axis, legacy_unlabeled=self.legacy_unlabeled,
+                      t0_ns=self.t0_ns, models_changed=first,
+                      marker_model=self._marker_model, markerset_id=self.markerset_id,
+                      timecode=timecode(wall_ns, self.fps),
+                      precision=precision_timestamp(wall_ns),
+                      recording=self.commands.recording is not None)
+        frames: dict[tuple, bytes] = {}
+
+        def frame(version=DEFAULT_VERSION, view: View = EVERYTHING) -> bytes:
+            """This frame in a version and view, encoded once for all who share them."""
+            key = (version, view)
+            if key not in frames:
+                frames[key] = message(NAT_FRAMEOFDATA, frame_payload(
+                    result, version=version, view=view, **common))
+            return frames[key]
+
+        data = frame()
         self.latest = data
         if self.multicast:
             try:
@@ -489,11 +281,13 @@ class NatNetPublisher(Publisher):
                     if now - t > self.keepalive_timeout_s]
             for a in gone:
                 del self.subscribers[a]
+                self.commands.forget(a)
             targets = list(self.subscribers)
             direct = list(self.direct.items())
         for addr in targets:
             try:
-                cmd.sendto(data, addr)
+                cmd.sendto(frame(self.commands.version(addr), self.commands.view(addr)),
+                           addr)
             except OSError:  # a client gone (ICMP refused): it expires with its keep-alives
                 pass
         for ip, (sock, since) in direct:
@@ -504,6 +298,13 @@ class NatNetPublisher(Publisher):
             except OSError:  # refused: nobody listens there (yet: it binds after connecting)
                 if now - since > self.direct_grace_s:
                     self._forget(ip)
+
+    def model_definitions(self, version=DEFAULT_VERSION) -> bytes:
+        """NAT_MODELDEF in a version, built once per version asked for."""
+        if version not in self._modeldefs:
+            self._modeldefs[version] = model_definitions(
+                self.bodies, self.up_axis, self.marker_sets, self.markerset, version)
+        return self._modeldefs[version]
 
     # ---- the command port ------------------------------------------------------------------
 
@@ -535,29 +336,46 @@ class NatNetPublisher(Publisher):
             return None
         msg_id, size = struct.unpack_from("<HH", data)
         self.requests += 1
+        if msg_id == NAT_ECHOREQUEST:
+            self.echoes += 1
+            return echo_response(data, time.monotonic_ns())
         if msg_id == NAT_CONNECT:  # a new session: no frames until its keep-alives
             with self._lock:
                 self.subscribers.pop(addr, None)
+                self.commands.forget(addr)
             if not self.multicast:
                 self._direct(addr[0])
+            return self._info
+        if msg_id == NAT_DISCOVERY:  # a client looking for servers (by broadcast)
             return self._info
         if msg_id == NAT_KEEPALIVE:
             with self._lock:
                 self.subscribers[addr] = time.monotonic()
             return None
         if msg_id == NAT_REQUEST_MODELDEF:
-            return self._modeldef
+            return self.model_definitions(self.commands.version(addr))
         if msg_id == NAT_REQUEST_FRAMEOFDATA:
             return self.latest
         if msg_id == NAT_DISCONNECT:
-            with self._lock:
-                self.subscribers.pop(addr, None)
-            self._forget(addr[0])
+            self._disconnect(addr)
             return None
         if msg_id == NAT_REQUEST:
             text = data[4:4 + size].split(b"\0", 1)[0].decode("utf-8", "replace")
-            return self._command(text)
+            if text.strip().lower() == "disconnect":
+                self._disconnect(addr)
+                return code(0)
+            with self._lock:
+                unicast = (not self.multicast or addr in self.subscribers
+                           or addr[0] in self.direct)
+            reply = self.commands.answer(text, addr, unicast)
+            return reply if reply is not None else message(NAT_UNRECOGNIZED_REQUEST, b"")
         return message(NAT_UNRECOGNIZED_REQUEST, b"")
+
+    def _disconnect(self, addr) -> None:
+        with self._lock:
+            self.subscribers.pop(addr, None)
+            self.commands.forget(addr)
+        self._forget(addr[0])
 
     def _direct(self, ip: str) -> None:
         """Unicast without keep-alives, as libmotioncapture does it: after connecting it
@@ -582,16 +400,3 @@ class NatNetPublisher(Publisher):
             entry = self.direct.pop(ip, None)
         if entry is not None:
             entry[0].close()
-
-    def _command(self, text: str) -> bytes:
-        """NAT_RESPONSE to a command string: 0 for what we support or ignore, -1 otherwise."""
-        word, _, arg = text.partition(",")
-        word = word.strip().lower()
-        if word == "bitstream":
-            if not arg.strip():  # a query: the SDK clients read the version from the text
-                return message(NAT_RESPONSE, b"Bitstream,%d.%d\0" % NATNET_VERSION[:2])
-            ok = arg.strip() in ("4.1", "4.1.0", "4.1.0.0")
-            return message(NAT_RESPONSE, struct.pack("<i", 0 if ok else -1))
-        if word in _NOOP_COMMANDS:
-            return message(NAT_RESPONSE, struct.pack("<i", 0))
-        return message(NAT_UNRECOGNIZED_REQUEST, b"")
