@@ -194,7 +194,7 @@ def test_camera_dropout_and_a_consumer_that_stops_reading(tmp_path):
         pass
     cfg = tmp_path / "mocapd.toml"
     cfg.write_text(_sim_toml(drop_camera="cam2", drop_from_s=0.3, drop_for_s=0.4)
-                   + f'[[serial]]\ndevice = "{os.ttyname(ser_s)}"\nrate_hz = 0\n')
+                   + f'[[serial]]\ndevice = "{os.ttyname(ser_s)}"\nrate_hz = 0\nbaud = 230400\n')
     got = []
     proc = _start(["--config", cfg, "--udp", f"127.0.0.1:{rx.getsockname()[1]}",
                    "--duration", 1.6, "--runtime-dir", tmp_path / "rt",
