@@ -189,8 +189,8 @@ def estimate_residual(rig: Rig, obs: Observations, max_blobs: int = 3000,
     trusted: two rays always meet), and the RMS of their blobs' reprojection errors. The
     first pass has wide gates, so chance matches are among its points: it takes the robust
     RMS (from the median). Each later pass matches with the gates the previous figure
-    gives, which keep out chance matches and cut off only 0.1 % of true blobs, and takes
-    the plain RMS: the median-based figure assumes a 2D normal error, and a rig's
+    gives (k x residual, without the defaults' floor), which keep out chance matches and
+    cut off only 0.1 % of true blobs, and takes the plain RMS: the median-based figure assumes a 2D normal error, and a rig's
     systematic residual is not quite one (measured: 10-17 % low on a four-camera rig).
     """
     frames, per_frame = np.unique(obs.frame, return_counts=True)
@@ -208,8 +208,11 @@ def estimate_residual(rig: Rig, obs: Observations, max_blobs: int = 3000,
             return None
         error = point_residuals(rig, sub, points.rows[three], points.xyz[three])
         residual = _robust_rms(error) if k == 0 else float(np.sqrt(np.mean(error**2)))
-        cfg = correspondence_config(residual, CorrespondenceConfig(min_cameras=3,
-                                                                   two_camera=False))
+        # the gates this residual gives, without the defaults' floor: on a rig far better
+        # than the defaults assume, a 2 px gate would let chance blobs into the figure
+        cfg = CorrespondenceConfig(epipolar_px=K_EPIPOLAR * residual,
+                                   max_reproj_px=K_REPROJ * residual, min_cameras=3,
+                                   two_camera=False)
     return Residual(residual, "estimated from data",
                     f"{n_points} points seen by >= 3 cameras in the first {len(frames)} frames")
 
