@@ -31,7 +31,8 @@ match_frames) with
 Median and worst over seeds; time ratios against the fixed gates on the same data.
 
     python benchmarks/bench_triangulate.py [--part both] [--frames 200] [--repeats 3]
-                                           [--seeds 5] [--gate-frames 100] [--json out.json]
+                                           [--seeds 5] [--gate-frames 100] [--residuals 1,0.1]
+                                           [--json out.json]
 """
 
 from __future__ import annotations
@@ -175,7 +176,14 @@ def speed_part(args) -> dict:
     return {"frames": args.frames, "runs": figures, "targets": targets}
 
 
-GATE_LEVELS = ((1.0, 0.3), (0.1, 0.05))  # (residual px the calibration leaves, noise px)
+GATE_RESIDUALS_PX = (1.0, 0.1)  # what the calibration leaves
+
+
+def noise_for(residual_px: float) -> float:
+    """Centroid noise of a level: 0.3 px (webcam blobs) where the calibration's error
+    dominates, 0.05 px for a rig calibrated to 0.1 px."""
+    return 0.3 if residual_px >= 0.5 else 0.05
+
 GATE_CAMERAS = (4, 8)
 METHODS = ("fixed gates (old)", "residual from the rig file", "residual estimated from data")
 
@@ -213,7 +221,8 @@ def gates_part(args) -> dict:
     results: dict = {}
     rows = []
     for n_cameras in GATE_CAMERAS:
-        for residual_px, noise_px in GATE_LEVELS:
+        for residual_px in args.residuals:
+            noise_px = noise_for(residual_px)
             cases = [gate_case(n_cameras, residual_px, noise_px, seed, args.gate_frames,
                                args.repeats) for seed in range(args.seeds)]
             key = f"{n_cameras} cameras, {residual_px:g} px"
@@ -249,10 +258,10 @@ def gates_part(args) -> dict:
         for name in METHODS[1:]:
             recall = min(c[name]["recall_3"] for c in cases)
             ghost = max(c[name]["ghost_fraction"] for c in cases)
-            if key.endswith(" 1 px"):
+            if key.endswith(" 1 px"):  # the issue's target
                 targets[f"{key}, {name}: recall >= 95 %, ghosts <= 0.5 % (worst seed)"] = \
                     bool(recall >= 0.95 and ghost <= 0.005)
-            else:  # no loss against the fixed gates where they were right
+            elif key.endswith(" 0.1 px"):  # no loss where the fixed gates were right
                 old_ghost = max(c[METHODS[0]]["ghost_fraction"] for c in cases)
                 old_recall = min(c[METHODS[0]]["recall_3"] for c in cases)
                 targets[f"{key}, {name}: recall and ghosts no worse than fixed gates"] = \
@@ -270,6 +279,9 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--gate-frames", type=int, default=100)
+    ap.add_argument("--residuals", type=lambda t: [float(x) for x in t.split(",")],
+                    default=list(GATE_RESIDUALS_PX),
+                    help="residuals (px) the perturbed calibrations leave, e.g. 1,0.1")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
     cv2.setNumThreads(1)
