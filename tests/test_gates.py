@@ -168,24 +168,26 @@ def test_the_residual_is_read_from_each_calibration_kind(tmp_path) -> None:
         rig_residual(Rig(cams, {"reprojection_rms_px": -1.0}))
 
 
-def _write_take(tmp_path, rig_quality: dict, calibkit_cli):
+def _write_take(tmp_path, rig_quality: dict, rig_name: str = "rig.toml"):
+    """A four-camera take rendered with the true rig, and beside it the rig file of a
+    calibration leaving 1 px with `rig_quality` ("recorded": the residual it measured)."""
     true = sim.make_rig(4, 4.0, seed=11)
     est, recorded = miscalibrated(true, 1.0, NOISE_PX, seed=3)
     truth, obs = _take(true, 12, seed=7)
     save_observations(tmp_path / "take.mcrec", obs, truth, true)
     quality = {k: (recorded if v == "recorded" else v) for k, v in rig_quality.items()}
-    Rig(est.cameras, quality, dict(est.meta)).save(tmp_path / "rig.toml")
+    Rig(est.cameras, quality, dict(est.meta)).save(tmp_path / rig_name)
     return recorded
 
 
-def _triangulate(tmp_path, calibkit_cli, *extra):
-    return calibkit_cli("triangulate", "--rig", tmp_path / "rig.toml", "--from",
+def _triangulate(tmp_path, calibkit_cli, *extra, rig_name: str = "rig.toml"):
+    return calibkit_cli("triangulate", "--rig", tmp_path / rig_name, "--from",
                         tmp_path / "take.mcrec", "--out", tmp_path / "p.csv", "--json",
                         tmp_path / "p.json", *extra)
 
 
 def test_triangulate_says_which_residual_it_followed(tmp_path, calibkit_cli) -> None:
-    recorded = _write_take(tmp_path, {"reprojection_rms_px": "recorded"}, calibkit_cli)
+    recorded = _write_take(tmp_path, {"reprojection_rms_px": "recorded"})
     res = _triangulate(tmp_path, calibkit_cli)
     assert res.code == 0, res.err
     fig = json.loads((tmp_path / "p.json").read_text())
@@ -196,28 +198,28 @@ def test_triangulate_says_which_residual_it_followed(tmp_path, calibkit_cli) -> 
     t = fig["truth"]
     assert t["recall_3"] >= 0.95 and t["ghost_fraction"] <= 0.005
     assert "gross errors (> 10 mm)" in res.out and t["gross_errors"] > 0
-    # a rig file without a residual: measured on the data, and said so
-    _write_take(tmp_path, {}, calibkit_cli)
-    res = _triangulate(tmp_path, calibkit_cli)
+    # a rig from elsewhere (OpenCV YAML) has no residual: measured on the data, and said so
+    _write_take(tmp_path, {}, "rig.yaml")
+    res = _triangulate(tmp_path, calibkit_cli, rig_name="rig.yaml")
     assert res.code == 0, res.err
     fig = json.loads((tmp_path / "p.json").read_text())
     assert fig["residual"]["source"] == "estimated from data"
     assert fig["residual"]["px"] == pytest.approx(recorded, rel=0.3)
     assert "estimated from data" in res.err
     # fixed gates on request: the old behaviour
-    res = _triangulate(tmp_path, calibkit_cli, "--fixed-gates")
+    res = _triangulate(tmp_path, calibkit_cli, "--fixed-gates", rig_name="rig.yaml")
     fig = json.loads((tmp_path / "p.json").read_text())
     assert res.code == 0 and fig["residual"] is None and fig["gates"]["epipolar_px"] == 2.0
 
 
 def test_bad_residuals_are_one_line_and_exit_2(tmp_path, calibkit_cli) -> None:
-    _write_take(tmp_path, {"reprojection_rms_px": -0.5}, calibkit_cli)
+    _write_take(tmp_path, {"reprojection_rms_px": -0.5})
     res = _triangulate(tmp_path, calibkit_cli)
     assert res.code == 2
     lines = res.err.strip().splitlines()
     assert len(lines) == 1 and "rig.toml" in lines[0] and "reprojection_rms_px" in lines[0]
     assert not (tmp_path / "p.csv").exists()
-    _write_take(tmp_path, {}, calibkit_cli)
+    _write_take(tmp_path, {})
     res = _triangulate(tmp_path, calibkit_cli, "--residual-px", "-1")
     assert res.code == 2 and "--residual-px" in res.err
 
