@@ -45,9 +45,8 @@ K_REPROJ = math.sqrt(-2.0 * math.log(P_REJECT)) / math.sqrt(2.0)
 K_EPIPOLAR = 3.2905267314919255 * math.sqrt(5.0) / math.sqrt(2.0)  # z(1 - p/2) = 3.29
 K_TWO_VIEW = K_EPIPOLAR / 2.0
 
-# quality keys holding a residual, best first: what the wand solve and the projector
-# extrinsics measure with the points free (wand) or with the dots' known positions
-_RIG_KEYS = (("held_out_rms_px", "reprojection_rms_px"), ("extrinsic", "reprojection_rms_px"))
+# the wand solve's residuals in [quality]: on the frames solved and on those held out
+_WAND_KEYS = ("held_out_rms_px", "reprojection_rms_px")
 
 
 @dataclass(frozen=True)
@@ -95,7 +94,7 @@ def rig_residual(rig: Rig) -> Residual | None:
     the poses' error out and is a lower bound, which the defaults' floor makes safe.
     """
     q = rig.quality or {}
-    found = [(k, _figure(q.get(k), k)) for k in _RIG_KEYS[0]]
+    found = [(k, _figure(q.get(k), k)) for k in _WAND_KEYS]
     found = [(k, v) for k, v in found if v is not None]
     if found:
         key, value = max(found, key=lambda kv: kv[1])
@@ -165,7 +164,7 @@ MIN_POINTS = 20  # fewer confident points than this give no estimate
 def _robust_rms(error_px: np.ndarray) -> float:
     """RMS of 2D errors from their median: for a 2D normal error |e|^2 / s^2 is chi-square
     with 2 degrees of freedom (median 2 ln 2, mean 2), so RMS = median|e| / sqrt(ln 2).
-    A few wrong blobs among the matches move the median, not the estimate."""
+    A few wrong blobs among the matches barely move the median."""
     return float(np.median(error_px) / math.sqrt(math.log(2.0)))
 
 
@@ -190,8 +189,9 @@ def estimate_residual(rig: Rig, obs: Observations, max_blobs: int = 3000,
     first pass has wide gates, so chance matches are among its points: it takes the robust
     RMS (from the median). Each later pass matches with the gates the previous figure
     gives (k x residual, without the defaults' floor), which keep out chance matches and
-    cut off only 0.1 % of true blobs, and takes the plain RMS: the median-based figure assumes a 2D normal error, and a rig's
-    systematic residual is not quite one (measured: 10-17 % low on a four-camera rig).
+    cut off only 0.1 % of true blobs, and takes the plain RMS: the median-based figure
+    assumes a 2D normal error, and a rig's systematic residual is not quite one (measured:
+    10-17 % low on a four-camera rig).
     """
     frames, per_frame = np.unique(obs.frame, return_counts=True)
     frames = frames[:max(1, min(max_frames, int(np.searchsorted(np.cumsum(per_frame),
