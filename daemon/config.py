@@ -150,6 +150,9 @@ class Config:
     fps: float = 240.0  # expected camera rate (the triggered multiplexer's timeout)
     timeout_frames: float = 1.5  # triggered: wait this many frame periods for a full set
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    # the [tracker] keys the file sets: the pixel gates it leaves out follow the rig's
+    # residual (calibkit.gates), the ones it sets stay as set
+    tracker_keys: frozenset[str] = frozenset()
     rigid: RigidConfig = field(default_factory=RigidConfig)
     sim: SimConfig | None = None
     bodies: tuple[BodyDef, ...] = ()
@@ -307,6 +310,7 @@ def parse_config(data: dict, path: Path | None = None, base: Path | None = None)
                                         hi=100)
     changes["tracker"] = _dataclass_table(w, _table(w, data, "tracker"), TrackerConfig,
                                           TrackerConfig(), "tracker.")
+    changes["tracker_keys"] = frozenset(_table(w, data, "tracker"))
     changes["rigid"] = _dataclass_table(w, _table(w, data, "rigid"), RigidConfig,
                                         RigidConfig(), "rigid.")
     if "sim" in data:

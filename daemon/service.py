@@ -11,6 +11,7 @@ reload, record, record_stop, markers.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -301,7 +302,8 @@ class Daemon:
         self.label_score = (LabelScore(self.scene) if getattr(self.scene, "person_labels", None)
                             else None)
         hooks = [h for h in (self.evaluator, self.label_score) if h is not None]
-        self.pipeline = Pipeline(self.rig, cfg.tracker, cfg.rigid, bodies,
+        self.tracker_config = self._tracker_config(cfg)
+        self.pipeline = Pipeline(self.rig, self.tracker_config, cfg.rigid, bodies,
                                  make_publishers(cfg, bodies, self._markerset(), self.handle),
                                  hooks=hooks, labeller=self.labelling)
         self._warm_up()
@@ -310,6 +312,28 @@ class Daemon:
         self.control.open()
         for p in self.pipeline.publishers:
             p.start()
+
+    def _tracker_config(self, cfg: Config):
+        """The tracker's configuration with its pixel gates (and its correspondence's, for
+        new markers) following the rig's recorded residual, calibkit.gates' rule, except
+        the gates the configuration file sets; unchanged when the rig records none."""
+        from calibkit.gates import correspondence_config, rig_residual, tracker_gates
+
+        try:
+            residual = rig_residual(self.rig)
+        except UserError as exc:
+            raise UserError(f"{cfg.rig or 'rig'}: {exc}") from None
+        if residual is None:
+            log.info("tracker gates: fixed (the rig records no residual)")
+            return cfg.tracker
+        t = cfg.tracker
+        names = ("gate_px", "outlier_px", "two_view_px")
+        changes = tracker_gates(residual.px, {n: getattr(t, n) for n in names if hasattr(t, n)},
+                                cfg.tracker_keys)
+        changes["correspondence"] = correspondence_config(residual.px, t.correspondence)
+        log.info("tracker gates follow the residual %s: %s", residual,
+                 ", ".join(f"{k} {v:.2f}" for k, v in changes.items() if k != "correspondence"))
+        return dataclasses.replace(t, **changes)
 
     def _cameras(self, cfg: Config) -> list:
         """Capture sources for the configured cameras; a camera whose plugin library is
@@ -340,7 +364,7 @@ class Daemon:
         from daemon.tracker import Tracker
 
         # the tracker's kernel: one track in front of the rig, one blob per camera
-        warm = Tracker(self.rig, self.config.tracker)
+        warm = Tracker(self.rig, self.tracker_config)
         warm.set_tracks(np.array([1]), np.zeros((1, 3)))
         warm.update(np.arange(len(self.rig)), np.zeros((len(self.rig), 2)) + 100.0, 0)
         from daemon.tracker_kernel import refine_step

@@ -31,10 +31,11 @@ def test_crowded_frames_with_occlusion_and_ghost_blobs(rig8) -> None:
     truth = _random_scene(30, 50, seed=2)
     obs = sim.observe(rig8, truth, noise_px=0.3, dropout=0.2, ghosts_per_camera=2, seed=3)
     points = match_frames(rig8, obs)
-    score = score_points(points.frame, points.xyz, truth, obs)
+    score = score_points(points.frame, points.xyz, truth, obs, rows=points.rows)
     assert score.recall_3 >= 0.99
     assert score.ghost_fraction <= 0.005
-    assert score.error_mm_rms < 3.0  # 0.3 px at 3-5 m with f = 457 px, several cameras
+    # over every matched point: 0.3 px at 3-5 m with f = 457 px, several cameras
+    assert score.error_mm_rms < 3.0 and score.gross_errors == 0
     # every blob is used at most once
     used = points.rows[points.rows >= 0]
     assert len(np.unique(used)) == len(used)
@@ -152,3 +153,29 @@ def test_compiled_pair_search_finds_exactly_the_numpy_candidates(rig8) -> None:
     assert len(key_a) > 1000 and key_a.keys() == key_b.keys()
     assert all(np.allclose(key_a[k], key_b[k], atol=1e-9) for k in key_a)
     assert all(obs.frame[x] == obs.frame[y] for x, y in key_a)
+
+
+def test_the_score_counts_gross_errors_beside_the_rms_and_ghosts_apart() -> None:
+    """A point stands for the marker its blobs belong to: one exact, one made of marker 1's
+    blobs but 20 mm off (a gross error, in the RMS and counted), one made of stray blobs
+    (a ghost, whatever its distance to a marker), one of two markers' blobs (a ghost)."""
+    from calibkit.observations import Observations
+
+    xyz = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]])
+    truth = Truth(np.zeros(3), np.arange(3), xyz)
+    # blobs: rows 0-2 marker 0, 3-5 marker 1, 6-7 strays, 8 marker 2
+    marker = np.array([0, 0, 0, 1, 1, 1, -1, -1, 2])
+    obs = Observations(("a", "b", "c"), [(640, 480)] * 3, np.zeros(9), np.arange(9) % 3,
+                       np.zeros(9), np.zeros((9, 2)), np.ones(9), np.ones(9), marker)
+    rows = np.array([[0, 1, 2], [3, 4, 5], [6, 7, -1], [8, 6, 3]])
+    points = np.array([xyz[0], xyz[1] + [0.02, 0, 0], xyz[0] + [0.001, 0, 0], xyz[2]])
+    s = score_points(np.zeros(4), points, truth, obs, rows=rows)
+    assert (s.points, s.matched, s.ghosts, s.gross_errors) == (4, 2, 2, 1)
+    assert s.error_mm_rms == pytest.approx(np.sqrt((0 + 20.0**2) / 2))
+    assert s.error_mm_max == pytest.approx(20.0) and s.matched_by == "blobs"
+    # markers 0 and 1 were seen by 3 cameras and are found (marker 1 grossly)
+    assert s.markers_seen_3 == 2 and s.recall_3 == 1.0
+    # without the blobs, a point is matched by distance: the gross error counts as a ghost
+    # and the stray point 1 mm from marker 0 as a match
+    d = score_points(np.zeros(4), points, truth, obs)
+    assert (d.matched, d.ghosts, d.gross_errors, d.matched_by) == (3, 1, 0, "distance")

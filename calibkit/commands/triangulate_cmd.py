@@ -14,8 +14,9 @@ from calibkit.clitools import Progress, print_table, write_json
 from calibkit.correspondence import CorrespondenceConfig, FramePoints, match_frames
 from calibkit.errors import UserError
 from calibkit.fileio import atomic_write
+from calibkit.gates import gated_config
 from calibkit.recording import load_observations
-from calibkit.synthetic.truthcheck import nearest_truth, score_points
+from calibkit.synthetic.truthcheck import score_points, stands_for
 
 COLUMNS = ("frame", "x", "y", "z", "reproj_px", "ray_mm", "n_cameras", "cameras")
 
@@ -46,23 +47,39 @@ def register(app: typer.Typer) -> None:
         out: Annotated[Path, typer.Option("--out", help="Points CSV to write.")],
         json_path: Annotated[Path | None, typer.Option("--json", help="Write the figures.")]
         = None,
-        epipolar_px: Annotated[float, typer.Option(
-            "--epipolar-px", help="How far a match may lie from the epipolar line.")] = 2.0,
-        max_reproj_px: Annotated[float, typer.Option(
-            "--max-reproj-px", help="Reject markers whose rays miss by more.")] = 1.5,
+        epipolar_px: Annotated[float | None, typer.Option(
+            "--epipolar-px", help="How far a match may lie from the epipolar line (px). "
+                                  "Default: 2, or more as the rig's residual asks.")] = None,
+        max_reproj_px: Annotated[float | None, typer.Option(
+            "--max-reproj-px", help="Reject markers whose rays miss by more (px). Default: "
+                                    "1.5, or more as the rig's residual asks.")] = None,
         min_cameras: Annotated[int, typer.Option(
             "--min-cameras", help="Cameras a new marker needs (3 rules out chance pairs).")]
         = 3,
         two_camera: Annotated[bool, typer.Option(
             "--two-camera/--no-two-camera",
             help="Also accept unambiguous two-camera matches.")] = True,
+        residual_px: Annotated[float | None, typer.Option(
+            "--residual-px", help="The rig's reprojection residual (px) the gates follow, "
+                                  "instead of the rig file's figure or the data's.")] = None,
+        estimate_residual: Annotated[bool, typer.Option(
+            "--estimate-residual", help="Measure the residual on the data's confident "
+                                        "matches even if the rig file records one.")] = False,
+        fixed_gates: Annotated[bool, typer.Option(
+            "--fixed-gates", help="Gates of fixed size (the defaults or the values given), "
+                                  "whatever the rig's residual.")] = False,
     ) -> None:
         """Match unlabelled blobs across cameras and triangulate them, frame by frame.
 
+        The gates follow the rig's reprojection residual (max(default, k x residual), see
+        docs/triangulation.md): the figure the rig file's [quality] records, or, for a rig
+        file without one, a residual measured on the first frames' confident matches.
+
         CSV columns: frame,x,y,z,reproj_px,ray_mm,n_cameras,cameras (and error_mm when the
         recording carries the simulator's truth)."""
-        if epipolar_px <= 0 or max_reproj_px <= 0:
-            raise UserError("--epipolar-px and --max-reproj-px must be positive")
+        for name, value in (("--epipolar-px", epipolar_px), ("--max-reproj-px", max_reproj_px)):
+            if value is not None and not value > 0:
+                raise UserError(f"{name} must be positive, got {value}")
         if min_cameras < 2:
             raise UserError(f"--min-cameras must be at least 2, got {min_cameras}")
         if out.suffix.lower() != ".csv":
@@ -73,11 +90,21 @@ def register(app: typer.Typer) -> None:
         obs, truth = load_observations(src, rig)
         if len(obs) == 0:
             raise UserError(f"{src}: holds no blobs")
-        cfg = CorrespondenceConfig(epipolar_px=epipolar_px, max_reproj_px=max_reproj_px,
-                                   min_cameras=min_cameras, two_camera=two_camera)
+        given = {k: v for k, v in (("epipolar_px", epipolar_px),
+                                   ("max_reproj_px", max_reproj_px)) if v is not None}
+        base = CorrespondenceConfig(min_cameras=min_cameras, two_camera=two_camera, **given)
+        fixed = {"epipolar_px", "max_reproj_px"} if fixed_gates else set(given)
+        started = time.perf_counter()
+        try:
+            cfg, residual = gated_config(rig, obs, residual_px, estimate_residual, base, fixed)
+        except UserError as exc:
+            raise UserError(f"{rig_path}: {exc}" if str(exc).startswith("quality.")
+                            else str(exc)) from None
+        typer.echo(_gates_line(cfg, residual, fixed), err=True)
+        residual_s = time.perf_counter() - started
+        start = time.perf_counter()
         n_frames = len(obs.frames())
         progress = Progress("triangulate", n_frames)
-        start = time.perf_counter()
         points = match_frames(rig, obs, cfg, progress=progress.update)
         elapsed = time.perf_counter() - start
         progress.finish(f"{len(points.frame)} points")
@@ -86,33 +113,55 @@ def register(app: typer.Typer) -> None:
         figures: dict = {
             "frames": n_frames, "points": int(len(points.frame)),
             "points_per_frame": len(points.frame) / n_frames,
+            "residual": residual.as_dict() if residual is not None else None,
+            "gates": {"epipolar_px": cfg.epipolar_px, "max_reproj_px": cfg.max_reproj_px,
+                      "fixed": sorted(fixed)},
             "reproj_px_median": _stat(np.median, points.reproj_px),
             "reproj_px_p95": _stat(lambda a: np.percentile(a, 95), points.reproj_px),
             "ray_mm_median": _stat(np.median, points.ray_dist_m * 1000),
             "n_cameras": {str(k): int(v) for k, v in zip(
                 *np.unique(points.n_cameras, return_counts=True), strict=True)},
+            "residual_seconds": residual_s,
             "seconds": elapsed, "frames_per_s": n_frames / elapsed if elapsed > 0 else None,
         }
         if truth is not None:
-            _, dist = nearest_truth(points.frame, points.xyz, truth)
-            error_mm = dist * 1000.0
-            figures["truth"] = score_points(points.frame, points.xyz, truth, obs).as_dict()
+            score = score_points(points.frame, points.xyz, truth, obs, rows=points.rows)
+            figures["truth"] = score.as_dict()
+            error_mm = stands_for(points.frame, points.xyz, truth, obs, points.rows)[1] * 1e3
         write_points_csv(out, points, rig.names, error_mm)
         if json_path is not None:
             write_json(json_path, figures)
 
         rows = [["frames", n_frames], ["3D points", int(len(points.frame))],
                 ["points per frame", round(figures["points_per_frame"], 2)],
+                ["residual px", residual.px if residual is not None else "none"],
+                ["residual from", residual.source if residual is not None else "-"],
+                ["epipolar gate px", cfg.epipolar_px],
+                ["reprojection gate px", cfg.max_reproj_px],
                 ["reprojection px (median)", figures["reproj_px_median"]],
                 ["ray distance mm (median)", figures["ray_mm_median"]],
                 ["frames per second", round(n_frames / elapsed, 1)]]
         if truth is not None:
             t = figures["truth"]
-            rows += [["3D error mm RMS (vs truth)", t["error_mm_rms"]],
+            rows += [["3D error mm RMS, all matched points (vs truth)", t["error_mm_rms"]],
+                     [f"gross errors (> {t['tolerance_mm']:g} mm) of "
+                      f"{t['matched']} matched points", t["gross_errors"]],
                      ["recall of markers seen by >= 3 cameras", t["recall_3"]],
+                     ["ghost points", t["ghosts"]],
                      ["ghost points (fraction)", t["ghost_fraction"]]]
         print_table(rows, ["what", "value"])
         typer.echo(f"wrote {out}")
+
+
+def _gates_line(cfg: CorrespondenceConfig, residual, fixed) -> str:
+    """One line saying which residual the gates follow and where it came from."""
+    gates = f"epipolar {cfg.epipolar_px:.2f} px, reprojection {cfg.max_reproj_px:.2f} px"
+    if {"epipolar_px", "max_reproj_px"} <= set(fixed):
+        return f"gates: {gates} (fixed)"
+    if residual is None:
+        return (f"gates: {gates} (the defaults: the rig file records no residual and the "
+                "data gave too few confident matches to measure one)")
+    return f"gates: {gates}, following the residual {residual}"
 
 
 def _stat(fn, values: np.ndarray) -> float:
