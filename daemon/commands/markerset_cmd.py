@@ -89,7 +89,9 @@ def register(app: typer.Typer) -> None:
         points: Annotated[Path, typer.Argument(
             help="Unlabelled points: CSV frame,x,y,z (metres), a C3D (labels ignored), or a "
                  "recording of blobs (.mcrec, with --rig: triangulated first).")],
-        markerset: Annotated[Path, typer.Option("--markerset", help="Marker set (.toml).")],
+        markerset: Annotated[str, typer.Option(
+            "--markerset", help="Marker set: a .toml file or a shipped set's name (cmu41, "
+                                "sim_person).")],
         out: Annotated[Path, typer.Option("--out", help="Labelled take (.c3d or .csv).")],
         rig_path: Annotated[Path | None, typer.Option(
             "--rig", help="The calibrated rig, to triangulate a .mcrec recording.")] = None,
@@ -106,12 +108,12 @@ def register(app: typer.Typer) -> None:
 
         from daemon.c3dio import Points, read_points_csv, read_take, write_take
         from daemon.label import label_take
-        from daemon.markerset import MarkerSet
+        from daemon.markerset import open_set
 
         _check_out(out, [points])
         if seed_frames < 0:
             raise UserError("--seed-frames must be >= 0")
-        ms = MarkerSet.load(markerset)
+        ms = open_set(markerset)
         if not points.exists():
             raise UserError(f"{points} does not exist")
         rate_hz = rate
@@ -171,16 +173,16 @@ def register(app: typer.Typer) -> None:
             "--max-gap", help="Longest gap to fill, seconds (longer ones stay empty).")] = None,
         method: Annotated[str, typer.Option(
             "--method", help="auto, rigid, cubic, linear, newton or pca.")] = "auto",
-        markerset: Annotated[Path | None, typer.Option(
-            "--markerset", help="Marker set (.toml) for segment spreads; else the take's "
-                                "own.")] = None,
+        markerset: Annotated[str | None, typer.Option(
+            "--markerset", help="Marker set (.toml or a shipped set's name) for segment "
+                                "spreads; else the take's own.")] = None,
         rate: RateOpt = None,
         json_path: JsonOpt = None,
     ) -> None:
         """Fill the gaps of hidden markers; filled samples are marked (CSV column filled)."""
         from daemon.c3dio import read_take, write_take
         from daemon.gapfill import METHODS, fill
-        from daemon.markerset import MarkerSet
+        from daemon.markerset import open_set
 
         _check_out(out, [take_path])
         if method not in METHODS:
@@ -188,7 +190,7 @@ def register(app: typer.Typer) -> None:
         if max_gap is not None and max_gap <= 0:
             raise UserError("--max-gap must be positive (seconds)")
         take = read_take(take_path, rate)
-        ms = MarkerSet.load(markerset) if markerset is not None else None
+        ms = open_set(markerset) if markerset is not None else None
         before = int((~take.visible).sum())
         filled, counts = fill(take, ms, max_gap, method)
         write_take(out, filled)
