@@ -155,7 +155,8 @@ def test_rigid_fit_tells_a_module_from_its_mirror_image(cmu41, acro):
     """The left foot's tetrahedron (ankle, heel, 5th metatarsal, toe): the labels of the
     two forefoot markers swapped keep the heel and ankle distances nearly (equal on this
     subject) but turn the tetrahedron inside out; the proper rigid fit sees it."""
-    from daemon.label import _rigid_residuals, rigid_modules
+    from daemon.label_modules import rigid_modules
+    from daemon.label_modules import rigid_residuals as _rigid_residuals
     foot = next(m for m in rigid_modules(cmu41) if cmu41.labels.index("LTOE") in m)
     assert sorted(cmu41.labels[i] for i in foot) == ["LANK", "LHEE", "LMT5", "LTOE"]
     x = acro.xyz_m[:, foot]
@@ -247,7 +248,9 @@ def test_module_order_from_the_marker_sets_shape(cmu41, acro):
     """A foot's labels turned around its tetrahedron are put back by the marker set's
     shape of the foot (with its handedness); the flat pelvis with left and right swapped
     is left alone: turned over, its swapped labels fit as well (a mirror twin)."""
-    from daemon.label import _better_order, _module_template, rigid_modules
+    from daemon.label_modules import better_order as _better_order
+    from daemon.label_modules import module_template as _module_template
+    from daemon.label_modules import rigid_modules
     frame = acro.xyz_m[0]
     for names, order, expect in ((["LANK", "LHEE", "LMT5", "LTOE"], [2, 3, 1, 0], True),
                                  (["LFWT", "RFWT", "LBWT", "RBWT"], [1, 0, 3, 2], False)):
@@ -301,7 +304,8 @@ def test_kernels_match_their_numpy_twins(cmu41, acro):
     """Each compiled kernel (daemon/label_kernels.py) against the numpy code it replaces,
     on a labeller's state in the middle of an occluded take with ghosts."""
     from daemon import label_kernels as kern
-    from daemon.label import _module_candidates, _rigid_residuals, _swap_scores
+    from daemon.label import _module_candidates, _swap_scores
+    from daemon.label_modules import rigid_residuals as _rigid_residuals
     hidden = hide_spans(acro, 0.2, seed=11)
     pts, _ = points_with_ghosts(hidden, 3, seed=11)
     _, per = pts.split()
