@@ -51,7 +51,8 @@ class Labeller:
                  fresh_margin: float = 4.0, shape_check: bool = False,
                  suspect_frames: int = 30, module_reid: bool = True,
                  chi2_cost: bool = False, module_check: bool = True,
-                 renew_sigma: float = 2.0, compiled: bool = True) -> None:
+                 renew_sigma: float = 2.0, compiled: bool = True,
+                 merge_m: float | None = None) -> None:
         self.ms = markerset
         n = markerset.n
         self.n = n
@@ -59,6 +60,12 @@ class Labeller:
         self.gate_m = gate_m
         self.reacquire_gate_m = reacquire_gate_m
         self.noise_m = noise_m
+        # points closer than this are one marker seen twice (a file storing a trajectory
+        # under two names, two reconstructions of one marker): never two markers of the set
+        off = markerset.mean_m[~np.eye(n, dtype=bool)]
+        closest = float(off[off > 0].min()) if (off > 0).any() else 1.0
+        self.merge_m = min(2.0 * noise_m, 0.25 * closest) if merge_m is None else merge_m
+        self.merged = 0          # points taken as another point's duplicate so far
         self.adapt = adapt
         self.smooth = smooth
         self.structure_limit = structure_limit
@@ -238,8 +245,21 @@ class Labeller:
     def update(self, points: np.ndarray, steps: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """Label one frame's points (k, 3): marker index per point (-1 = ghost/unknown)
         and a confidence 0..1 per point. `steps`: frames since the previous update (a
-        live stage that skipped frames), so that motion is predicted over the real gap."""
+        live stage that skipped frames), so that motion is predicted over the real gap.
+        Points closer than `merge_m` are labelled as one: each takes the label of the
+        first of them."""
         P = np.asarray(points, float).reshape(-1, 3)
+        rep = _duplicates(P, self.merge_m)
+        if rep is None:
+            return self._update(P, steps)
+        keep = np.nonzero(rep == np.arange(len(P)))[0]
+        self.merged += len(P) - len(keep)
+        lab, conf = self._update(P[keep], steps)
+        row = np.full(len(P), -1)
+        row[keep] = np.arange(len(keep))
+        return lab[row[rep]], conf[row[rep]]
+
+    def _update(self, P: np.ndarray, steps: int) -> tuple[np.ndarray, np.ndarray]:
         steps = max(1, int(steps))
         self._P = P
         k = len(P)
@@ -957,6 +977,27 @@ class Labeller:
 # ---------------------------------------------------------------------- rigid modules
 
 
+def _duplicates(P: np.ndarray, within_m: float) -> np.ndarray | None:
+    """For each point the first point within `within_m` of it (itself if none, and
+    chains followed to their first point); None when no two points are that close."""
+    k = len(P)
+    if k < 2 or within_m <= 0:
+        return None
+    diff = P[:, None] - P[None]
+    close = np.einsum("abi,abi->ab", diff, diff) < within_m * within_m
+    close[np.tril_indices(k)] = False
+    if not close.any():
+        return None
+    close[np.diag_indices(k)] = True
+    rep = np.argmax(close, axis=0)                 # the first close point, or itself
+    for _ in range(k):
+        nxt = rep[rep]
+        if np.array_equal(nxt, rep):
+            break
+        rep = nxt
+    return rep
+
+
 def _module_candidates(lm_all, mates_all, cur, Pf, mean_all, tol_all, cand):
     """numpy twin of label_kernels.module_candidates."""
     seen = np.isfinite(cur).all(1)
@@ -1118,6 +1159,18 @@ def _grow(P: np.ndarray, D: np.ndarray, ms: MarkerSet, tol: np.ndarray,
     return total
 
 
+def _initial_as_one(P: np.ndarray, ms: MarkerSet, merge_m: float) -> tuple[np.ndarray, float]:
+    """initial_labels (with its cost) with points closer than `merge_m` labelled as one."""
+    rep = _duplicates(P, merge_m)
+    if rep is None:
+        return initial_labels(P, ms, return_cost=True)
+    keep = np.nonzero(rep == np.arange(len(P)))[0]
+    lab, cost = initial_labels(P[keep], ms, return_cost=True)
+    row = np.full(len(P), -1)
+    row[keep] = np.arange(len(keep))
+    return lab[row[rep]], cost
+
+
 def _chirality(P: np.ndarray, ms: MarkerSet, marker_point: np.ndarray) -> int:
     """Votes for this labelling's handedness matching the marker set's (+) or its mirror."""
     if not len(ms.chiral):
@@ -1169,7 +1222,7 @@ def label_take(points: Points, ms: MarkerSet, rate_hz: float = 120.0,
         # from the template alone: start at the frame among the first few that the
         # marker set explains best, track forward from it and backward to the start
         tries = list(range(0, min(len(frames), start_frames * 10), 10))
-        results = [initial_labels(per_frame[i], ms, return_cost=True) for i in tries]
+        results = [_initial_as_one(per_frame[i], ms, lab.merge_m) for i in tries]
         best = int(np.argmin([r[1] for r in results]))
         f0 = tries[best]
         lab.start(per_frame[f0], results[best][0])
@@ -1196,11 +1249,33 @@ def label_take(points: Points, ms: MarkerSet, rate_hz: float = 120.0,
         m, c = out[i]
         fi = int(frames[i] - first)
         got = m >= 0
-        xyz[fi, m[got]] = P[got]
+        xyz[fi, m[got][::-1]] = P[got][::-1]      # a duplicate: its first point
         conf[fi] = float(c[got].mean()) if got.any() else 0.0
         labels_out.append(m)
     take = Take(list(ms.labels), xyz, rate_hz, first)
     return take, conf, labels_out
+
+
+def duplicate_trajectories(take: Take, within_m: float = 0.006, share: float = 0.9
+                           ) -> list[tuple[str, str, int]]:
+    """Pairs of a file's trajectories that are one marker stored twice: within
+    `within_m` of each other in at least `share` of the frames both are seen (and in at
+    least 3 frames). Returns (name, twin, frames together) for each pair."""
+    x = take.xyz_m
+    out = []
+    for i in range(len(take.labels)):
+        d = np.linalg.norm(x[:, i + 1:] - x[:, i:i + 1], axis=2)       # (F, n - i - 1)
+        both = np.isfinite(d).sum(0)
+        close = (d < within_m).sum(0)
+        for j in np.nonzero((both >= 3) & (close >= share * np.maximum(both, 1)))[0]:
+            out.append((take.labels[i], take.labels[i + 1 + j], int(both[j])))
+    return out
+
+
+def merged_points(labels_per_frame: list[np.ndarray]) -> int:
+    """Points labelled as a marker another point of their frame already is (duplicates
+    taken as one)."""
+    return int(sum(int((m >= 0).sum()) - len(np.unique(m[m >= 0])) for m in labels_per_frame))
 
 
 # ---------------------------------------------------------------------- scoring on truth
