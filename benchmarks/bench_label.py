@@ -9,10 +9,13 @@ the third seed's approach, every frame labelled from scratch by matching segment
 their distances (our `initial_labels`), on every 20th frame because it is slow.
 
     python benchmarks/bench_label.py [--repeats 5] [--speed-only] [--sweep 30]
+        [--hidden 0.1 --ghosts 2] [--seed-frames 10]
 
---sweep N: only the case of the 97 % target (cmu41, 20 %/3, 10 seed frames) over N
-occlusion/ghost patterns per take (seeds 0..N-1): median, worst and how many fall below
-97 %, since five patterns say little about the worst.
+--sweep N: only one occlusion case (cmu41, --hidden/--ghosts, default 20 %/3, with
+--seed-frames, default 10; 0: from the marker set alone) over N occlusion/ghost patterns
+per take (seeds 0..N-1): median, worst and how many fall below 97 %, since five patterns
+say little about the worst. fps_cpu in the tables is the whole labelling (label_take,
+the start from the set alone included), per CPU second.
 
 Speed: Labeller.update alone, compiled kernels (daemon/label_kernels.py) against their
 numpy twins (Labeller(compiled=False)) in the same process.
@@ -95,6 +98,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--speed-only", action="store_true")
     ap.add_argument("--sweep", type=int, default=0, metavar="N")
+    ap.add_argument("--hidden", type=float, default=0.2)
+    ap.add_argument("--ghosts", type=int, default=3)
+    ap.add_argument("--seed-frames", type=int, default=10)
     args = ap.parse_args()
     warnings.simplefilter("ignore")
     shipped = MarkerSet.load(ROOT / "daemon" / "markersets" / "cmu41.toml")
@@ -102,7 +108,8 @@ def main() -> None:
     if args.speed_only:
         return speed_table(takes, shipped, args.repeats)
     if args.sweep:
-        return sweep_table(takes, shipped, args.sweep)
+        return sweep_table(takes, shipped, args.sweep, args.hidden, args.ghosts,
+                           args.seed_frames)
     other = {"85_02": learn([takes["01_01"]]), "01_01": learn([takes["85_02"]])}
     rows = []
     for name, take in takes.items():
@@ -135,21 +142,25 @@ def main() -> None:
     speed_table(takes, shipped, args.repeats)
 
 
-def sweep_table(takes, ms, n):
-    """The 97 % case over n patterns per take."""
+def sweep_table(takes, ms, n, hidden=0.2, ghosts=3, seed_frames=10):
+    """One occlusion case over n patterns per take."""
     rows = []
     for name, take in takes.items():
-        got = []
+        got, fps = [], []
         for s in range(n):
-            got.append(100 * run(take, ms, 0.2, 3, 10, s)[0])
-            print(name, s, round(got[-1], 2), flush=True, file=sys.stderr)
+            c, _, f = run(take, ms, hidden, ghosts, seed_frames, s)
+            got.append(100 * c)
+            fps.append(f)
+            print(name, s, round(got[-1], 2), round(f), flush=True, file=sys.stderr)
         got = np.array(got)
         low = ", ".join(f"{s}: {v:.1f}" for s, v in enumerate(got) if v < 97)
         rows.append([name, n, round(float(np.median(got)), 2), round(float(got.min()), 2),
-                     int((got < 97).sum()), low or "-"])
-    print("cmu41, 20 % hidden + 3 ghosts, 10 seed frames, one row per take")
+                     int((got < 97).sum()), low or "-", round(float(np.median(fps))),
+                     round(float(np.min(fps)))])
+    print(f"cmu41, {round(100 * hidden)} % hidden + {ghosts} ghosts, {seed_frames} seed "
+          f"frames, one row per take")
     print_table(rows, ["take", "patterns", "correct_%_median", "worst_%", "below_97",
-                       "patterns_below_97"])
+                       "patterns_below_97", "fps_cpu_median", "fps_cpu_worst"])
 
 
 def speed_table(takes, ms, repeats):

@@ -26,6 +26,14 @@ from scipy.optimize import linear_sum_assignment
 
 from daemon import label_kernels as kern
 from daemon.c3dio import Points, Take
+from daemon.label_modules import (
+    module_template,
+    order_modules,
+    pair_distances,
+    rigid_modules,
+    rigid_residuals,
+    template_sigma,
+)
 from daemon.markerset import MarkerSet, signed_volume
 
 K_NEIGHBOURS = 6
@@ -43,7 +51,8 @@ class Labeller:
                  fresh_margin: float = 4.0, shape_check: bool = False,
                  suspect_frames: int = 30, module_reid: bool = True,
                  chi2_cost: bool = False, module_check: bool = True,
-                 renew_sigma: float = 2.0, compiled: bool = True) -> None:
+                 renew_sigma: float = 2.0, compiled: bool = True,
+                 merge_m: float | None = None) -> None:
         self.ms = markerset
         n = markerset.n
         self.n = n
@@ -51,6 +60,12 @@ class Labeller:
         self.gate_m = gate_m
         self.reacquire_gate_m = reacquire_gate_m
         self.noise_m = noise_m
+        # points closer than this are one marker seen twice (a file storing a trajectory
+        # under two names, two reconstructions of one marker): never two markers of the set
+        off = markerset.mean_m[~np.eye(n, dtype=bool)]
+        closest = float(off[off > 0].min()) if (off > 0).any() else 1.0
+        self.merge_m = min(2.0 * noise_m, 0.25 * closest) if merge_m is None else merge_m
+        self.merged = 0          # points taken as another point's duplicate so far
         self.adapt = adapt
         self.smooth = smooth
         self.structure_limit = structure_limit
@@ -129,8 +144,8 @@ class Labeller:
         self.mod_template = np.full((M, width, 3), np.nan)
         self.mod_template_sigma = np.zeros(M)
         for k, m in enumerate(self.modules):
-            self.mod_template[k, :len(m)] = _module_template(markerset, m)
-            self.mod_template_sigma[k] = _template_sigma(markerset, m, noise_m)
+            self.mod_template[k, :len(m)] = module_template(markerset, m)
+            self.mod_template_sigma[k] = template_sigma(markerset, m, noise_m)
         self.pos = np.full((n, 3), np.nan)
         self.vel = np.zeros((n, 3))
         self.age = np.full(n, 10 ** 6)
@@ -230,8 +245,21 @@ class Labeller:
     def update(self, points: np.ndarray, steps: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """Label one frame's points (k, 3): marker index per point (-1 = ghost/unknown)
         and a confidence 0..1 per point. `steps`: frames since the previous update (a
-        live stage that skipped frames), so that motion is predicted over the real gap."""
+        live stage that skipped frames), so that motion is predicted over the real gap.
+        Points closer than `merge_m` are labelled as one: each takes the label of the
+        first of them."""
         P = np.asarray(points, float).reshape(-1, 3)
+        rep = _duplicates(P, self.merge_m)
+        if rep is None:
+            return self._update(P, steps)
+        keep = np.nonzero(rep == np.arange(len(P)))[0]
+        self.merged += len(P) - len(keep)
+        lab, conf = self._update(P[keep], steps)
+        row = np.full(len(P), -1)
+        row[keep] = np.arange(len(keep))
+        return lab[row[rep]], conf[row[rep]]
+
+    def _update(self, P: np.ndarray, steps: int) -> tuple[np.ndarray, np.ndarray]:
         steps = max(1, int(steps))
         self._P = P
         k = len(P)
@@ -576,12 +604,12 @@ class Labeller:
         return True
 
     def _residuals(self, shape: np.ndarray, X: np.ndarray, w: np.ndarray) -> np.ndarray:
-        """Squared residuals of proper rigid fits (see `_rigid_residuals`)."""
+        """Squared residuals of proper rigid fits (see `rigid_residuals`)."""
         if self.compiled:
             return kern.rigid_residuals(np.ascontiguousarray(np.broadcast_to(shape, X.shape)),
                                         np.ascontiguousarray(X), np.ascontiguousarray(w),
                                         True)
-        return _rigid_residuals(shape, X, w, True)
+        return rigid_residuals(shape, X, w, True)
 
     def _maps(self, m: int, p: int) -> np.ndarray:
         key = (m, p)
@@ -656,9 +684,9 @@ class Labeller:
                 continue                 # not 4 points it could take
             # the marker seen, if any, is a point every hypothesis keeps
             Pa = np.vstack([Pf, cur[idx[shown]]])
-            D = _pair_distances(Pa)
+            D = pair_distances(Pa)
             sigma = self.mod_sigma[k]
-            S = _pair_distances(shape)
+            S = pair_distances(shape)
             tol = 3.0 * np.sqrt(2.0) * sigma + 0.005
             hyps = np.full((1, 0), -1, int)
             for j in range(m):
@@ -844,7 +872,7 @@ class Labeller:
             r2 = self._residuals(shape, X, w)
             first = self.mod_shape_first[k, :len(idx)]
             if np.isfinite(first).all() and \
-                    np.abs(_pair_distances(first) - _pair_distances(shape)).max() > 2 * sigma:
+                    np.abs(pair_distances(first) - pair_distances(shape)).max() > 2 * sigma:
                 # the shape followed markers that slid; the first one may fit again
                 r2f = self._residuals(first, X, w)
                 r2 = np.where((r2f.sum(1) < r2.sum(1))[:, None], r2f, r2)
@@ -949,20 +977,25 @@ class Labeller:
 # ---------------------------------------------------------------------- rigid modules
 
 
-def rigid_modules(ms: MarkerSet, max_sd_m: float = 0.008) -> list[np.ndarray]:
-    """The marker set's segments of 3+ markers, each joined by the markers that keep their
-    distance to all its members within `max_sd_m` (a foot's ankle marker): the groups
-    whose shape, and handedness, a rigid fit can check."""
-    mods = [list(sg.markers) for sg in ms.segments if len(sg.markers) >= 3]
-    inside = {m for g in mods for m in g}
-    for x in range(ms.n):
-        if x in inside or not mods:
-            continue
-        spread = [ms.sd_m[x, g].max() for g in mods]
-        k = int(np.argmin(spread))
-        if spread[k] <= max_sd_m:
-            mods[k].append(x)
-    return [np.array(sorted(g)) for g in mods]
+def _duplicates(P: np.ndarray, within_m: float) -> np.ndarray | None:
+    """For each point the first point within `within_m` of it (itself if none, and
+    chains followed to their first point); None when no two points are that close."""
+    k = len(P)
+    if k < 2 or within_m <= 0:
+        return None
+    diff = P[:, None] - P[None]
+    close = np.einsum("abi,abi->ab", diff, diff) < within_m * within_m
+    close[np.tril_indices(k)] = False
+    if not close.any():
+        return None
+    close[np.diag_indices(k)] = True
+    rep = np.argmax(close, axis=0)                 # the first close point, or itself
+    for _ in range(k):
+        nxt = rep[rep]
+        if np.array_equal(nxt, rep):
+            break
+        rep = nxt
+    return rep
 
 
 def _module_candidates(lm_all, mates_all, cur, Pf, mean_all, tol_all, cand):
@@ -996,58 +1029,6 @@ def _swap_scores(cur, i, j, swap_w, mean_all, witness):
     return keep, swap
 
 
-def _template_sigma(ms: MarkerSet, module: np.ndarray, noise_m: float = 0.003) -> float:
-    """How far a body's module may sit from the marker set's shape of it: its markers'
-    spread and noise, and the spread between subjects (at least 10 mm: a set learned
-    from one subject knows none)."""
-    sd = np.sqrt(np.mean(ms.sd_m[np.ix_(module, module)] ** 2)) + noise_m
-    sub = np.sqrt(np.mean(ms.subject_sd_m[np.ix_(module, module)] ** 2))
-    return float(np.hypot(sd, max(sub, 0.01)))
-
-
-def _module_template(ms: MarkerSet, module: np.ndarray) -> np.ndarray:
-    """A module's shape from the marker set's mean distances (classical MDS), turned to
-    the handedness the marker set learned: distances alone cannot tell a foot from its
-    mirror image. The handedness comes from a segment of 4+ markers inside the module
-    (its Procrustes-mean shape, learned with proper rotations) or else from the chiral
-    and swap-witness tetrahedra inside it (a vote)."""
-    X = _mds_shape(ms.mean_m[np.ix_(module, module)])
-    X -= X.mean(0)
-    mirror = X * np.array([1.0, 1.0, -1.0])
-    for sg in ms.segments:
-        members = list(sg.markers)
-        if len(members) >= 4 and set(members) <= set(module.tolist()):
-            pos = np.searchsorted(module, members)
-            ref = np.asarray(sg.shape_m, float)[None]
-            r = _rigid_residuals(ref, np.stack([X[pos], mirror[pos]]),
-                                 np.ones((2, len(pos))), True).sum(1)
-            return X if r[0] <= r[1] else mirror
-    quads = np.concatenate([ms.chiral, ms.pair_quads]).astype(int)
-    signs = np.concatenate([ms.chiral_sign, ms.pair_sign])
-    inside = np.isin(quads, module).all(1)
-    if inside.any():
-        local = np.searchsorted(module, quads[inside])
-        vote = np.sum(np.sign(signed_volume(X, local)) == signs[inside])
-        if 2 * vote < inside.sum():
-            return mirror
-    return X
-
-
-def _pair_distances(X: np.ndarray) -> np.ndarray:
-    """All pairwise distances (m, m) of points (m, 3)."""
-    return np.sqrt(((X[:, None] - X[None]) ** 2).sum(2))
-
-
-def _mds_shape(mean: np.ndarray) -> np.ndarray:
-    """Points (m, 3) with the given distances (classical MDS), up to a mirror image."""
-    m = len(mean)
-    J = np.eye(m) - 1.0 / m
-    B = -0.5 * J @ (mean ** 2) @ J
-    val, vec = np.linalg.eigh(B)
-    top = np.argsort(val)[::-1][:3]
-    return vec[:, top] * np.sqrt(np.maximum(val[top], 0.0))
-
-
 def _injective_product(options: list[np.ndarray]) -> np.ndarray:
     """All combinations (one entry per list, -1 = none) that use no point twice."""
     grids = np.meshgrid(*options, indexing="ij")
@@ -1057,28 +1038,6 @@ def _injective_product(options: list[np.ndarray]) -> np.ndarray:
         for b in range(a + 1, h.shape[1]):
             ok &= (h[:, a] != h[:, b]) | (h[:, a] < 0)
     return h[ok]
-
-
-def _rigid_residuals(shape: np.ndarray, X: np.ndarray, w: np.ndarray, proper: bool
-                     ) -> np.ndarray:
-    """Squared residuals (H, m) of the weighted best rigid fit of `shape` ((m, 3), or one
-    per hypothesis (H, m, 3)) to each of X (H, m, 3) (weights w (H, m), 0 = not there);
-    rotations only when `proper`, otherwise mirror images allowed too."""
-    sw = np.maximum(w.sum(1), 1e-12)
-    shape = np.broadcast_to(shape, X.shape)
-    cs = np.einsum("hm,hmi->hi", w, shape) / sw[:, None]
-    cx = np.einsum("hm,hmi->hi", w, X) / sw[:, None]
-    S0 = shape - cs[:, None]
-    X0 = X - cx[:, None]
-    Hm = np.einsum("hm,hmi,hmj->hij", w, S0, X0)
-    U, _, Vt = np.linalg.svd(Hm)
-    if proper:
-        d = np.sign(np.linalg.det(np.einsum("hji,hkj->hik", Vt, U)))
-        Vt = Vt.copy()
-        Vt[:, 2] *= np.where(d == 0, 1.0, d)[:, None]
-    R = np.einsum("hji,hkj->hik", Vt, U)                              # V U^T
-    fit = np.einsum("hij,hmj->hmi", R, S0)
-    return ((fit - X0) ** 2).sum(2) * w
 
 
 # ---------------------------------------------------------------------- from scratch
@@ -1156,43 +1115,10 @@ def initial_labels(P: np.ndarray, ms: MarkerSet, n_hypotheses: int = 24,
                 best = (total, marker_point)
     if best is None:
         return (lab, np.inf) if return_cost else lab
-    mp = _order_modules(P, ms, best[1].copy())
+    mp = order_modules(P, ms, best[1].copy())
     got = mp >= 0
     lab[mp[got]] = np.nonzero(got)[0]
     return (lab, best[0]) if return_cost else lab
-
-
-def _order_modules(P: np.ndarray, ms: MarkerSet, marker_point: np.ndarray) -> np.ndarray:
-    """Within each rigid module of 4-5 markers labelled whole, the order of its points
-    that fits the marker set's shape (with its handedness) best, when clearly better
-    than the order found: growing one marker at a time by distances can turn a foot's
-    labels around its tetrahedron (ankle, heel, 5th metatarsal and toe at similar
-    distances from the shank markers)."""
-    for module in rigid_modules(ms):
-        if not 4 <= len(module) <= 5 or (marker_point[module] < 0).any():
-            continue
-        perm = _better_order(_module_template(ms, module), _template_sigma(ms, module),
-                             P[marker_point[module]])
-        if perm is not None:
-            marker_point[module] = marker_point[module][perm]
-    return marker_point
-
-
-def _better_order(shape: np.ndarray, sigma: float, X: np.ndarray) -> np.ndarray | None:
-    """The order of points X (m, 3), as labelled, that fits the marker set's `shape` of
-    their module best by a proper rigid motion, if clearly better than the order given;
-    else None. The set's shape is a mean over subjects (~15-20 mm RMS off a body), so:
-    at most half the given order's squared residual, no runner-up within 1.5x (a flat
-    module's mirror twin), and no residual over 3.5 sigma."""
-    from itertools import permutations
-    perms = np.array(list(permutations(range(len(X)))))          # perms[0]: as given
-    r2 = _rigid_residuals(shape, X[perms], np.ones(perms.shape, float), True)
-    tot = r2.sum(1)
-    b = int(np.argmin(tot))
-    if b == 0 or tot[b] > 0.5 * tot[0] or r2[b].max() > (3.5 * sigma) ** 2 or \
-            np.partition(tot, 1)[1] < 1.5 * tot[b]:
-        return None
-    return perms[b]
 
 
 def _grow(P: np.ndarray, D: np.ndarray, ms: MarkerSet, tol: np.ndarray,
@@ -1231,6 +1157,18 @@ def _grow(P: np.ndarray, D: np.ndarray, ms: MarkerSet, tol: np.ndarray,
         marker_point[todo[t]] = free[int(np.argmin(cost[t]))]
         total += float(best[t])
     return total
+
+
+def _initial_as_one(P: np.ndarray, ms: MarkerSet, merge_m: float) -> tuple[np.ndarray, float]:
+    """initial_labels (with its cost) with points closer than `merge_m` labelled as one."""
+    rep = _duplicates(P, merge_m)
+    if rep is None:
+        return initial_labels(P, ms, return_cost=True)
+    keep = np.nonzero(rep == np.arange(len(P)))[0]
+    lab, cost = initial_labels(P[keep], ms, return_cost=True)
+    row = np.full(len(P), -1)
+    row[keep] = np.arange(len(keep))
+    return lab[row[rep]], cost
 
 
 def _chirality(P: np.ndarray, ms: MarkerSet, marker_point: np.ndarray) -> int:
@@ -1284,7 +1222,7 @@ def label_take(points: Points, ms: MarkerSet, rate_hz: float = 120.0,
         # from the template alone: start at the frame among the first few that the
         # marker set explains best, track forward from it and backward to the start
         tries = list(range(0, min(len(frames), start_frames * 10), 10))
-        results = [initial_labels(per_frame[i], ms, return_cost=True) for i in tries]
+        results = [_initial_as_one(per_frame[i], ms, lab.merge_m) for i in tries]
         best = int(np.argmin([r[1] for r in results]))
         f0 = tries[best]
         lab.start(per_frame[f0], results[best][0])
@@ -1311,11 +1249,33 @@ def label_take(points: Points, ms: MarkerSet, rate_hz: float = 120.0,
         m, c = out[i]
         fi = int(frames[i] - first)
         got = m >= 0
-        xyz[fi, m[got]] = P[got]
+        xyz[fi, m[got][::-1]] = P[got][::-1]      # a duplicate: its first point
         conf[fi] = float(c[got].mean()) if got.any() else 0.0
         labels_out.append(m)
     take = Take(list(ms.labels), xyz, rate_hz, first)
     return take, conf, labels_out
+
+
+def duplicate_trajectories(take: Take, within_m: float = 0.006, share: float = 0.9
+                           ) -> list[tuple[str, str, int]]:
+    """Pairs of a file's trajectories that are one marker stored twice: within
+    `within_m` of each other in at least `share` of the frames both are seen (and in at
+    least 3 frames). Returns (name, twin, frames together) for each pair."""
+    x = take.xyz_m
+    out = []
+    for i in range(len(take.labels)):
+        d = np.linalg.norm(x[:, i + 1:] - x[:, i:i + 1], axis=2)       # (F, n - i - 1)
+        both = np.isfinite(d).sum(0)
+        close = (d < within_m).sum(0)
+        for j in np.nonzero((both >= 3) & (close >= share * np.maximum(both, 1)))[0]:
+            out.append((take.labels[i], take.labels[i + 1 + j], int(both[j])))
+    return out
+
+
+def merged_points(labels_per_frame: list[np.ndarray]) -> int:
+    """Points labelled as a marker another point of their frame already is (duplicates
+    taken as one)."""
+    return int(sum(int((m >= 0).sum()) - len(np.unique(m[m >= 0])) for m in labels_per_frame))
 
 
 # ---------------------------------------------------------------------- scoring on truth

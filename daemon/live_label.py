@@ -38,13 +38,13 @@ from pathlib import Path
 
 import numpy as np
 
-from calibkit.errors import UserError
 from daemon.label import Labeller
-from daemon.markerset import MarkerSet
+from daemon.markerset import MarkerSet, open_set, shipped_sets
+from daemon.markerset import resolve as _resolve
 
 log = logging.getLogger("mocapd.label")
 
-SHIPPED = Path(__file__).resolve().parent / "markersets"  # cmu41.toml, sim_person.toml, ...
+__all__ = ["LiveLabeller", "LabelledMarkers", "load", "resolve", "shipped_sets"]
 
 
 @dataclass(eq=False)
@@ -59,27 +59,15 @@ class LabelledMarkers:
     track: np.ndarray           # (k,) the tracker's id of the track the marker is
 
 
-def shipped_sets() -> list[str]:
-    """Names of the marker sets that ship with mocapd (`markerset = "cmu41"`)."""
-    return sorted(p.stem for p in SHIPPED.glob("*.toml"))
-
-
 def resolve(value: str, base: Path) -> Path:
     """A `markerset` value to a file: a shipped set's name, else a path relative to the
     configuration's folder."""
-    if "/" not in value and not value.endswith(".toml") and (SHIPPED / f"{value}.toml").exists():
-        return SHIPPED / f"{value}.toml"
-    return base / value
+    return _resolve(value, base)
 
 
 def load(path: Path) -> MarkerSet:
     """The marker set at `path`; UserError (one line) if it is missing or malformed."""
-    if path.is_dir():
-        raise UserError(f"marker set {path} is a folder, not a TOML file")
-    ms = MarkerSet.load(path)
-    if ms.n < 3:
-        raise UserError(f"marker set {path} has {ms.n} markers; labelling needs at least 3")
-    return ms
+    return open_set(path)
 
 
 class _Start:

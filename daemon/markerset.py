@@ -20,6 +20,7 @@ import tomllib
 from calibkit.errors import UserError
 from calibkit.fileio import write_text_atomic
 
+SHIPPED = Path(__file__).resolve().parent / "markersets"  # cmu41.toml, sim_person.toml, ...
 SEGMENT_SPREAD_M = 0.012   # complete-linkage cut: markers whose distances vary less stay together
 MIN_SD_M = 0.002           # floor on learned spreads: measurement noise of a live rig
 
@@ -142,6 +143,38 @@ class MarkerSet:
             between = np.zeros((n, n))
         return MarkerSet(labels, mean, np.maximum(sd, MIN_SD_M), segs, chiral, sign,
                          str(doc.get("name", path.stem)), between, pq, ps, pv)
+
+
+# ---------------------------------------------------------------------- by name
+
+
+def shipped_sets() -> list[str]:
+    """Names of the marker sets that ship with mocapd (`--markerset cmu41`)."""
+    return sorted(p.stem for p in SHIPPED.glob("*.toml"))
+
+
+def resolve(value: str | Path, base: Path | None = None) -> Path:
+    """A marker set given by a user to a file: a shipped set's name (no folder, no
+    .toml), else a path, relative to `base` (the configuration's folder) if given."""
+    text = str(value)
+    if "/" not in text and not text.endswith(".toml") and (SHIPPED / f"{text}.toml").exists():
+        return SHIPPED / f"{text}.toml"
+    return Path(text) if base is None else base / text
+
+
+def open_set(value: str | Path, base: Path | None = None) -> MarkerSet:
+    """The marker set a user named (a shipped set's name or a file); UserError in one
+    line if it is missing, a folder, malformed or too small to label with."""
+    path = resolve(value, base)
+    if path.is_dir():
+        raise UserError(f"marker set {path} is a folder, not a TOML file")
+    if not path.exists():
+        raise UserError(f"marker set {value} does not exist (a .toml file, or a shipped "
+                        f"set: {', '.join(shipped_sets())})")
+    ms = MarkerSet.load(path)
+    if ms.n < 3:
+        raise UserError(f"marker set {path} has {ms.n} markers; labelling needs at least 3")
+    return ms
 
 
 # ---------------------------------------------------------------------- learning

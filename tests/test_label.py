@@ -2,12 +2,20 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from daemon.c3dio import Points, Take, read_c3d, read_labelled_csv, write_points_csv
+from daemon.c3dio import (
+    Points,
+    Take,
+    read_c3d,
+    read_labelled_csv,
+    write_points_csv,
+    write_take,
+)
 from daemon.label import (
     Labeller,
     _chirality,
@@ -155,7 +163,8 @@ def test_rigid_fit_tells_a_module_from_its_mirror_image(cmu41, acro):
     """The left foot's tetrahedron (ankle, heel, 5th metatarsal, toe): the labels of the
     two forefoot markers swapped keep the heel and ankle distances nearly (equal on this
     subject) but turn the tetrahedron inside out; the proper rigid fit sees it."""
-    from daemon.label import _rigid_residuals, rigid_modules
+    from daemon.label_modules import rigid_modules
+    from daemon.label_modules import rigid_residuals as _rigid_residuals
     foot = next(m for m in rigid_modules(cmu41) if cmu41.labels.index("LTOE") in m)
     assert sorted(cmu41.labels[i] for i in foot) == ["LANK", "LHEE", "LMT5", "LTOE"]
     x = acro.xyz_m[:, foot]
@@ -247,7 +256,9 @@ def test_module_order_from_the_marker_sets_shape(cmu41, acro):
     """A foot's labels turned around its tetrahedron are put back by the marker set's
     shape of the foot (with its handedness); the flat pelvis with left and right swapped
     is left alone: turned over, its swapped labels fit as well (a mirror twin)."""
-    from daemon.label import _better_order, _module_template, rigid_modules
+    from daemon.label_modules import better_order as _better_order
+    from daemon.label_modules import module_template as _module_template
+    from daemon.label_modules import rigid_modules
     frame = acro.xyz_m[0]
     for names, order, expect in ((["LANK", "LHEE", "LMT5", "LTOE"], [2, 3, 1, 0], True),
                                  (["LFWT", "RFWT", "LBWT", "RBWT"], [1, 0, 3, 2], False)):
@@ -301,7 +312,8 @@ def test_kernels_match_their_numpy_twins(cmu41, acro):
     """Each compiled kernel (daemon/label_kernels.py) against the numpy code it replaces,
     on a labeller's state in the middle of an occluded take with ghosts."""
     from daemon import label_kernels as kern
-    from daemon.label import _module_candidates, _rigid_residuals, _swap_scores
+    from daemon.label import _module_candidates, _swap_scores
+    from daemon.label_modules import rigid_residuals as _rigid_residuals
     hidden = hide_spans(acro, 0.2, seed=11)
     pts, _ = points_with_ghosts(hidden, 3, seed=11)
     _, per = pts.split()
@@ -357,3 +369,80 @@ def test_kernels_match_their_numpy_twins(cmu41, acro):
     for proper in (True, False):
         assert np.allclose(kern.rigid_residuals(S, X, w, proper),
                            _rigid_residuals(S, X, w, proper), atol=1e-12)
+
+
+def _with_duplicates(take, names, seed=0):
+    """The take's points with the markers `names` stored twice (a second trajectory
+    1-3 mm off the first, as some labs' files hold), and each point's true marker."""
+    rng = np.random.default_rng(seed)
+    idx = [take.labels.index(n) for n in names]
+    off = rng.normal(size=(take.n_frames, len(idx), 3))
+    off *= rng.uniform(0.001, 0.003, (take.n_frames, len(idx), 1)) / \
+        np.linalg.norm(off, axis=2, keepdims=True)
+    copy = take.xyz_m[:, idx] + off
+    doubled = Take(take.labels + [f"{n}-1" for n in names],
+                   np.concatenate([take.xyz_m, copy], axis=1), take.rate_hz, take.first_frame)
+    pts, truth = points_with_ghosts(doubled, 2, seed=seed)
+    n = len(take.labels)
+    twin = truth >= n
+    truth[twin] = np.array(idx)[truth[twin] - n]
+    return pts, truth
+
+
+@pytest.mark.parametrize("merge", [True, False])
+def test_markers_stored_twice_are_labelled_as_one(cmu41, walk, merge):
+    """Three markers stored twice (1-3 mm apart) with 10 % hidden in spans and 2 ghosts:
+    both copies of a marker are the one marker, labelled wherever the marker is seen.
+    Without merging them (merge_m=0) a copy that returns after a gap competes with its
+    twin and the marker is left out far more often."""
+    names = ["LWRA", "RTOE", "STRN"]
+    hidden = hide_spans(walk, 0.1, seed=7)
+    pts, truth = _with_duplicates(hidden, names, seed=7)
+    options = None if merge else {"merge_m": 0.0}
+    _, _, labels = label_take(pts, cmu41, seed=hidden, seed_frames=10, options=options)
+    order = np.argsort(pts.frame, kind="stable")
+    after = pts.frame[order] >= hidden.first_frame + 10          # after the seed frames
+    got = np.concatenate(labels)[after]
+    want, frame = truth[order][after], pts.frame[order][after]
+    dup = np.isin(want, [cmu41.labels.index(n) for n in names])
+    # per marker-frame: labelled through at least one of its copies
+    key = frame[dup] * 100 + want[dup]
+    right = got[dup] == want[dup]
+    seen = np.unique(key)
+    named = np.isin(seen, key[right])
+    if merge:
+        assert named.mean() >= 0.99
+        assert (got[dup] == want[dup]).mean() >= 0.98      # both copies named
+        assert score(pts, truth, labels, 10)["correct"] >= 0.98
+    else:
+        assert (got[dup] == want[dup]).mean() < 0.9
+
+
+def test_cli_label_by_shipped_name_reports_a_marker_stored_twice(tmp_path, mocapd_cli, walk):
+    """`--markerset cmu41` names the shipped set in `label` (and `fill`); a C3D that
+    stores a marker twice (RBAC-1 on RBAC, 2 mm off) is told, and both are labelled as
+    the one marker."""
+    short = Take(walk.labels, walk.xyz_m[:120], walk.rate_hz, 0)
+    twin = short.xyz_m[:, [short.labels.index("RBAC")]] + np.array([0.002, 0.0, 0.0])
+    doubled = Take(short.labels + ["RBAC-1"], np.concatenate([short.xyz_m, twin], axis=1),
+                   short.rate_hz, 0)
+    write_take(tmp_path / "twice.c3d", doubled)
+    r = mocapd_cli("label", tmp_path / "twice.c3d", "--markerset", "cmu41", "--out",
+                   tmp_path / "lab.csv", "--json", tmp_path / "lab.json")
+    assert r.code == 0, r.err
+    assert "RBAC-1 lies within 6 mm of RBAC in 120 frames" in r.out
+    figures = json.loads((tmp_path / "lab.json").read_text())
+    assert figures["merged_points"] == 120 and figures["unlabelled_points"] == 0
+    assert figures["duplicate_trajectories"] == [["RBAC", "RBAC-1"]]
+    back = read_labelled_csv(tmp_path / "lab.csv").select(short.labels)
+    err = np.linalg.norm(back.xyz_m - short.xyz_m, axis=2)
+    rbac = short.labels.index("RBAC")
+    assert np.delete(err, rbac, axis=1).max() < 2e-6     # CSV keeps micrometres
+    assert err[:, rbac].max() < 0.0021                   # RBAC: one of its two copies
+    r = mocapd_cli("fill", tmp_path / "lab.csv", "--markerset", "cmu41", "--out",
+                   tmp_path / "filled.csv")
+    assert r.code == 0, r.err
+    r = mocapd_cli("label", tmp_path / "twice.c3d", "--markerset", "cmu40", "--out",
+                   tmp_path / "x.csv")
+    assert r.code == 2 and "cmu40 does not exist" in r.err and "cmu41" in r.err
+    assert len(r.err.strip().splitlines()) == 1

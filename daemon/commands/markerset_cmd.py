@@ -89,7 +89,9 @@ def register(app: typer.Typer) -> None:
         points: Annotated[Path, typer.Argument(
             help="Unlabelled points: CSV frame,x,y,z (metres), a C3D (labels ignored), or a "
                  "recording of blobs (.mcrec, with --rig: triangulated first).")],
-        markerset: Annotated[Path, typer.Option("--markerset", help="Marker set (.toml).")],
+        markerset: Annotated[str, typer.Option(
+            "--markerset", help="Marker set: a .toml file or a shipped set's name (cmu41, "
+                                "sim_person).")],
         out: Annotated[Path, typer.Option("--out", help="Labelled take (.c3d or .csv).")],
         rig_path: Annotated[Path | None, typer.Option(
             "--rig", help="The calibrated rig, to triangulate a .mcrec recording.")] = None,
@@ -105,20 +107,22 @@ def register(app: typer.Typer) -> None:
         import numpy as np
 
         from daemon.c3dio import Points, read_points_csv, read_take, write_take
-        from daemon.label import label_take
-        from daemon.markerset import MarkerSet
+        from daemon.label import duplicate_trajectories, label_take, merged_points
+        from daemon.markerset import open_set
 
         _check_out(out, [points])
         if seed_frames < 0:
             raise UserError("--seed-frames must be >= 0")
-        ms = MarkerSet.load(markerset)
+        ms = open_set(markerset)
         if not points.exists():
             raise UserError(f"{points} does not exist")
         rate_hz = rate
         seed_take = None
+        twins: list = []
         if points.suffix.lower() == ".c3d":
             labelled = read_take(points)
             pts = Points.from_take(labelled)
+            twins = duplicate_trajectories(labelled)
             rate_hz = rate_hz or labelled.rate_hz
             if seed_frames and seed is None:
                 seed_take = labelled
@@ -146,20 +150,29 @@ def register(app: typer.Typer) -> None:
         rate_hz = rate_hz or 120.0
         n_frames = len(np.unique(pts.frame))
         progress = Progress("label", n_frames)
-        take, conf, _ = label_take(pts, ms, rate_hz, seed_take, seed_frames, progress)
+        take, conf, labels = label_take(pts, ms, rate_hz, seed_take, seed_frames, progress)
         progress.update(n_frames)
         progress.finish()
         write_take(out, take)
+        for name, twin, together in twins:
+            typer.echo(f"note: {points.name} stores one marker twice: {twin} lies within 6 mm "
+                       f"of {name} in {together} frames; labelled as one")
         seen = take.visible
         n_pts = len(pts.frame)
+        merged = merged_points(labels)
         figures = {"frames": int(take.n_frames), "points": n_pts,
-                   "labelled": int(seen.sum()), "unlabelled_points": int(n_pts - seen.sum()),
+                   "labelled": int(seen.sum()),
+                   "unlabelled_points": int(n_pts - seen.sum() - merged),
                    "confidence_median": float(np.median(conf)) if len(conf) else 0.0,
                    "low_confidence_frames": int((conf < 0.5).sum()),
+                   "merged_points": merged,
+                   "duplicate_trajectories": [list(t[:2]) for t in twins],
                    "per_marker_seen": {n: int(c) for n, c in zip(ms.labels, seen.sum(0),
                                                                    strict=True)}}
-        typer.echo(f"wrote {out}: {take.n_frames} frames, {int(seen.sum())} of {n_pts} "
-                   f"points labelled, median confidence {figures['confidence_median']:.2f}")
+        twice = f" ({merged} as a duplicate)" if merged else ""
+        typer.echo(f"wrote {out}: {take.n_frames} frames, {int(seen.sum()) + merged} of {n_pts} "
+                   f"points labelled{twice}, median confidence "
+                   f"{figures['confidence_median']:.2f}")
         if json_path is not None:
             write_json(json_path, figures)
 
@@ -171,16 +184,16 @@ def register(app: typer.Typer) -> None:
             "--max-gap", help="Longest gap to fill, seconds (longer ones stay empty).")] = None,
         method: Annotated[str, typer.Option(
             "--method", help="auto, rigid, cubic, linear, newton or pca.")] = "auto",
-        markerset: Annotated[Path | None, typer.Option(
-            "--markerset", help="Marker set (.toml) for segment spreads; else the take's "
-                                "own.")] = None,
+        markerset: Annotated[str | None, typer.Option(
+            "--markerset", help="Marker set (.toml or a shipped set's name) for segment "
+                                "spreads; else the take's own.")] = None,
         rate: RateOpt = None,
         json_path: JsonOpt = None,
     ) -> None:
         """Fill the gaps of hidden markers; filled samples are marked (CSV column filled)."""
         from daemon.c3dio import read_take, write_take
         from daemon.gapfill import METHODS, fill
-        from daemon.markerset import MarkerSet
+        from daemon.markerset import open_set
 
         _check_out(out, [take_path])
         if method not in METHODS:
@@ -188,7 +201,7 @@ def register(app: typer.Typer) -> None:
         if max_gap is not None and max_gap <= 0:
             raise UserError("--max-gap must be positive (seconds)")
         take = read_take(take_path, rate)
-        ms = MarkerSet.load(markerset) if markerset is not None else None
+        ms = open_set(markerset) if markerset is not None else None
         before = int((~take.visible).sum())
         filled, counts = fill(take, ms, max_gap, method)
         write_take(out, filled)
