@@ -10,22 +10,12 @@ truth-side code: tests and benchmarks build takes with it, the labeller never se
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass
 from unittest import mock
 
 import numpy as np
 
-
-def _person_module():
-    """The simulator's person module, wherever the simulator package keeps it."""
-    for name in ("calibkit.synthetic.sim_person", "calibkit.synthetic.person",
-                 "calibkit.sim_person"):
-        try:
-            return importlib.import_module(name)
-        except ImportError:
-            continue
-    raise ImportError("the simulator's person module (sim_person) was not found")
+from calibkit.synthetic import person as sim_person
 
 
 @dataclass(frozen=True)
@@ -81,7 +71,7 @@ def walk(body: Body, frames: int = 600, rate_hz: float = 120.0, noise_m: float =
          seed: int = 0):
     """The simulator's walk (a PersonTake: labels, markers_m, joints, rate_hz) by a person
     of this body."""
-    person = _person_module()
+    person = sim_person
     scaled = _scaled_body(body, person.BODY)
     with mock.patch.dict(person.BODY, scaled):
         return person.walk(frames, rate_hz, noise_m=noise_m, seed=seed)
@@ -90,7 +80,7 @@ def walk(body: Body, frames: int = 600, rate_hz: float = 120.0, noise_m: float =
 def range_of_motion(body: Body, frames: int = 1200, rate_hz: float = 120.0,
                     noise_m: float = 0.0005, seed: int = 0):
     """The simulator's range-of-motion take by a person of this body."""
-    person = _person_module()
+    person = sim_person
     scaled = _scaled_body(body, person.BODY)
     with mock.patch.dict(person.BODY, scaled):
         return person.range_of_motion(frames, rate_hz, noise_m=noise_m, seed=seed)
