@@ -4,7 +4,9 @@ simulator's own person: what they change, and that each stays a rigid-segment bo
 from __future__ import annotations
 
 import numpy as np
-from label_people import Body, _person_module, walk
+from label_people import Body, walk
+
+from calibkit.synthetic import person as sim_person
 
 
 def _dist(take, a, b):
@@ -13,7 +15,7 @@ def _dist(take, a, b):
 
 
 def test_the_standard_body_is_the_simulators_person():
-    person = _person_module()
+    person = sim_person
     ours = walk(Body(), 120, noise_m=0.0)
     theirs = person.walk(120, noise_m=0.0)
     assert ours.labels == theirs.labels
