@@ -39,11 +39,15 @@ SETTLE_NS = 100_000_000  # a restarted clock is trusted after this much of its f
 SETTLE_FRAMES = 5  # and at least this many
 
 
-def _line(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
-    """Least-squares (intercept, slope) of y against x."""
-    xm, ym = float(x.mean()), float(y.mean())
-    var = float(np.sum((x - xm) ** 2))
-    s = float(np.sum((x - xm) * (y - ym)) / var) if var > 0 else 0.0
+def _line(points) -> tuple[float, float]:
+    """Least-squares (intercept, slope) through (x, y) points. Plain Python: at most
+    BLOCKS points, on the capture threads' path, where numpy's per-call cost on such small
+    arrays (a few hundred microseconds in all) would show in the latency."""
+    n = len(points)
+    xm = sum(p[0] for p in points) / n
+    ym = sum(p[1] for p in points) / n
+    var = sum((p[0] - xm) ** 2 for p in points)
+    s = sum((p[0] - xm) * (p[1] - ym) for p in points) / var if var > 0 else 0.0
     return ym - s * xm, s
 
 
@@ -75,36 +79,42 @@ class CameraClock:
         self._s = 0.0
         self._last_dx = -1.0
         self._n = 0  # frames since the reset
+        self.settled = False  # seen enough frames since it (re)started to be trusted
         if count and self.samples:
             self.resets += 1
 
     def capture_ns(self, device_ns: int, arrival_ns: int) -> int:
         """The daemon-clock capture time of a frame stamped `device_ns` that arrived at
-        `arrival_ns` (both ns); learns from it."""
+        `arrival_ns` (both ns); learns from it. (On every sample's path: kept lean.)"""
         if self._x0 is None:
             self._x0, self._y0 = int(device_ns), int(arrival_ns)
             self._block_end = float(self.block_ns)
             self._a = 0.0
         dx = float(device_ns - self._x0)
-        dy = float(arrival_ns - self._y0)
-        r = dy - dx
         if dx <= self._last_dx:
             return self._restart(device_ns, arrival_ns)
-        below = r - (self._a + self._s * dx)
-        if below < -self.ahead_ns and len(self._points) >= MIN_FIT:
-            self._a += below  # the envelope, points and all, down to this frame
+        dy = float(arrival_ns - self._y0)
+        r = dy - dx
+        a, s = self._a, self._s
+        fitted = len(self._points) >= MIN_FIT
+        below = r - a - s * dx
+        if below < -self.ahead_ns and fitted:
+            a = self._a = a + below  # the envelope, points and all, down to this frame
             self._points = deque(((x, y + below) for x, y in self._points), maxlen=self.blocks)
             self.lowered += 1
+        elif not fitted and r < a:
+            a = self._a = r  # no drift yet: the lowest point so far
         self.samples += 1
         self._n += 1
+        if not self.settled:
+            self.settled = self._n >= SETTLE_FRAMES and dx >= SETTLE_NS
         if dy >= self._block_end:
             self._close_block(dy)
+            a, s = self._a, self._s
         if r < self._block_min:
             self._block_min, self._block_dx = r, dx
-        if len(self._points) < MIN_FIT and r < self._a:
-            self._a = r  # no drift yet: the lowest point so far
         self._last_dx = dx
-        return self._y0 + round(dx + self._a + self._s * dx)
+        return self._y0 + round(dx + a + s * dx)
 
     def _restart(self, device_ns: int, arrival_ns: int) -> int:
         self.reset()
@@ -115,19 +125,16 @@ class CameraClock:
             self._points.append((self._block_dx, self._block_min))
         self._block_min = np.inf
         self._block_end = dy + self.block_ns
-        if len(self._points) >= MIN_FIT:
-            x, r = np.array(self._points).T
-            a, s = _line(x, r)
-            low = r - (a + s * x) <= np.median(r - (a + s * x))
-            if np.sum(low) >= MIN_FIT:
-                a, s = _line(x[low], r[low])
+        pts = self._points
+        if len(pts) >= MIN_FIT:
+            a, s = _line(pts)
+            resid = [y - (a + s * x) for x, y in pts]
+            cut = sorted(resid)[(len(resid) - 1) // 2]
+            low = [p for p, e in zip(pts, resid, strict=True) if e <= cut]
+            if len(low) >= MIN_FIT:
+                a, s = _line(low)
             self._s = min(max(s, -MAX_DRIFT), MAX_DRIFT)
-            self._a = a + (s - self._s) * float(np.mean(x))
-
-    @property
-    def settled(self) -> bool:
-        """Whether the clock has seen enough frames since it (re)started to be trusted."""
-        return self._n >= SETTLE_FRAMES and self._last_dx >= SETTLE_NS
+            self._a = a + (s - self._s) * sum(p[0] for p in pts) / len(pts)
 
     # ---- figures -------------------------------------------------------------------------
 

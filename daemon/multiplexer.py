@@ -85,7 +85,7 @@ class _Group:
     total_ns: float
     samples: dict
     first_arrival: int
-    need: list  # the cameras it waits for (those connected when it began)
+    waiting: set  # the cameras it still waits for (of those connected when it began)
 
 
 class Multiplexer:
@@ -176,15 +176,16 @@ class Multiplexer:
                 # which cameras this set waits for: asked once per set, not per sample
                 # (eight threads push in turn; every microsecond here is latency)
                 group = _Group(float(t), 0.0, {}, sample.arrival_ns,
-                               np.flatnonzero(self.connected()).tolist())
+                               set(np.flatnonzero(self.connected()).tolist()))
                 k = len(self.pending)
                 while k and self.pending[k - 1].t_ns > t:
                     k -= 1
                 self.pending.insert(k, group)
             group.samples[sample.camera] = sample
+            group.waiting.discard(sample.camera)
             group.total_ns += t
             group.t_ns = group.total_ns / len(group.samples)
-            if len(group.samples) == self.n or all(c in group.samples for c in group.need):
+            if not group.waiting or len(group.samples) == self.n:
                 self._emit(group)
 
     def _put(self, fs: FrameSet) -> None:

@@ -69,11 +69,12 @@ class Evaluator:
         samples = result.samples
         if not samples:
             return
-        self._instants(samples)
+        taken, marker = self.scene.truth_of(samples)
+        self._instants(taken)
         self.frames += 1
         if self.frames <= self.skip:
             return
-        labelled = self._tracks(result, samples)
+        labelled = self._tracks(result, marker)
         p = result.poses
         if not len(self.ids) or not len(p.ids):
             return
@@ -109,11 +110,10 @@ class Evaluator:
         self.pos_sq_good[good] += e[good] ** 2
         self.ang_sq_good[good] += a[good] ** 2
 
-    def _instants(self, samples) -> None:
+    def _instants(self, taken) -> None:
         """Whether the set's samples were really taken within half a frame period."""
         if not self.check_instants:
             return
-        taken = [self.scene.taken_ns(s) for s in samples]
         known = [t for t in taken if t is not None]
         self.unknown_samples += len(taken) - len(known)
         if len(known) < len(taken) or not known:
@@ -124,11 +124,10 @@ class Evaluator:
         if spread > 0.5e9 / self.scene.fps:
             self.mixed_sets += 1
 
-    def _tracks(self, result, samples):
+    def _tracks(self, result, marker):
         """This frame's track identities (track ids sorted, true markers); counts track
-        swaps. The blobs' true markers come from the ledger, sample by sample, in the order
-        the pipeline concatenated them."""
-        marker = np.concatenate([self.scene.markers(s) for s in samples])
+        swaps. `marker`: the blobs' true markers from the ledger, sample by sample, in the
+        order the pipeline concatenated them."""
         if len(marker) != len(result.uv):
             return None
         tb = result.tracks.blobs

@@ -159,9 +159,10 @@ class SimScene:
         e = self._entry(sample)
         return None if e is None else e[1]
 
-    def markers(self, sample) -> np.ndarray:
-        """The true marker of each of a sample's blobs (-1: a stray blob, or unknown)."""
-        g = self.trigger_of(sample)
+    def markers(self, sample, trigger: int | None = None) -> np.ndarray:
+        """The true marker of each of a sample's blobs (-1: a stray blob, or unknown);
+        `trigger` if the caller has looked it up already."""
+        g = self.trigger_of(sample) if trigger is None else trigger
         if g < 0:
             return np.full(len(sample.uv), -1, np.int64)
         marker = self._blobs(sample.camera, g)[3]
@@ -169,16 +170,25 @@ class SimScene:
             return np.full(len(sample.uv), -1, np.int64)
         return marker
 
+    def truth_of(self, samples) -> tuple[list, np.ndarray]:
+        """For a frame's samples: when each was taken (None if unknown) and the true marker
+        of every blob, in the samples' order (one ledger look-up per sample)."""
+        entries = [self._entry(s) for s in samples]
+        taken = [None if e is None else e[1] for e in entries]
+        marker = [self.markers(s, -1 if e is None else e[0])
+                  for s, e in zip(samples, entries, strict=True)]
+        return taken, (np.concatenate(marker) if marker else np.zeros(0, np.int64))
+
     def frames_at(self, t_ns: int) -> tuple[int, int, float]:
         """The scene frames around daemon time t_ns and the weight of the second: the scene
         is shown at trigger times from t0_ns, back and forth."""
         at = (t_ns - self.t0_ns) * self.fps * 1e-9
-        g = int(np.floor(at))
-        w = at - g
+        g, w = round(at), 0.0
+        if abs(at - g) > 1e-6:  # between frames (else on one, up to rounding)
+            g = int(np.floor(at))
+            w = at - g
         if g < 0:
             return 0, 0, 0.0
-        if w < 1e-6:
-            w = 0.0
         return self.scene_frame(g), self.scene_frame(g + 1), w
 
     def body_poses_at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray]:
