@@ -15,7 +15,10 @@ Identity swaps: a track whose true marker changes, or a valid body posed more th
 
 Latency: `mocapd start --sim` in a subprocess (8 capture threads at 240 fps, triggered
 multiplexer) sending UDP to this process on 127.0.0.1; latency = receive time minus the
-frame's capture time carried by the packet (both the same monotonic clock).
+frame's capture time carried by the packet (both the same monotonic clock; the daemon's
+estimate of it from each camera's own clock, which includes the camera's smallest
+transfer delay, 0.1-0.5 ms in the simulator). The simulated cameras open up to 0.3 s
+apart; the first second is left out.
 
     python benchmarks/bench_tracking.py [--frames 1200] [--repeats 3] [--minutes 2]
                                         [--latency-s 10] [--json out.json]

@@ -26,12 +26,18 @@ VIDEO_SUFFIXES = {".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v", ".mpg", ".mpe
 @dataclass(frozen=True, eq=False)
 class Frame:
     """One image from one camera. t_ns: capture time in nanoseconds (monotonic clock for
-    live devices, from the frame rate or the container's timestamps for files)."""
+    live devices, from the frame rate or the container's timestamps for files).
+
+    Cameras whose drivers stamp frames (industrial cameras) also give their own timestamp
+    and frame counter: on the camera's clock and from its own start, so they are not
+    comparable across cameras until mapped (the daemon learns each camera's offset)."""
 
     camera: str
     index: int
     t_ns: int
     image: np.ndarray
+    device_time_ns: int = -1  # the camera's own timestamp, ns on its clock (-1: none)
+    device_frame_id: int = -1  # the camera's own frame counter (-1: none)
 
 
 class FrameSource:

@@ -9,16 +9,19 @@ opens. docs/daemon.md documents every key.
     markerset = "set.toml"               # label markers live with this set (or "cmu41")
     runtime_dir = "/run/mocapd"          # control socket; default $RUNTIME_DIRECTORY etc.
 
-    [pipeline]  mode = "triggered"|"greedy", fps, timeout_frames
+    [pipeline]  mode = "triggered"|"greedy", fps, timeout_frames, pair_tolerance
     [tracker]   gate_px, max_missing, outlier_px, new_tracks_every, ...
     [rigid]     distance_tol_m, max_error_m
     [sim]       cameras, bodies, markers_per_body, extra_markers, fps, noise_px, dropout,
                 ghosts, volume_m, size, seed, realtime, drop_camera, drop_from_s, drop_for_s,
-                define_bodies, person, person_radius_m, unsync_ms
+                define_bodies, person, person_radius_m, unsync_ms, open_spread_s,
+                clock_drift_ppm
     [[rigid_body]] name, id, markers = [[x, y, z], ...], pivot, min_markers_start,
                    min_markers_keep, smoothing
     [[camera]]  name (a camera of the rig), source ("0" a device, a video, an image folder,
-                "basler:SERIAL", "genicam:SERIAL"), fps, threshold, min_area, max_area
+                "basler:SERIAL", "genicam:SERIAL"), fps, threshold, min_area, max_area,
+                timestamps ("device": the camera's own stamps where it gives them, or
+                "arrival")
     [replay]    path (a .mcrec recording), realtime
     [[udp]]     address = "HOST:PORT", rate_hz, ttl, bodies, interface, markers
     [[serial]]  device, baud, rate_hz ("auto" or Hz), bodies
@@ -67,6 +70,8 @@ class SimConfig:
     person: bool = False  # a person wearing the 41-marker set walks a circle (sim_person)
     person_radius_m: float = 1.0  # radius of that circle, about the volume's centre
     unsync_ms: float = 0.0  # cameras' clocks offset by up to this: unsynchronised cameras
+    open_spread_s: float = 0.3  # cameras open up to this long after the first one
+    clock_drift_ppm: float = 30.0  # each camera's clock gains or loses up to this
 
 
 @dataclass(frozen=True)
@@ -77,6 +82,7 @@ class CameraIn:
     threshold: float | str = "auto"
     min_area: float = 2.0
     max_area: float = 4000.0
+    timestamps: str = "device"  # "arrival": ignore the camera's own timestamps and counter
 
 
 @dataclass(frozen=True)
@@ -149,6 +155,7 @@ class Config:
     mode: str = "triggered"
     fps: float = 240.0  # expected camera rate (the triggered multiplexer's timeout)
     timeout_frames: float = 1.5  # triggered: wait this many frame periods for a full set
+    pair_tolerance: float = 0.5  # a set gathers samples within this many frame periods
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     # the [tracker] keys the file sets: the pixel gates it leaves out follow the rig's
     # residual (calibkit.gates), the ones it sets stay as set
@@ -303,11 +310,13 @@ def parse_config(data: dict, path: Path | None = None, base: Path | None = None)
     if "markerset" in data:
         changes["markerset"] = _markerset(w, _string(w, data, "markerset", ""), base)
     pipe = _table(w, data, "pipeline")
-    _check_keys(w, pipe, {"mode", "fps", "timeout_frames"}, "pipeline.")
+    _check_keys(w, pipe, {"mode", "fps", "timeout_frames", "pair_tolerance"}, "pipeline.")
     changes["mode"] = _string(w, pipe, "mode", "pipeline.", "triggered", ("triggered", "greedy"))
     changes["fps"] = _number(w, pipe, "fps", "pipeline.", cfg.fps, lo=1, hi=10000)
     changes["timeout_frames"] = _number(w, pipe, "timeout_frames", "pipeline.", 1.5, lo=0.1,
                                         hi=100)
+    changes["pair_tolerance"] = _number(w, pipe, "pair_tolerance", "pipeline.", 0.5, lo=0.05,
+                                        hi=0.5)
     changes["tracker"] = _dataclass_table(w, _table(w, data, "tracker"), TrackerConfig,
                                           TrackerConfig(), "tracker.")
     changes["tracker_keys"] = frozenset(_table(w, data, "tracker"))
@@ -372,6 +381,10 @@ def _sim_limits(w, sim: SimConfig) -> None:
     if not 0 <= sim.unsync_ms < 1000 / sim.fps:
         w.fail("sim.unsync_ms", f"must be in [0, {1000 / sim.fps:g}) (a frame period), "
                                 f"got {sim.unsync_ms}")
+    if not 0 <= sim.open_spread_s <= 30:
+        w.fail("sim.open_spread_s", f"must be between 0 and 30, got {sim.open_spread_s}")
+    if not 0 <= sim.clock_drift_ppm <= 1000:
+        w.fail("sim.clock_drift_ppm", f"must be between 0 and 1000, got {sim.clock_drift_ppm}")
     if sim.person and not 0.3 <= sim.person_radius_m <= sim.volume_m / 2 - 0.3:
         w.fail("sim.person_radius_m", f"must be between 0.3 and {sim.volume_m / 2 - 0.3:g} "
                                       f"(inside the volume), got {sim.person_radius_m}")
@@ -429,7 +442,8 @@ def _bodies(w, data) -> list[BodyDef]:
 
 
 def _camera(w, t, p, base: Path) -> CameraIn:
-    _check_keys(w, t, {"name", "source", "fps", "threshold", "min_area", "max_area"}, p)
+    _check_keys(w, t, {"name", "source", "fps", "threshold", "min_area", "max_area",
+                       "timestamps"}, p)
     threshold = t.get("threshold", "auto")
     if threshold != "auto" and (isinstance(threshold, bool)
                                 or not isinstance(threshold, (int, float))
@@ -441,7 +455,8 @@ def _camera(w, t, p, base: Path) -> CameraIn:
     return CameraIn(_string(w, t, "name", p), source,
                     _number(w, t, "fps", p, 30.0, lo=0.1, hi=10000), threshold,
                     _number(w, t, "min_area", p, 2.0, lo=0), _number(w, t, "max_area", p,
-                                                                     4000.0, lo=1))
+                                                                     4000.0, lo=1),
+                    _string(w, t, "timestamps", p, "device", ("device", "arrival")))
 
 
 def _udp(w, t, p) -> UdpOut:

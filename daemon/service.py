@@ -37,13 +37,14 @@ from daemon.publish.serial import SerialPublisher
 from daemon.publish.udp import UdpPublisher
 from daemon.publish.vrpn import VrpnPublisher
 from daemon.rigid import alike_bodies
-from daemon.sources import DetectCamera, ReplayScene, missing_plugins
+from daemon.sources import DetectCamera, ReplayCamera, ReplayScene, missing_plugins
 from daemon.synthetic.evaluator import Evaluator
 from daemon.synthetic.labelling import LabelScore
 from daemon.synthetic.scene import SimCamera, SimScene
 
 log = logging.getLogger("mocapd")
 SOCKET_NAME = "mocapd.sock"
+OPEN_GRACE_NS = 1_000_000_000  # after the start, sets wait this long for cameras not open yet
 
 
 # ---- systemd notify --------------------------------------------------------------------------
@@ -286,7 +287,10 @@ class Daemon:
         if cfg.sim is not None:
             self.scene = SimScene(cfg.sim, self.rig, self._truth_rig, n_frames)
             self.rig = self.scene.rig
-            self.evaluator = Evaluator(self.scene, slots=not cfg.bodies)
+            # greedy sets mix instants by design (moved to one time): not checked
+            self.evaluator = Evaluator(self.scene, slots=not cfg.bodies,
+                                       check_instants=cfg.mode == "triggered"
+                                       or not cfg.sim.realtime)
         elif cfg.replay is not None:
             self.scene = ReplayScene(cfg.replay.path, self.rig)
         elif cfg.cameras:
@@ -352,7 +356,8 @@ class Daemon:
                 continue
             det = DetectorConfig(threshold=cam.threshold, min_area=cam.min_area,
                                  max_area=cam.max_area)
-            out.append(DetectCamera(cam.name, names.index(cam.name), cam.source, det, cam.fps))
+            out.append(DetectCamera(cam.name, names.index(cam.name), cam.source, det, cam.fps,
+                                    device_stamps=cam.timestamps == "device"))
         if not out:
             raise UserError("no camera can be opened (see the messages above)")
         return out
@@ -477,22 +482,30 @@ class Daemon:
         if self.live_sources is not None:
             sources, fps = self.live_sources, cfg.fps
         else:
-            sources = [SimCamera(scene, c, t0) for c in range(len(self.rig))]
+            kind = ReplayCamera if isinstance(scene, ReplayScene) else SimCamera
+            sources = [kind(scene, c, t0) for c in range(len(self.rig))]
             fps = scene.fps
         self.captures = [CaptureThread(src, None) for src in sources]
         index = {src.camera: k for k, src in enumerate(sources)}  # rig camera -> thread
         n = len(self.rig)
+        grace_ns = t0 + OPEN_GRACE_NS
 
         def connected():
+            """The cameras a new set waits for: those delivering, and for a moment after the
+            start those not open yet (a rig opening together); a camera that opens later
+            joins the sets once it delivers."""
             ok = np.zeros(n, dtype=bool)
+            early = time.monotonic_ns() < grace_ns
             for cam, k in index.items():
                 c = self.captures[k]
-                ok[cam] = c.connected or c.frames == 0
+                ok[cam] = c.connected or (early and c.frames == 0)
             return ok
 
-        self.mux = Multiplexer(n, cfg.mode, fps, cfg.timeout_frames, connected=connected)
+        self.mux = Multiplexer(n, cfg.mode, fps, cfg.timeout_frames, connected=connected,
+                               tolerance_frames=cfg.pair_tolerance)
         for cap in self.captures:
             cap.push = self.mux.push
+            cap.on_open = self.mux.reset_camera
             cap.start()
         sd_notify("READY=1")
         log.info("tracking %d cameras (%s at %.0f fps, %s)", len(sources),
@@ -649,12 +662,15 @@ class Daemon:
                              "dropped": 0, "failures": 0})
                 continue
             mux = getattr(self, "mux", None)
-            cams.append({"name": name,
-                         "connected": bool(cap.connected) if cap else True,
-                         "rate_hz": cap.rate_hz() if cap else st.rate_hz(),
-                         "frames": cap.frames if cap else st.frames,
-                         "dropped": int(mux.missing[i]) if mux else 0,
-                         "failures": cap.failures if cap else 0})
+            cam = {"name": name,
+                   "connected": bool(cap.connected) if cap else True,
+                   "rate_hz": cap.rate_hz() if cap else st.rate_hz(),
+                   "frames": cap.frames if cap else st.frames,
+                   "dropped": int(mux.missing[i]) if mux else 0,
+                   "failures": cap.failures if cap else 0}
+            if mux is not None:  # its clock against the daemon's, frames its counter skipped
+                cam.update(mux.camera_status(i))
+            cams.append(cam)
         poses = getattr(self.pipeline, "last_result", None)
         return {
             "uptime_s": (time.monotonic_ns() - self.started_ns) * 1e-9,
@@ -705,4 +721,5 @@ class Daemon:
         if mux is None:
             return None
         return {"incomplete_sets": mux.incomplete, "late_samples": mux.late,
-                "overflow": mux.overflow, "skipped_behind": mux.skipped}
+                "settling_samples": mux.settling, "overflow": mux.overflow,
+                "skipped_behind": mux.skipped}

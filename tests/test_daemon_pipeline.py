@@ -1,4 +1,5 @@
-"""The multiplexer (triggered and greedy) and defining a rigid body from the live markers."""
+"""The multiplexer (triggered and greedy) and defining a rigid body from the live markers.
+(Pairing by time on the simulator's cameras: tests/test_multiplexer.py.)"""
 
 from __future__ import annotations
 
@@ -41,8 +42,9 @@ def test_triggered_does_not_wait_for_a_disconnected_camera():
     connected = np.array([True, False, True])
     mux = Multiplexer(3, "triggered", fps=100.0, connected=lambda: connected)
     mux.push(_sample(0, 5, 0, [[0, 0]]))
-    mux.push(_sample(2, 5, 0, [[0, 0]]))
-    assert mux.next(0.0).index == 5
+    mux.push(_sample(2, 9, 0, [[0, 0]]))  # counters differ: paired by time
+    fs = mux.next(0.0)
+    assert fs.index == 0 and [s.camera for s in fs.samples] == [0, 2]
 
 
 def test_greedy_extrapolates_other_cameras_to_the_newest_time():

@@ -1,32 +1,46 @@
-"""Scoring the daemon's rigid bodies against the simulator: pose errors and identity swaps."""
+"""Scoring the daemon's rigid bodies against the simulator: pose errors, identity swaps, and
+whether each frame set paired frames taken at the same instant."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from daemon.rigid import matrix_from_quaternion
 from daemon.synthetic.scene import SimScene
+
+GROSS_M, GROSS_DEG = 0.02, 5.0  # a pose this far off is a gross error
 
 
 class Evaluator:
-    """Pose errors of the daemon's rigid bodies against the simulator, and identity swaps.
+    """Pose errors of the daemon's rigid bodies against the simulator, identity swaps, and
+    frame sets that mix instants.
 
+    The truth of each sample (which trigger it was, when it was taken, which marker each
+    blob is) comes from the scene's ledger, found by the sample's camera and its own frame
+    id and timestamp: nothing the daemon computes carries it. A set's poses are scored
+    against the bodies where they were at the set's time (`t_ns`, the daemon's estimate of
+    when it was taken), so a wrong time costs accuracy as it would on real cameras.
+
+    Every valid pose counts in the RMS figures; those more than 2 cm or 5 degrees off are
+    also counted as gross errors (a body posed from three close markers seen by few cameras
+    can be that far off without any swap), and the RMS without them is given too, named so.
     A track's identity is the true marker most of its blobs came from this frame; a track
     swap is a track whose identity changes. A body swap is a valid body holding a track of
     another marker than its own (checked when the daemon's bodies are the scene's, marker
-    for marker: `slots=True`). Poses more than 2 cm or 5 degrees off are counted apart as
-    gross errors (a body posed from three close markers seen by few cameras can be that
-    far off without any swap); they are left out of the RMS figures and reported.
+    for marker: `slots=True`). A set mixes instants when its cameras' true capture times
+    are more than half a frame period apart (`check_instants`: triggered sets; greedy ones
+    mix them by design, the extrapolation brings them together).
 
     It runs on the frame loop, so it is vectorised over the bodies and keeps running sums
     only: its time is added to every frame's (a per-body loop here cost 1.2 ms a frame,
     more than the tracker, and delayed the next frame's pickup).
     """
 
-    def __init__(self, scene: SimScene, skip_frames: int = 5, slots: bool = True) -> None:
+    def __init__(self, scene: SimScene, skip_frames: int = 5, slots: bool = True,
+                 check_instants: bool = True) -> None:
         self.scene = scene
         self.skip = skip_frames
         self.slots = slots
+        self.check_instants = check_instants
         truth = scene.bodies_truth
         nb = len(truth)
         self.ids = np.array([b.id for b in truth], dtype=np.int64)
@@ -34,27 +48,33 @@ class Evaluator:
         self.marker_ids = np.full((nb, k), -1, dtype=np.int64)
         for i, b in enumerate(truth):
             self.marker_ids[i, :len(b.marker_ids)] = b.marker_ids
-        self.poses = np.stack([b.poses for b in truth]) if nb else np.zeros((0, 1, 4, 4))
-        self._quats = None  # (bodies, frames, 4) x y z w, made when first needed
         self.valid = np.zeros(nb, dtype=np.int64)
         self.gross = np.zeros(nb, dtype=np.int64)
-        self.scored = np.zeros(nb, dtype=np.int64)  # valid frames within the gross limits
-        self.pos_sq = np.zeros(nb)  # sums over scored frames, m^2 and deg^2
+        self.pos_sq = np.zeros(nb)  # sums over every valid pose, m^2 and deg^2
         self.ang_sq = np.zeros(nb)
         self.ang_max = np.zeros(nb)
+        self.pos_sq_good = np.zeros(nb)  # the same over the poses within the gross limits
+        self.ang_sq_good = np.zeros(nb)
         self.swapped = np.zeros(nb, dtype=bool)
         self.frames = 0
         self.last_label = np.full(1024, -1, dtype=np.int64)  # by track id; -1 never labelled
         self.track_swaps = 0
         self.body_swaps = 0
+        self.sets_checked = 0  # sets whose every sample was found in the ledger
+        self.mixed_sets = 0
+        self.spread_max_ns = 0
+        self.unknown_samples = 0  # samples the ledger no longer (or never) held
 
     def __call__(self, result) -> None:
-        if result.scene_frame < 0:
+        samples = result.samples
+        if not samples:
             return
+        taken, marker = self.scene.truth_of(samples)
+        self._instants(taken)
         self.frames += 1
         if self.frames <= self.skip:
             return
-        labelled = self._tracks(result)
+        labelled = self._tracks(result, marker)
         p = result.poses
         if not len(self.ids) or not len(p.ids):
             return
@@ -76,55 +96,39 @@ class Evaluator:
             wrong = np.any((got >= 0) & (want >= 0) & (got != want), axis=1)
             self.body_swaps += int(np.sum(ok & wrong & ~self.swapped))
             self.swapped[ok] = wrong[ok]
-        R_true, t_true = self._truth_at(result)
+        R_true, t_true = self.scene.body_poses_at(result.t_ns)
         e = np.linalg.norm(p.position[row] - t_true, axis=1)
         cos = (np.einsum("bij,bij->b", p.rotation[row], R_true) - 1) / 2
         a = np.degrees(np.arccos(np.clip(cos, -1, 1)))
         self.valid += ok
-        gross = ok & ((e > 0.02) | (a > 5.0))
+        self.pos_sq[ok] += e[ok] ** 2
+        self.ang_sq[ok] += a[ok] ** 2
+        self.ang_max[ok] = np.maximum(self.ang_max[ok], a[ok])
+        gross = ok & ((e > GROSS_M) | (a > GROSS_DEG))
         self.gross += gross
         good = ok & ~gross
-        self.scored += good
-        self.pos_sq[good] += e[good] ** 2
-        self.ang_sq[good] += a[good] ** 2
-        self.ang_max[good] = np.maximum(self.ang_max[good], a[good])
+        self.pos_sq_good[good] += e[good] ** 2
+        self.ang_sq_good[good] += a[good] ** 2
 
-    def _truth_at(self, result):
-        """The bodies' true (R, t) when the frame set was taken. Live, a set's time may lie
-        between two scene frames: unsynchronised cameras (the set's median capture time), or
-        the greedy multiplexer (the newest camera's time, the others moved to it); the truth
-        is then interpolated (positions linearly, orientations by normalised quaternions),
-        as the simulator rendered each camera's view."""
-        f = result.scene_frame
-        T = self.poses[:, f]
-        t0 = getattr(self.scene, "t0_ns", None)
-        if t0 is None:  # not a live run: sets are taken at their frame's time
-            return T[:, :3, :3], T[:, :3, 3]
-        period = 1e9 / self.scene.fps
-        at = f + (result.t_ns - t0 - result.frame * period) / period
-        last = self.poses.shape[1] - 1
-        if abs(at - f) < 1e-6 or last < 1:
-            return T[:, :3, :3], T[:, :3, 3]
-        base = int(min(max(np.floor(at), 0), last - 1))
-        w = at - base
-        if self._quats is None:
-            from scipy.spatial.transform import Rotation
+    def _instants(self, taken) -> None:
+        """Whether the set's samples were really taken within half a frame period."""
+        if not self.check_instants:
+            return
+        known = [t for t in taken if t is not None]
+        self.unknown_samples += len(taken) - len(known)
+        if len(known) < len(taken) or not known:
+            return
+        spread = max(known) - min(known)
+        self.sets_checked += 1
+        self.spread_max_ns = max(self.spread_max_ns, spread)
+        if spread > 0.5e9 / self.scene.fps:
+            self.mixed_sets += 1
 
-            R = self.poses[:, :, :3, :3]
-            self._quats = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat().reshape(
-                R.shape[:2] + (4,))
-        qa, qb = self._quats[:, base], self._quats[:, base + 1]
-        qb = qb * np.sign(np.sum(qa * qb, axis=1, keepdims=True) + 1e-12)
-        q = (1 - w) * qa + w * qb
-        q /= np.linalg.norm(q, axis=1, keepdims=True)
-        pos = (1 - w) * self.poses[:, base, :3, 3] + w * self.poses[:, base + 1, :3, 3]
-        return matrix_from_quaternion(q), pos
-
-    def _tracks(self, result):
+    def _tracks(self, result, marker):
         """This frame's track identities (track ids sorted, true markers); counts track
-        swaps. None without the simulator's blob labels."""
-        marker = result.blob_marker
-        if marker is None:
+        swaps. `marker`: the blobs' true markers from the ledger, sample by sample, in the
+        order the pipeline concatenated them."""
+        if len(marker) != len(result.uv):
             return None
         tb = result.tracks.blobs
         lab = np.where(tb >= 0, marker[np.maximum(tb, 0)], -1)  # (T, C)
@@ -145,26 +149,40 @@ class Evaluator:
 
     def figures(self) -> dict:
         n = max(self.frames - self.skip, 1)
+
+        def rms(total, count, scale=1.0):
+            return float(np.sqrt(total / count) * scale) if count else None
+
         bodies = {}
+        good_n = self.valid - self.gross
         for i, b in enumerate(self.scene.bodies_truth):
-            m = self.scored[i]
+            m, g = int(self.valid[i]), int(good_n[i])
             bodies[b.name] = {
                 "id": b.id,
-                "valid_fraction": int(self.valid[i]) / n,
-                "gross_error_frames": int(self.gross[i]),
-                "position_error_mm_rms": float(np.sqrt(self.pos_sq[i] / m) * 1000) if m
-                else None,
-                "orientation_error_deg_rms": float(np.sqrt(self.ang_sq[i] / m)) if m else None,
+                "valid_fraction": m / n,
+                "position_error_mm_rms": rms(self.pos_sq[i], m, 1000),
+                "orientation_error_deg_rms": rms(self.ang_sq[i], m),
                 "orientation_error_deg_max": float(self.ang_max[i]) if m else None,
+                "gross_error_frames": int(self.gross[i]),
+                "position_error_mm_rms_without_gross": rms(self.pos_sq_good[i], g, 1000),
+                "orientation_error_deg_rms_without_gross": rms(self.ang_sq_good[i], g),
             }
-        m = int(self.scored.sum())
+        m, g = int(self.valid.sum()), int(good_n.sum())
         return {
             "frames_scored": n,
             "bodies": bodies,
-            "position_error_mm_rms": float(np.sqrt(self.pos_sq.sum() / m) * 1000) if m
-            else None,
-            "orientation_error_deg_rms": float(np.sqrt(self.ang_sq.sum() / m)) if m else None,
+            "valid_poses": m,
+            "position_error_mm_rms": rms(self.pos_sq.sum(), m, 1000),
+            "orientation_error_deg_rms": rms(self.ang_sq.sum(), m),
+            "gross_error_frames": int(self.gross.sum()),
+            "position_error_mm_rms_without_gross": rms(self.pos_sq_good.sum(), g, 1000),
+            "orientation_error_deg_rms_without_gross": rms(self.ang_sq_good.sum(), g),
             "track_swaps": self.track_swaps,
             "body_swaps": self.body_swaps,
-            "gross_error_frames": int(self.gross.sum()),
+            "sets_mixing_instants": self.mixed_sets if self.check_instants else None,
+            "sets_checked_for_instants": self.sets_checked if self.check_instants else None,
+            "set_instant_spread_ms_max": self.spread_max_ns * 1e-6 if self.check_instants
+            else None,
+            "samples_not_in_ledger": self.unknown_samples,
+            "scene_t0_ns": int(self.scene.t0_ns),
         }

@@ -26,7 +26,8 @@ class LabelScore:
     """Per-frame hook scoring the labelled markers against the simulated person's truth
     (`mocapd start --sim` with `[sim] person = true`): a marker is named right when the
     true marker nearest its position is the one its name says; position errors are
-    taken over those."""
+    taken over those. The truth is the person where the scene had it at the frame's time
+    (nothing in the result carries it)."""
 
     def __init__(self, scene) -> None:
         self.scene = scene
@@ -41,12 +42,12 @@ class LabelScore:
 
     def __call__(self, result) -> None:
         lab = result.labelled
-        if lab is None or not len(lab.index) or result.scene_frame < 0:
+        if lab is None or not len(lab.index) or not result.samples:
             return
         if lab.names is not self._names:
             self._names = lab.names
             self._to_truth = np.array([self.index.get(n, -1) for n in lab.names])
-        truth = self.scene.person_xyz[result.scene_frame]
+        truth = self.scene.person_at(result.t_ns)
         want = self._to_truth[lab.index]
         known = want >= 0
         d = np.linalg.norm(lab.xyz[known, None] - truth[None], axis=2)

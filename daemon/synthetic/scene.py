@@ -1,9 +1,17 @@
 """The simulated capture the daemon runs with `--sim`: moving bodies, a person, and cameras
-that deliver their blobs at the pace real ones would.
+that behave as real ones do.
 
-What the capture threads get is what cameras give (blobs and capture times); the truth
-(bodies' poses, each blob's marker) stays in SimScene for the scorers in
-daemon.synthetic.evaluator.
+Each simulated camera opens at its own moment (`[sim] open_spread_s`), counts frames from 0
+from its own start, stamps them on its own clock (a random epoch, running fast or slow by
+up to `[sim] clock_drift_ppm`), delivers them a transfer delay after it took them (its own
+smallest delay plus jitter), and when it reconnects (`drop_camera`) starts again from 0 on
+a new epoch. The rig is triggered: every camera takes its frames at the same instants
+(plus its fixed `unsync_ms` phase, for free-running cameras).
+
+What the capture threads get is what cameras give (blobs, the device's time and frame
+counter, the arrival); the truth (bodies' poses, and for every delivered frame which
+trigger it was, when it was taken and which marker each blob is) stays in SimScene for the
+scorers in daemon.synthetic.evaluator and daemon.synthetic.labelling.
 """
 
 from __future__ import annotations
@@ -17,10 +25,13 @@ from calibkit.camera import Rig
 from calibkit.errors import UserError
 from calibkit.synthetic import sim
 from daemon.config import SimConfig
-from daemon.rigid import BodyDef
+from daemon.rigid import BodyDef, matrix_from_quaternion
 from daemon.sources import CameraSample, fine_timer_slack
 
 PERSON_MARKER_BASE = 2000  # the simulated person's truth marker ids start here
+TRANSFER_NS = (100_000, 500_000)  # range of the cameras' smallest capture-to-arrival delay
+JITTER_NS = 50_000  # mean of the exponential delay on top of it
+LEDGER = 1 << 15  # delivered frames remembered per camera (136 s at 240 fps)
 
 
 class SimScene:
@@ -54,13 +65,13 @@ class SimScene:
             truth = type(truth)(np.concatenate([truth.frame, loose.frame]),
                                 np.concatenate([truth.marker, loose.marker + 1000]),
                                 np.concatenate([truth.xyz, loose.xyz]))
-        self.t0_ns: int | None = None  # live runs: when frame 0 was due (SimCamera sets it)
+        self.t0_ns = 0  # daemon time of trigger 0 (live runs: SimCamera sets it)
         self.person_labels: list[str] = []
         self.person_xyz = np.zeros((n, 0, 3))  # (frames, 41, 3) the person's markers
         if cfg.person:
             truth = self._add_person(truth, n)
         self.truth = truth
-        # unsynchronised cameras: each camera's clock offset, fixed for the run
+        # free-running cameras: each camera's phase against the trigger, fixed for the run
         self.offsets_ns = np.random.default_rng(cfg.seed + 4).uniform(
             0.0, cfg.unsync_ms * 1e6, len(rig)).round()
         obs = sim.observe(self.truth_rig, truth, noise_px=cfg.noise_px, dropout=cfg.dropout,
@@ -69,6 +80,19 @@ class SimScene:
         self.obs = obs.sorted()
         key = self.obs.frame * len(rig) + self.obs.camera
         self.starts = np.searchsorted(key, np.arange(n * len(rig) + 1))
+        # each camera's own start, clock and transfer delay, fixed for the run
+        m = len(rig)
+        rng = np.random.default_rng(cfg.seed + 5)
+        opens = rng.uniform(0.0, 1.0, m)  # the first at once, the last open_spread_s later
+        opens = (opens - opens.min()) / max(np.ptp(opens), 1e-9) * cfg.open_spread_s
+        self.open_delay_ns = np.round(opens * 1e9).astype(np.int64)
+        self.drift_ppm = rng.uniform(-cfg.clock_drift_ppm, cfg.clock_drift_ppm, m)
+        self.transfer_ns = rng.uniform(*TRANSFER_NS, m).round().astype(np.int64)
+        # the ledger: per camera, by (frame id, device time), what each delivered frame
+        # was (trigger, when taken); a reconnected camera reuses frame ids, not times
+        self._ledger: list[dict] = [{} for _ in range(m)]
+        self._poses = None  # (bodies, frames, 4, 4) and (bodies, frames, 4) quaternions
+        self._quats = None  # x y z w, made when first needed
 
     def _add_person(self, truth, n: int):
         """A person wearing the 41-marker set walks a circle in the volume (truth marker
@@ -92,17 +116,108 @@ class SimScene:
         k = i % period
         return k if k < self.n_frames else period - k
 
-    def blobs(self, camera: int, i: int):
-        """(uv, area, peak, marker) of camera `camera` at daemon frame i."""
-        f = self.scene_frame(i)
+    def _blobs(self, camera: int, trigger: int):
+        """(uv, area, peak, marker) of camera `camera` at trigger `trigger`."""
+        f = self.scene_frame(trigger)
         s, e = self.starts[f * len(self.rig) + camera], self.starts[f * len(self.rig) + camera + 1]
         o = self.obs
         return o.uv[s:e], o.area[s:e], o.peak[s:e], o.marker[s:e]
 
+    def deliver(self, camera: int, trigger: int, frame_id: int, device_ns: int, t_ns: int,
+                arrival_ns: int, taken_ns: int) -> CameraSample:
+        """What camera `camera` delivers for trigger `trigger`, as its driver would: blobs,
+        its frame counter and timestamp; the ledger keeps the truth of it."""
+        book = self._ledger[camera]
+        book[frame_id, device_ns] = (trigger, taken_ns)
+        if len(book) > LEDGER:
+            del book[next(iter(book))]  # the oldest
+        uv, area, peak, _ = self._blobs(camera, trigger)
+        return CameraSample(camera, frame_id, t_ns, arrival_ns, uv, area, peak, device_ns,
+                            frame_id)
+
     def sample(self, camera: int, i: int, t_ns: int) -> CameraSample:
-        uv, area, peak, marker = self.blobs(camera, i)
-        return CameraSample(camera, i, t_ns, time.monotonic_ns(), uv, area, peak, marker,
-                            self.scene_frame(i))
+        """Trigger i of a camera that opened with the others at trigger 0 on a perfect
+        clock (runs as fast as the tracker goes, which have no capture threads)."""
+        taken = round(i * 1e9 / self.fps) + int(self.offsets_ns[camera])
+        return self.deliver(camera, i, i, taken, t_ns, time.monotonic_ns(), taken)
+
+    # ---- the truth, for the scorers ------------------------------------------------------
+
+    def _entry(self, sample) -> tuple[int, int] | None:
+        """(trigger, taken_ns) of a delivered sample, found by its camera, frame id and
+        timestamp; None if the ledger never held it or has forgotten it."""
+        return self._ledger[sample.camera].get((sample.device_frame_id,
+                                                sample.device_time_ns))
+
+    def trigger_of(self, sample) -> int:
+        """The trigger (the scene's frame counter) a delivered sample was taken at, or -1."""
+        e = self._entry(sample)
+        return -1 if e is None else e[0]
+
+    def taken_ns(self, sample) -> int | None:
+        """When a delivered sample was really taken (daemon clock), or None."""
+        e = self._entry(sample)
+        return None if e is None else e[1]
+
+    def markers(self, sample, trigger: int | None = None) -> np.ndarray:
+        """The true marker of each of a sample's blobs (-1: a stray blob, or unknown);
+        `trigger` if the caller has looked it up already."""
+        g = self.trigger_of(sample) if trigger is None else trigger
+        if g < 0:
+            return np.full(len(sample.uv), -1, np.int64)
+        marker = self._blobs(sample.camera, g)[3]
+        if len(marker) != len(sample.uv):
+            return np.full(len(sample.uv), -1, np.int64)
+        return marker
+
+    def truth_of(self, samples) -> tuple[list, np.ndarray]:
+        """For a frame's samples: when each was taken (None if unknown) and the true marker
+        of every blob, in the samples' order (one ledger look-up per sample)."""
+        entries = [self._entry(s) for s in samples]
+        taken = [None if e is None else e[1] for e in entries]
+        marker = [self.markers(s, -1 if e is None else e[0])
+                  for s, e in zip(samples, entries, strict=True)]
+        return taken, (np.concatenate(marker) if marker else np.zeros(0, np.int64))
+
+    def frames_at(self, t_ns: int) -> tuple[int, int, float]:
+        """The scene frames around daemon time t_ns and the weight of the second: the scene
+        is shown at trigger times from t0_ns, back and forth."""
+        at = (t_ns - self.t0_ns) * self.fps * 1e-9
+        g, w = round(at), 0.0
+        if abs(at - g) > 1e-6:  # between frames (else on one, up to rounding)
+            g = int(np.floor(at))
+            w = at - g
+        if g < 0:
+            return 0, 0, 0.0
+        return self.scene_frame(g), self.scene_frame(g + 1), w
+
+    def body_poses_at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray]:
+        """The bodies' true (R (B, 3, 3), t (B, 3)) at daemon time t_ns: between scene
+        frames, positions linearly and orientations by normalised quaternions."""
+        if self._poses is None:
+            self._poses = np.stack([b.poses for b in self.bodies_truth]) \
+                if self.bodies_truth else np.zeros((0, self.n_frames, 4, 4))
+        poses = self._poses
+        fa, fb, w = self.frames_at(t_ns)
+        if w == 0.0:
+            return poses[:, fa, :3, :3], poses[:, fa, :3, 3]
+        if self._quats is None:
+            from scipy.spatial.transform import Rotation
+
+            R = poses[:, :, :3, :3]
+            self._quats = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat().reshape(
+                R.shape[:2] + (4,))
+        qa, qb = self._quats[:, fa], self._quats[:, fb]
+        qb = qb * np.sign(np.sum(qa * qb, axis=1, keepdims=True) + 1e-12)
+        q = (1 - w) * qa + w * qb
+        q /= np.linalg.norm(q, axis=1, keepdims=True)
+        pos = (1 - w) * poses[:, fa, :3, 3] + w * poses[:, fb, :3, 3]
+        return matrix_from_quaternion(q), pos
+
+    def person_at(self, t_ns: int) -> np.ndarray:
+        """The person's true markers (41, 3) at daemon time t_ns."""
+        fa, fb, w = self.frames_at(t_ns)
+        return (1 - w) * self.person_xyz[fa] + w * self.person_xyz[fb]
 
     def dropped(self, camera: int, i: int) -> bool:
         """True while the configured camera is disconnected (fault injection)."""
@@ -114,28 +229,47 @@ class SimScene:
 
 
 class SimCamera:
-    """One simulated (or replayed) camera as a capture thread reads it: paced at the
-    scene's rate from a shared start time, so all cameras' frame i share one capture time
-    (a triggered rig). A replay ends with its recording."""
+    """One simulated camera as a capture thread reads it (see the module docstring): its
+    first open waits for its own start; every open counts frames from 0 on a new clock
+    epoch; frames are taken at the rig's trigger instants and arrive a transfer delay
+    later."""
 
-    def __init__(self, scene: SimScene, camera: int, t0_ns: int) -> None:
+    def __init__(self, scene: SimScene, camera: int, t0_ns: int,
+                 now=time.monotonic_ns, sleep=time.sleep) -> None:
+        """`now` and `sleep` are the clock it paces itself by: the daemon's, or in tests a
+        virtual one (a capture run faster than real time, the same frames and truth)."""
         self.scene, self.camera, self.t0_ns = scene, camera, t0_ns
-        scene.t0_ns = t0_ns  # when frame 0 was due: the Evaluator places frames in time
+        scene.t0_ns = t0_ns  # trigger 0: the scorers place frames in time from it
         self.name = scene.rig.names[camera]
+        self.sessions = 0
+        self.now, self.sleep = now, sleep
 
     def open(self) -> Iterator[CameraSample]:
         fine_timer_slack()
-        period = 1e9 / self.scene.fps
-        i = max(0, int(np.ceil((time.monotonic_ns() - self.t0_ns) / period)))
-        end = getattr(self.scene, "frame_numbers", None)
-        offsets = getattr(self.scene, "offsets_ns", None)  # unsynchronised simulated clocks
-        t0 = self.t0_ns + (int(offsets[self.camera]) if offsets is not None else 0)
-        while end is None or i < len(end):
-            due = t0 + round(i * period)
-            wait = due - time.monotonic_ns()
+        now, sleep = self.now, self.sleep
+        sc, c = self.scene, self.camera
+        period = 1e9 / sc.fps
+        session, self.sessions = self.sessions, self.sessions + 1
+        rng = np.random.default_rng([sc.cfg.seed, 6, c, session])
+        phase = int(sc.offsets_ns[c])  # free-running cameras: a fixed phase
+        start = now()
+        if session == 0:
+            start = max(start, self.t0_ns + int(sc.open_delay_ns[c]))
+        g = max(0, int(np.ceil((start - self.t0_ns - phase) / period)))
+        epoch = int(rng.integers(1, 2**42))  # its clock at its first frame: since power-up
+        rate = 1.0 + sc.drift_ppm[c] * 1e-6
+        first = self.t0_ns + round(g * period) + phase
+        k = 0
+        while True:
+            taken = self.t0_ns + round(g * period) + phase
+            due = taken + int(sc.transfer_ns[c]) + round(rng.exponential(JITTER_NS))
+            wait = due - now()
             if wait > 0:
-                time.sleep(wait * 1e-9)
-            if self.scene.dropped(self.camera, i):
+                sleep(wait * 1e-9)
+            if sc.dropped(c, g):
                 raise OSError("camera disconnected (simulated)")
-            yield self.scene.sample(self.camera, i, due)
-            i += 1
+            arrival = now()
+            device = epoch + round((taken - first) * rate)
+            yield sc.deliver(c, g, k, device, arrival, arrival, taken)
+            g += 1
+            k += 1
