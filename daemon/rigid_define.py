@@ -20,7 +20,7 @@ from daemon.rigid import kabsch_batch
 
 def body_from_snapshots(snapshots: Sequence[tuple[np.ndarray, np.ndarray]],
                         cluster_m: float = 0.004, min_share: float = 0.5,
-                        max_spread_m: float = 0.002) -> np.ndarray:
+                        max_spread_m: float = 0.004) -> np.ndarray:
     """Markers (k, 3) of one object in a new body frame (origin at their centroid, the
     world's axes as they were in the fullest frame) from frames of tracked points, each
     (track ids (n,), positions (n, 3)) of that object alone.
@@ -28,8 +28,9 @@ def body_from_snapshots(snapshots: Sequence[tuple[np.ndarray, np.ndarray]],
     cluster_m: points of one marker from different frames lie this close after the frames
     are aligned (far below any two markers' distance); min_share: a marker is a cluster
     found in at least this share of the frames (ghosts and duplicates are not);
-    max_spread_m: a cluster wider than this (RMS) means the points did not hold still
-    relative to each other (a marker wobbling, two tracks swapping): an error.
+    max_spread_m: a cluster whose points lie farther than this from its centre (the median
+    distance: a stray point joined to it does not count) means the points did not hold
+    still relative to each other (a marker wobbling, two tracks swapping): an error.
     """
     frames = [(np.asarray(i, dtype=np.int64).reshape(-1),
                np.asarray(x, dtype=np.float64).reshape(-1, 3)) for i, x in snapshots]
@@ -50,11 +51,12 @@ def body_from_snapshots(snapshots: Sequence[tuple[np.ndarray, np.ndarray]],
         ref_xyz = np.array([centre.get(int(g), p) for g, p in
                             zip(ref_group, pts[frame_of == ref], strict=True)])
     markers = np.array([centre[int(g)] for g in keep]).reshape(-1, 3)
-    spread = np.array([np.sqrt(np.mean(np.sum((pts[group == g] - m) ** 2, axis=1)))
+    spread = np.array([np.median(np.linalg.norm(pts[group == g] - m, axis=1))
                        for g, m in zip(keep, markers, strict=True)])
     if len(spread) and spread.max() > max_spread_m:
-        raise UserError(f"a marker's position varied by {spread.max() * 1000:.1f} mm RMS "
-                        "during the capture; hold the body still and alone in the volume")
+        raise UserError(f"a marker's position varied by {spread.max() * 1000:.1f} mm "
+                        "(median) during the capture; hold the body still and alone in the "
+                        "volume")
     markers = _in_mean_pose(markers, keep, raw, frame_of, group)
     return markers - markers.mean(axis=0) if len(markers) else markers
 
