@@ -2,7 +2,8 @@
 
 Every algorithm is measured against this. A scene is a `Truth` table (marker positions per
 frame); `observe` turns it into the 2D observations real cameras would report (noise,
-dropouts, stray blobs, unsynchronised clocks) and `render_frame` into 8-bit images. All of it
+dropouts, stray blobs, unsynchronised clocks, markers whose images overlap merged into one
+blob: calibkit.synthetic.blobs) and `render_frame` into 8-bit images. All of it
 is deterministic for a seed. The capture volume is a box: x and y in [-V/2, V/2], z in
 [0, V/2] for a volume V metres across, with the floor at z = 0.
 """
