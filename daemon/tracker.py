@@ -7,6 +7,13 @@ within a few pixels in each camera is its blob, cheaply and without ambiguity; o
 blobs left over go to the correspondence, which finds new markers. A track that loses its
 blobs coasts on its prediction for a few frames and takes them back, so an identity (and a
 rigid body's marker assignment) survives short occlusions.
+
+Merged blobs: two markers whose images overlap give one blob at neither's place, and a
+track that took it would be pulled towards the other marker (and, as they part, could
+follow it: an identity swap). A blob within the gate of two tracks is therefore neither's,
+and with the blobs' areas a blob larger than the track's own marker image at its predicted
+depth (each track learns its marker's size) is not its own either. Such a track is
+triangulated from its other cameras, or coasts.
 """
 
 from __future__ import annotations
@@ -33,6 +40,10 @@ class TrackerConfig:
     revive_m: float = 0.03  # a new point this close to a coasting track revives it
     velocity_alpha: float = 0.7  # weight of the newest velocity estimate
     new_tracks_every: int = 4  # look for new markers every N frames (every frame if none)
+    # a blob larger than this times the track's marker image at its depth (plus the margin,
+    # in px^2) is two markers merged, not the track's own; 0 turns the area test off
+    merge_area_ratio: float = 1.4
+    merge_margin_px2: float = 1.0
     compiled: bool = True  # the numba kernel for gating and triangulation (else numpy)
     correspondence: CorrespondenceConfig = field(
         default_factory=lambda: CorrespondenceConfig(two_camera=False))
@@ -118,6 +129,8 @@ class Tracker:
         self.vel = np.zeros((0, 3))
         self.missing = np.zeros(0, dtype=np.int64)
         self.anchored = np.zeros(0, dtype=bool)  # placed by their rigid body since last frame
+        self.size_m2 = np.zeros(0)  # each track's marker size: area x depth^2 / fx^2 (0: unknown)
+        self.merged_blobs = 0  # blobs taken for merged by their area, since the start
         self.next_id = 1
         self.last_t_ns: int | None = None
         self.period_s: float | None = None  # the cameras' frame period, when known
@@ -132,6 +145,7 @@ class Tracker:
         self.vel = np.zeros((n, 3))
         self.missing = np.zeros(n, dtype=np.int64)
         self.anchored = np.zeros(n, dtype=bool)
+        self.size_m2 = np.zeros(n)
         self.next_id = int(self.ids.max(initial=0)) + 1
 
     def place(self, ids: np.ndarray, xyz: np.ndarray) -> None:
@@ -152,11 +166,17 @@ class Tracker:
 
     # ---- one frame ---------------------------------------------------------------------
 
-    def update(self, camera: np.ndarray, uv: np.ndarray, t_ns: int) -> TrackFrame:
-        """Blobs of one frame (camera index (M,), distorted pixels (M, 2)) -> tracks."""
+    def update(self, camera: np.ndarray, uv: np.ndarray, t_ns: int,
+               area: np.ndarray | None = None) -> TrackFrame:
+        """Blobs of one frame (camera index (M,), distorted pixels (M, 2), and their areas
+        in pixels when the cameras give them) -> tracks."""
         cfg = self.config
         camera = np.asarray(camera, dtype=np.int64).reshape(-1)
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        area = (np.zeros(0) if area is None or cfg.merge_area_ratio <= 0
+                else np.asarray(area, dtype=np.float64).reshape(-1))
+        if len(area) and len(area) != len(uv):
+            raise ValueError(f"{len(area)} blob areas for {len(uv)} blobs")
         dt = 0.0 if self.last_t_ns is None else max(0.0, (t_ns - self.last_t_ns) * 1e-9)
         self.last_t_ns = int(t_ns)
         pred = self.xyz + self.vel * dt
@@ -174,17 +194,21 @@ class Tracker:
             starts = np.searchsorted(camera[order], np.arange(n_cameras + 1))
             gate = self._gates()
             need = np.where(self.missing > 0, 3, 2)
-            blobs, explained, xyz, ok, n_used, sigma = gate_and_solve(
+            blobs, explained, xyz, ok, n_used, sigma, merged = gate_and_solve(
                 pred, gate.astype(np.float64), need, a.R, a.t, a.fx, a.fy, a.cx, a.cy, a.skew,
-                a.dist, order, starts, uv, cfg.outlier_px, cfg.two_view_px)
+                a.dist, order, starts, uv, cfg.outlier_px, cfg.two_view_px, area,
+                self.size_m2, cfg.merge_area_ratio, cfg.merge_margin_px2)
+            self.merged_blobs += int(merged.sum())
             self.sigma = sigma
             seen = ok
             n_cams = n_used
             new_xyz[ok] = xyz[ok]
         elif n_tracks and n_blobs:
             proj, z, J = self.cams.project(pred)
-            blobs, explained = self._associate(proj, z > 0, camera, uv)
+            blobs, explained = self._associate(proj, z, camera, uv, area)
             ok, xyz, n_used, blobs = self._triangulate(pred, proj, J, uv, blobs)
+            if len(area):
+                self._learn_sizes(ok, blobs, z, area)
             seen = ok
             n_cams = n_used
             new_xyz[ok] = xyz[ok]
@@ -217,6 +241,7 @@ class Tracker:
             self.ids, self.xyz, self.vel = self.ids[keep], self.xyz[keep], self.vel[keep]
             self.missing = self.missing[keep]
             self.anchored = self.anchored[keep]
+            self.size_m2 = self.size_m2[keep]
             blobs, seen, n_cams = blobs[keep], seen[keep], n_cams[keep]
             self.sigma = self.sigma[keep]
         self.anchored[:] = False  # until the rigid bodies place their hidden markers again
@@ -231,14 +256,16 @@ class Tracker:
         growth = np.where(self.anchored, 0, np.minimum(self.missing, 4))
         return cfg.gate_px + cfg.gate_growth_px * growth
 
-    def _associate(self, proj: np.ndarray, front: np.ndarray, camera: np.ndarray,
-                   uv: np.ndarray):
+    def _associate(self, proj: np.ndarray, z: np.ndarray, camera: np.ndarray,
+                   uv: np.ndarray, area: np.ndarray):
         """(T, C) blob index per track and camera: the only blob within the gate, and the
-        track the only one whose reprojection falls within the gate of that blob; and which
-        blobs lie within some track's gate (explained: not a new marker).
+        track the only one whose reprojection falls within the gate of that blob, and not
+        larger than the track's marker at its depth (a merged blob); and which blobs lie
+        within some track's gate (explained: not a new marker).
 
-        proj (T, C, 2) and front (T, C) are the tracks' predictions in every camera. The
+        proj (T, C, 2) and z (T, C) are the tracks' predictions in every camera. The
         blobs are padded into a (C, Mmax) table so all cameras are compared at once."""
+        front = z > 0
         n_tracks, n_cams = front.shape
         order = np.argsort(camera, kind="stable")
         cam_sorted = camera[order]
@@ -261,10 +288,34 @@ class Tracker:
         c = np.arange(n_cams)[None, :]
         good = (per_track == 1) & (per_blob[c, j] == 1)
         out = np.where(good, index[c, j], -1)
+        if len(area):
+            cfg = self.config
+            expected = self.size_m2[:, None] * self.arrays.fx[None, :] ** 2 / np.where(
+                front, z, 1.0) ** 2
+            oversize = (per_track > 0) & (self.size_m2[:, None] > 0) & (
+                area[np.maximum(index[c, j], 0)] > cfg.merge_area_ratio * expected
+                + cfg.merge_margin_px2)
+            self.merged_blobs += int(oversize.sum())
+            out = np.where(oversize, -1, out)
         explained = np.zeros(len(uv), dtype=bool)
         hit = per_blob > 0
         explained[index[hit]] = True
         return out, explained
+
+    def _learn_sizes(self, ok: np.ndarray, blobs: np.ndarray, z: np.ndarray,
+                     area: np.ndarray) -> None:
+        """Each triangulated track's marker size from this frame's blobs (the median over
+        its cameras), folded in as daemon.tracker_kernel.learn_size does."""
+        have = blobs >= 0
+        size = np.where(have, area[np.maximum(blobs, 0)] * z * z
+                        / self.arrays.fx[None, :] ** 2, np.nan)
+        rows = np.flatnonzero(ok & have.any(axis=1))
+        if not len(rows):
+            return
+        sample = np.nanmedian(size[rows], axis=1)
+        cur = self.size_m2[rows]
+        self.size_m2[rows] = np.where(cur <= 0, sample, np.exp(
+            0.9 * np.log(np.maximum(cur, 1e-300)) + 0.1 * np.log(np.maximum(sample, 1e-30))))
 
     def _triangulate(self, pred, proj, J, uv, blobs):
         """Gauss-Newton in pixels, dense over (track, camera), linearised once at the
@@ -354,6 +405,7 @@ class Tracker:
             self.vel = np.concatenate([self.vel, np.zeros((k, 3))])
             self.missing = np.concatenate([self.missing, np.zeros(k, dtype=np.int64)])
             self.anchored = np.concatenate([self.anchored, np.zeros(k, dtype=bool)])
+            self.size_m2 = np.concatenate([self.size_m2, np.zeros(k)])
             seen = np.concatenate([seen, np.ones(k, dtype=bool)])
             # a new point's certainty: like a tracked one seen by as many cameras
             typical = np.median(self.sigma[np.isfinite(self.sigma)]) if np.any(

@@ -71,12 +71,20 @@ def _solve(H, g, out):
 
 @jit
 def gate_and_solve(pred, gate, need, R, t, fx, fy, cx, cy, skew, dist, order, starts, uv,
-                   outlier_px, two_view_px):
+                   outlier_px, two_view_px, area, track_area, merge_ratio, merge_margin_px):
     """Tracks (pred (T, 3), gate_px (T,), cameras needed (T,)) against the frame's blobs
     (uv (M, 2); `order` sorts them by camera, `starts` (C + 1) bound each camera's run).
 
+    A blob within the gate of two tracks is neither's (two markers merged into one blob, or
+    too close to tell apart); with blob areas (`area` (M,), empty if unknown) a blob larger
+    than merge_ratio times the track's own marker image at its depth, plus merge_margin_px,
+    is not its own either (a merged blob with one tracked marker in it). `track_area` (T,)
+    is each track's marker size (blob area x depth^2 / fx^2, m^2; 0 while unknown), updated
+    in place from the blobs it used.
+
     -> blobs (T, C) index or -1, explained (M,) bool, xyz (T, 3), ok (T,), n_used (T,),
-       sigma (T,) position std per pixel of noise."""
+       sigma (T,) position std per pixel of noise, merged (T, C) bool: the track's nearest
+       blob in that camera was taken for a merged blob by its area."""
     T = pred.shape[0]
     C = starts.shape[0] - 1
     M = uv.shape[0]
@@ -86,7 +94,10 @@ def gate_and_solve(pred, gate, need, R, t, fx, fy, cx, cy, skew, dist, order, st
     per_blob = np.zeros(M, np.int64)
     Js = np.zeros((T, C, 2, 3))
     res = np.zeros((T, C, 2))
+    depth = np.zeros((T, C))
+    merged = np.zeros((T, C), np.bool_)
     J = np.zeros((2, 3))
+    sized = area.shape[0] == uv.shape[0] and merge_ratio > 0
     for i in range(T):
         g2 = gate[i] * gate[i]
         for c in range(C):
@@ -106,12 +117,19 @@ def gate_and_solve(pred, gate, need, R, t, fx, fy, cx, cy, skew, dist, order, st
                     if d2 < best_d:
                         best_d, best = d2, m
             count[i, c] = n
+            if best >= 0 and sized and track_area[i] > 0:
+                expected = track_area[i] * fx[c] * fx[c] / (z * z)
+                if area[best] > merge_ratio * expected + merge_margin_px:
+                    merged[i, c] = True
+                    best = -1
             near[i, c] = best
+            depth[i, c] = z
             if best >= 0:
                 Js[i, c] = J
                 res[i, c, 0] = u - uv[best, 0]
                 res[i, c, 1] = v - uv[best, 1]
     explained = per_blob > 0
+    sizes = np.zeros(C)
     xyz = pred.copy()
     ok = np.zeros(T, np.bool_)
     n_used = np.zeros(T, np.int64)
@@ -122,7 +140,7 @@ def gate_and_solve(pred, gate, need, R, t, fx, fy, cx, cy, skew, dist, order, st
     e = np.zeros(C)
     for i in range(T):
         for c in range(C):
-            if count[i, c] == 1 and per_blob[near[i, c]] == 1:
+            if count[i, c] == 1 and near[i, c] >= 0 and per_blob[near[i, c]] == 1:
                 blobs[i, c] = near[i, c]
         for attempt in range(2):
             H[:, :] = 0.0
@@ -169,7 +187,24 @@ def gate_and_solve(pred, gate, need, R, t, fx, fy, cx, cy, skew, dist, order, st
             xyz[i, a] = pred[i, a] - step[a]
         ok[i] = good
         sigma[i] = np.sqrt(max(tr, 0.0) / 3.0)
-    return blobs, explained, xyz, ok, n_used, sigma
+        if sized and good:
+            k = 0
+            for c in range(C):
+                if blobs[i, c] >= 0:
+                    sizes[k] = area[blobs[i, c]] * depth[i, c] * depth[i, c] / (fx[c] * fx[c])
+                    k += 1
+            track_area[i] = learn_size(track_area[i], np.median(sizes[:k]))
+    return blobs, explained, xyz, ok, n_used, sigma, merged
+
+
+@jit
+def learn_size(current, sample):
+    """A track's marker size after one more frame's median over its cameras: the first
+    sample as it is, then a slow geometric mean (a size is steady; one frame's merged or
+    clipped blobs must not move it far)."""
+    if current <= 0:
+        return sample
+    return np.exp(0.9 * np.log(current) + 0.1 * np.log(max(sample, 1e-30)))
 
 
 @jit

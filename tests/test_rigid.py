@@ -239,3 +239,73 @@ def test_compiled_fit_matches_numpy_with_releases():
         np.testing.assert_allclose(pa.error_m[pa.valid], pb.error_m[pb.valid], atol=1e-12)
         released += int(aa[0, 2] < 0)
     assert released >= 10 and not fits[True][-1][0].valid[3]
+
+
+# ---- defining a body from live frames -------------------------------------------------------
+
+def _snapshots(markers, n, noise_m, rng, move=None):
+    """Frames of tracked points of one object: ids 10.., a marker missing now and then, a
+    ghost in one frame, the track of marker 0 re-created halfway (a new id)."""
+    out = []
+    for f in range(n):
+        R, t = (np.eye(3), np.zeros(3)) if move is None else move(f)
+        xyz = markers @ R.T + t + rng.normal(0, noise_m, markers.shape)
+        ids = np.arange(10, 10 + len(markers))
+        if f >= n // 2:
+            ids[0] = 99
+        keep = rng.random(len(markers)) > 0.1
+        ids, xyz = ids[keep], xyz[keep]
+        if f == 3:
+            ids, xyz = np.r_[ids, 500], np.r_[xyz, [[0.5, 0.5, 0.5]]]
+        out.append((ids, xyz))
+    return out
+
+
+@pytest.mark.parametrize("moving", [False, True])
+def test_a_body_is_defined_from_frames_of_tracked_points(moving):
+    """Still, or turning slowly while it is captured: the markers come back at their
+    places (centred) to within the noise averaged over the frames (0.5 mm per frame, 30
+    frames: ~0.1 mm; allow 0.5 mm); the ghost and the re-created track add nothing."""
+    from daemon.rigid_define import body_from_snapshots
+
+    rng = np.random.default_rng(3)
+    markers = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.07, 0.01],
+                        [0.04, 0.03, 0.05], [0.08, 0.09, -0.02]]) + [1.0, -0.5, 0.8]
+
+    def move(f):
+        return Rotation.from_rotvec([0, 0, 0.01 * f]).as_matrix(), np.array([0.002 * f, 0, 0])
+
+    snaps = _snapshots(markers, 30, 0.0005, rng, move if moving else None)
+    got = body_from_snapshots(snaps)
+    assert got.shape == (5, 3)
+    np.testing.assert_allclose(got.mean(axis=0), 0, atol=1e-12)
+    d_true = np.sort(np.linalg.norm(markers[:, None] - markers[None], axis=2).ravel())
+    d_got = np.sort(np.linalg.norm(got[:, None] - got[None], axis=2).ravel())
+    np.testing.assert_allclose(d_got, d_true, atol=0.0005)
+    if not moving:  # the world's axes: the markers where they stood, about their centroid
+        want = markers - markers.mean(axis=0)
+        d = np.linalg.norm(got[:, None] - want[None], axis=2).min(axis=1)
+        assert d.max() < 0.0005
+
+
+def test_a_body_that_does_not_hold_still_is_refused():
+    from calibkit.errors import UserError
+    from daemon.rigid_define import body_from_snapshots
+
+    rng = np.random.default_rng(4)
+    markers = np.array([[0.0, 0, 0], [0.1, 0, 0], [0, 0.08, 0], [0.05, 0.05, 0.05]])
+    snaps = []
+    for f in range(20):  # one marker slides 3 mm per frame along the others
+        m = markers.copy()
+        m[3] += [0.003 * f, 0, 0]
+        snaps.append((np.arange(4), m + rng.normal(0, 0.0002, m.shape)))
+    with pytest.raises(UserError, match="hold the body still"):
+        body_from_snapshots(snaps)
+    with pytest.raises(UserError, match="tracked no markers"):
+        body_from_snapshots([(np.zeros(0), np.zeros((0, 3)))] * 3)
+
+
+def test_rigid_body_add_checks_its_frames_before_asking_the_daemon(tmp_path, mocapd_cli):
+    r = mocapd_cli("rigid-body", "add", "probe", "--config", tmp_path / "m.toml",
+                   "--from-live", "--frames", "0", "--runtime-dir", tmp_path / "rt")
+    assert r.code == 2 and "--frames must be between 1 and 10000" in r.err

@@ -7,7 +7,7 @@ import pytest
 
 from calibkit.errors import UserError
 from calibkit.observations import Truth
-from calibkit.synthetic import sim
+from calibkit.synthetic import blobs, sim
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +31,7 @@ def test_rig_cameras_all_see_the_volume(rig) -> None:
 
 def test_noise_free_observations_are_the_projections(rig) -> None:
     truth = sim.static_markers(30, 2, 4.0, seed=2)
-    obs = sim.observe(rig, truth)
+    obs = sim.observe(rig, truth, blobs="ideal")
     assert obs.marker is not None and np.all(obs.marker >= 0)
     for c, cam in enumerate(rig):
         mine = obs.camera == c
@@ -42,8 +42,10 @@ def test_noise_free_observations_are_the_projections(rig) -> None:
 
 def test_noise_dropouts_and_ghosts_have_the_requested_statistics(rig) -> None:
     truth = sim.static_markers(50, 40, 4.0, seed=3)
-    clean = sim.observe(rig, truth, seed=4)
-    noisy = sim.observe(rig, truth, noise_px=0.5, dropout=0.25, ghosts_per_camera=3.0, seed=4)
+    # every marker its own blob, so each noisy blob has one clean twin
+    clean = sim.observe(rig, truth, seed=4, blobs="ideal")
+    noisy = sim.observe(rig, truth, noise_px=0.5, dropout=0.25, ghosts_per_camera=3.0, seed=4,
+                        blobs="ideal")
     real = noisy.marker >= 0
     assert abs(real.sum() / len(clean) - 0.75) < 0.02
     n_frames = len(np.unique(truth.frame))
@@ -56,8 +58,12 @@ def test_noise_dropouts_and_ghosts_have_the_requested_statistics(rig) -> None:
         np.diff(key_c) > 0) else noisy.uv[real] - clean.uv[idx]
     assert abs(diff.std() - 0.5) < 0.02 and abs(diff.mean()) < 0.02
     # same seed, same data; another seed, other data
-    again = sim.observe(rig, truth, noise_px=0.5, dropout=0.25, ghosts_per_camera=3.0, seed=4)
+    again = sim.observe(rig, truth, noise_px=0.5, dropout=0.25, ghosts_per_camera=3.0, seed=4,
+                        blobs="ideal")
     assert np.array_equal(again.uv, noisy.uv)
+    merged = [sim.observe(rig, truth, noise_px=0.5, dropout=0.25, ghosts_per_camera=3.0,
+                          seed=4) for _ in range(2)]
+    assert np.array_equal(merged[0].uv, merged[1].uv)
     other = sim.observe(rig, truth, noise_px=0.5, dropout=0.25, ghosts_per_camera=3.0, seed=5)
     assert len(other) != len(noisy) or not np.array_equal(other.uv, noisy.uv)
 
@@ -174,3 +180,127 @@ def test_sim_unsync_option_offsets_each_camera(tmp_path, calibkit_cli) -> None:
     res = calibkit_cli("sim", "static", "--cameras", "4", "--unsync-ms", "-1", "--out",
                        tmp_path / "v.mcrec")
     assert res.code == 2 and "must not be negative" in res.err
+
+
+# ---- blobs as a detector makes them ------------------------------------------------------------
+
+def _raster(uv, radius, depth, peak, step=0.01):
+    """Reference by brute force: paint the discs on a fine grid, nearest on top, and measure
+    each connected lit region as a threshold detector would (brightness-weighted centroid,
+    area). -> list of (centroid (2,), area px^2), sorted by u."""
+    from scipy import ndimage
+
+    lo = (uv - radius[:, None]).min(axis=0) - 1
+    hi = (uv + radius[:, None]).max(axis=0) + 1
+    gu = np.arange(lo[0], hi[0], step)
+    gv = np.arange(lo[1], hi[1], step)
+    U, V = np.meshgrid(gu, gv)
+    light = np.zeros(U.shape)
+    z = np.full(U.shape, np.inf)
+    for k in np.argsort(-depth):  # far first, the nearer painted over it
+        inside = (U - uv[k, 0]) ** 2 + (V - uv[k, 1]) ** 2 < radius[k] ** 2
+        light[inside], z[inside] = peak[k], depth[k]
+    labels, n = ndimage.label(light > 0)
+    out = []
+    for lab in range(1, n + 1):
+        m = labels == lab
+        w = light[m]
+        out.append((np.array([np.sum(w * U[m]), np.sum(w * V[m])]) / w.sum(),
+                    m.sum() * step * step))
+    return sorted(out, key=lambda b: b[0][0])
+
+
+def test_merged_and_partly_covered_blobs_match_the_painted_discs() -> None:
+    """Overlapping discs: one blob at the painted image's weighted centroid with the union's
+    area; apart: untouched. Grid of 0.01 px: centroids agree to ~1e-3 px, areas to ~1 %."""
+    rng = np.random.default_rng(0)
+    for trial in range(12):
+        k = 2 if trial < 8 else 3
+        uv = rng.uniform(0, 3.0, (k, 2))
+        radius = rng.uniform(0.8, 2.0, k)
+        depth = rng.uniform(2.0, 4.0, k)
+        peak = rng.uniform(60, 255, k)
+        got = blobs.merge_blobs(np.zeros(k, dtype=np.int64), uv, radius, depth, peak)
+        want = _raster(uv, radius, depth, peak)
+        assert len(got.uv) == len(want)
+        order = np.argsort(got.uv[:, 0])
+        for (c, a), g in zip(want, order, strict=True):
+            assert np.linalg.norm(got.uv[g] - c) < 0.01
+            assert abs(got.area_px[g] - a) < 0.02 * a
+            assert got.area_px[g] >= np.pi * radius[got.group == g].max() ** 2 - 1e-9
+
+
+def test_a_partly_covered_marker_shifts_away_from_the_nearer_one() -> None:
+    """A multi-threshold detector keeps two overlapping spots apart while each centre is
+    uncovered: the nearer one stays where it is, the farther one's centroid is its visible
+    part's, pushed away from the nearer disc (checked on painted discs of its own)."""
+    uv = np.array([[10.0, 10.0], [11.6, 10.0]])
+    radius = np.array([1.0, 1.0])
+    depth = np.array([2.0, 3.0])  # the first is nearer
+    got = blobs.merge_blobs(np.zeros(2, dtype=np.int64), uv, radius, depth,
+                          np.array([200.0, 200.0]), separate=True)
+    assert len(got.uv) == 2
+    first, second = got.group
+    assert np.allclose(got.uv[first], uv[0], atol=1e-12)
+    shift = got.uv[second] - uv[1]
+    assert shift[0] > 0.05 and abs(shift[1]) < 1e-9  # away from the nearer disc
+    # only the farther disc's visible part, painted alone
+    (c, a), = _raster(uv[1:], radius[1:], depth[1:], np.array([200.0]))
+    gu, gv = np.meshgrid(np.arange(8, 14, 0.01), np.arange(8, 12, 0.01))
+    vis = ((gu - 11.6) ** 2 + (gv - 10) ** 2 < 1) & ((gu - 10) ** 2 + (gv - 10) ** 2 >= 1)
+    assert abs(got.uv[second][0] - gu[vis].mean()) < 0.01
+    assert abs(got.area_px[second] - vis.sum() * 1e-4) < 0.02
+    # the centre covered: it has no maximum of its own, one blob
+    uv[1, 0] = 10.7
+    got = blobs.merge_blobs(np.zeros(2, dtype=np.int64), uv, radius, depth,
+                          np.array([200.0, 200.0]), separate=True)
+    assert len(got.uv) == 1
+
+
+def test_two_markers_crossing_in_one_camera_merge_while_they_overlap(rig) -> None:
+    """A marker passes in front of another on camera 0's line of sight: camera 0 reports
+    one blob where the painted discs' centroid is while their discs overlap, two at the
+    projections when apart; cameras that see them apart report two all along."""
+    cam = rig[0]
+    back = np.array([0.3, -0.2, 1.0])
+    ray = back - cam.centre
+    ray /= np.linalg.norm(ray)
+    across = np.cross(ray, [0.0, 0.0, 1.0])
+    across /= np.linalg.norm(across)
+    n = 41
+    front0 = cam.centre + 0.7 * (back - cam.centre)
+    front = front0 + np.linspace(-0.05, 0.05, n)[:, None] * across  # 10 cm across the ray
+    xyz = np.stack([np.broadcast_to(back, (n, 3)), front], axis=1)
+    truth = Truth(np.repeat(np.arange(n), 2), np.tile([0, 1], n), xyz.reshape(-1, 3))
+    obs = sim.observe(rig, truth, fps=100.0)
+    assert obs.meta["blobs"] == "threshold" and obs.meta["merged_blobs"] > 0
+    uv, _ = cam.project(xyz.reshape(-1, 3))
+    uv = uv.reshape(n, 2, 2)
+    depth = cam.to_camera(xyz.reshape(-1, 3))[:, 2].reshape(n, 2)
+    radius = sim.MARKER_RADIUS_M * cam.fx / depth
+    merged_frames = 0
+    for f in range(n):
+        mine = (obs.camera == 0) & (obs.frame == f)
+        apart = np.linalg.norm(uv[f, 0] - uv[f, 1]) >= radius[f].sum()
+        if apart:
+            assert mine.sum() == 2
+            got = obs.uv[mine][np.argsort(obs.marker[mine])]
+            assert np.allclose(got, uv[f], atol=1e-9)
+        else:
+            merged_frames += 1
+            assert mine.sum() == 1
+            peak = np.clip(255.0 * np.minimum(1.0, (2.5 / depth[f]) ** 2), 40, 255)
+            want = _raster(uv[f], radius[f], depth[f], peak)
+            assert len(want) == 1
+            assert np.linalg.norm(obs.uv[mine][0] - want[0][0]) < 0.01
+            assert obs.marker[mine][0] == 1  # the nearer marker gives most of the light
+            assert obs.area[mine][0] >= np.pi * radius[f].max() ** 2 * 0.999
+    assert 3 <= merged_frames < n - 10
+    others = obs.camera != 0
+    assert np.all(np.bincount(obs.frame[others] * len(rig) + obs.camera[others])[
+        np.unique(obs.frame[others] * len(rig) + obs.camera[others])] == 2)
+    # switched off: every marker its own blob at its projection
+    clean = sim.observe(rig, truth, fps=100.0, blobs="ideal")
+    assert clean.meta["merged_blobs"] == 0 and len(clean) == 2 * n * len(rig)
+    with pytest.raises(UserError, match="--blobs must be one of"):
+        sim.observe(rig, truth, blobs="merged")

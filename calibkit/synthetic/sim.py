@@ -2,7 +2,8 @@
 
 Every algorithm is measured against this. A scene is a `Truth` table (marker positions per
 frame); `observe` turns it into the 2D observations real cameras would report (noise,
-dropouts, stray blobs, unsynchronised clocks) and `render_frame` into 8-bit images. All of it
+dropouts, stray blobs, unsynchronised clocks, markers whose images overlap merged into one
+blob: calibkit.synthetic.blobs) and `render_frame` into 8-bit images. All of it
 is deterministic for a seed. The capture volume is a box: x and y in [-V/2, V/2], z in
 [0, V/2] for a volume V metres across, with the floor at z = 0.
 """
@@ -18,6 +19,7 @@ import numpy as np
 from calibkit.camera import WEBCAM_DIST, Camera, Rig, look_at, rvec_from_rotation
 from calibkit.errors import UserError
 from calibkit.observations import Observations, Truth
+from calibkit.synthetic.blobs import merge_blobs
 
 MARKER_RADIUS_M = 0.007  # a 14 mm retro-reflective ball
 
@@ -240,10 +242,14 @@ def _shifted(pos: np.ndarray, shift_frames: np.ndarray) -> np.ndarray:
     return pos[i0] * (1 - a) + pos[i0 + 1] * a
 
 
+BLOB_MODELS = ("threshold", "multi", "ideal")
+
+
 def observe(rig: Rig, truth: Truth, noise_px: float = 0.0, dropout: float = 0.0,
             ghosts_per_camera: float = 0.0, fps: float = 100.0,
             clock_offset_ns: Sequence[float] | None = None, jitter_ns: float = 0.0,
-            seed: int = 0, marker_radius_m: float = MARKER_RADIUS_M) -> Observations:
+            seed: int = 0, marker_radius_m: float = MARKER_RADIUS_M,
+            blobs: str = "threshold") -> Observations:
     """The blobs each camera reports for a scene.
 
     A camera captures frame f at f / fps plus its clock offset plus jitter (unsynchronised
@@ -251,11 +257,20 @@ def observe(rig: Rig, truth: Truth, noise_px: float = 0.0, dropout: float = 0.0,
     truth between frames). Only markers in front of a camera and inside its image are seen;
     each is hidden with probability `dropout`; `noise_px` is Gaussian noise on the centres;
     stray blobs (marker -1) appear `ghosts_per_camera` times per frame on average.
+
+    `blobs` says how a camera's detector turns the markers' image discs (radius = marker
+    radius * focal / depth) into blobs, as real cameras do (see merge_blobs): "threshold"
+    (the default: discs that overlap are one blob), "multi" (a detector that separates
+    touching spots while each keeps its own brightest point) or "ideal" (every marker its
+    own blob at its exact projection, overlapping or not: for tests that need clean blobs).
+    A merged blob's `marker` is the marker that gave it most of its light.
     """
     _check(noise_px >= 0, f"--noise-px must not be negative, got {noise_px}")
     _check(0 <= dropout < 1, f"--dropout must be in [0, 1), got {dropout}")
     _check(ghosts_per_camera >= 0, f"--ghosts must not be negative, got {ghosts_per_camera}")
     _check(fps > 0, f"--fps must be positive, got {fps}")
+    _check(blobs in BLOB_MODELS, f"--blobs must be one of {', '.join(BLOB_MODELS)}, got "
+                                 f"{blobs!r}")
     rng = np.random.default_rng(seed)
     frames, markers, pos = _dense(truth)
     offsets = np.zeros(len(rig)) if clock_offset_ns is None else np.asarray(
@@ -263,6 +278,7 @@ def observe(rig: Rig, truth: Truth, noise_px: float = 0.0, dropout: float = 0.0,
     _check(len(offsets) == len(rig), "one clock offset per camera is needed")
     parts = []
     period_ns = 1e9 / fps
+    n_merged = 0
     for c, cam in enumerate(rig):
         jitter = rng.normal(0.0, jitter_ns, len(frames)) if jitter_ns > 0 else np.zeros(len(frames))
         t_ns = np.round(frames * period_ns + offsets[c] + jitter).astype(np.int64)
@@ -275,10 +291,18 @@ def observe(rig: Rig, truth: Truth, noise_px: float = 0.0, dropout: float = 0.0,
         seen &= rng.random(len(seen)) >= dropout
         idx = np.flatnonzero(seen)
         fi, mi = np.divmod(idx, len(markers))
-        uv_seen = uv[idx] + (rng.normal(0.0, noise_px, (len(idx), 2)) if noise_px > 0 else 0.0)
         radius_px = marker_radius_m * cam.fx / depth[idx]
-        area = np.maximum(np.pi * radius_px**2, 1.0)
         peak = np.clip(255.0 * np.minimum(1.0, (2.5 / depth[idx]) ** 2), 40, 255)
+        if blobs == "ideal":
+            uv_seen, area = uv[idx], np.maximum(np.pi * radius_px**2, 1.0)
+        else:
+            merged = merge_blobs(fi, uv[idx], radius_px, depth[idx], peak,
+                                 separate=blobs == "multi")
+            fi, mi = fi[merged.dominant], mi[merged.dominant]
+            uv_seen, area, peak = merged.uv, np.maximum(merged.area_px, 1.0), merged.peak
+            n_merged += int(np.sum(merged.n_markers > 1))
+        if noise_px > 0:
+            uv_seen = uv_seen + rng.normal(0.0, noise_px, (len(fi), 2))
         n_ghost = rng.poisson(ghosts_per_camera, len(frames)) if ghosts_per_camera > 0 else \
             np.zeros(len(frames), dtype=np.int64)
         gf = np.repeat(np.arange(len(frames)), n_ghost)
@@ -293,7 +317,8 @@ def observe(rig: Rig, truth: Truth, noise_px: float = 0.0, dropout: float = 0.0,
     obs = Observations.concatenate(parts).sorted()
     obs.fps = fps
     obs.meta = {"simulated": True, "noise_px": noise_px, "dropout": dropout,
-                "ghosts_per_camera": ghosts_per_camera, "seed": seed}
+                "ghosts_per_camera": ghosts_per_camera, "seed": seed, "blobs": blobs,
+                "merged_blobs": n_merged}
     return obs
 
 

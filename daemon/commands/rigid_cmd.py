@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Annotated
 
@@ -15,6 +16,7 @@ from calibkit.errors import UserError
 from calibkit.fileio import write_text_atomic
 from daemon.config import load_config, parse_config
 from daemon.console import print_table
+from daemon.rigid_define import body_from_snapshots
 
 rigid_app = typer.Typer(help="Rigid-body definitions in the configuration.",
                         no_args_is_help=True)
@@ -25,6 +27,31 @@ def body_from_markers(xyz: np.ndarray) -> np.ndarray:
     """Marker positions in a new body frame: origin at their centroid, axes the world's
     (the body's orientation is zero where it was defined)."""
     return xyz - xyz.mean(axis=0)
+
+
+def free_markers(markers: list[dict], near: np.ndarray | None,
+                 radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """(track ids, positions) of the daemon's `markers` answer that belong to no body,
+    within `radius` of `near` when given."""
+    free = [m for m in markers if not m["body"]]
+    ids = np.array([m["id"] for m in free], dtype=np.int64)
+    xyz = np.array([m["xyz"] for m in free], dtype=np.float64).reshape(-1, 3)
+    if near is not None:
+        sel = np.linalg.norm(xyz - near, axis=1) <= radius
+        ids, xyz = ids[sel], xyz[sel]
+    return ids, xyz
+
+
+def capture_snapshots(ask, n_frames: int, near: np.ndarray | None, radius: float,
+                      interval_s: float = 0.01) -> list[tuple[np.ndarray, np.ndarray]]:
+    """`n_frames` answers of the daemon's `markers` request (`ask()` returns one), a frame
+    or so apart: the free markers it tracked in each."""
+    out = []
+    for k in range(n_frames):
+        if k:
+            time.sleep(interval_s)
+        out.append(free_markers(ask()["markers"], near, radius))
+    return out
 
 
 def append_body(config_path: Path, name: str, body_id: int, markers: np.ndarray) -> None:
@@ -48,6 +75,9 @@ def register(app: typer.Typer) -> None:
         from_live: Annotated[bool, typer.Option(
             "--from-live", help="Take the markers the running daemon sees now.")] = False,
         body_id: Annotated[int | None, typer.Option("--id", help="Streaming id.")] = None,
+        frames: Annotated[int, typer.Option(
+            "--frames", help="Frames of tracked markers to define the body from (hold it "
+                             "still).")] = 30,
         near: Annotated[str | None, typer.Option(
             "--near", help="Only markers within --radius of X,Y,Z (metres).")] = None,
         radius: Annotated[float, typer.Option("--radius", help="Metres.")] = 0.3,
@@ -55,8 +85,9 @@ def register(app: typer.Typer) -> None:
         reload: Annotated[bool, typer.Option(
             "--reload/--no-reload", help="Ask the daemon to reload afterwards.")] = True,
     ) -> None:
-        """Define a rigid body from the free markers the daemon tracks now; the body's
-        frame has its origin at their centroid and the world's axes."""
+        """Define a rigid body from the free markers the daemon tracks over --frames frames
+        (clustered: a marker is a cluster seen in most of them); the body's frame has its
+        origin at their centroid and the world's axes."""
         from daemon.service import request
 
         if not from_live:
@@ -65,13 +96,16 @@ def register(app: typer.Typer) -> None:
         cfg = load_config(config) if config.exists() else None
         if cfg is not None and any(b.name == name for b in cfg.bodies):
             raise UserError(f"{config}: a rigid body called {name!r} exists already")
-        markers = request(runtime_dir, {"cmd": "markers"})["markers"]
-        free = np.array([m["xyz"] for m in markers if not m["body"]]).reshape(-1, 3)
+        if not 1 <= frames <= 10000:
+            raise UserError(f"--frames must be between 1 and 10000, got {frames}")
+        centre = None
         if near is not None:
             centre = np.array(parse_floats(near, "--near"))
             if centre.shape != (3,):
                 raise UserError(f"--near takes X,Y,Z, got {near!r}")
-            free = free[np.linalg.norm(free - centre, axis=1) <= radius]
+        snapshots = capture_snapshots(lambda: request(runtime_dir, {"cmd": "markers"}),
+                                      frames, centre, radius)
+        free = body_from_snapshots(snapshots)
         if not 3 <= len(free) <= 8:
             raise UserError(f"the daemon sees {len(free)} markers not on a body"
                             f"{' near ' + near if near else ''}; a new body needs 3 to 8 "
