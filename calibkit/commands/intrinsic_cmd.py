@@ -162,7 +162,8 @@ def register(app: typer.Typer) -> None:
             help="chessboard:COLSxROWS:SQUARE_MM, charuco:COLSxROWS:SQUARE_MM:MARKER_MM"
                  "[:DICT] or circles:COLSxROWS:SPACING_MM[:asym].")] = None,
         sim: Annotated[bool, typer.Option(
-            "--sim", help="A simulated camera watching a simulated monitor.")] = False,
+            "--sim", help="A camera of a simulated rig (--sim-rig) watching a simulated "
+                          "monitor; the true rig goes to NAME.truth.toml beside --rig.")] = False,
         views: Annotated[int, typer.Option(help="Views to take (monitor and --sim).")] = 6,
         camera: Annotated[str, typer.Option(
             help="The camera's name in the rig file; --sim: a camera of the simulated rig, "
@@ -203,8 +204,9 @@ def register(app: typer.Typer) -> None:
                                          "(slow), or report each dot's imaged centre with "
                                          "--noise-px noise (fast, for whole rigs).")] = True,
         noise_px: Annotated[float, typer.Option(
-            "--noise-px", help="--sim --no-render: centroid noise of a captured dot, px; the "
-                               "rendered capture's residual is about this.")] = 0.035,
+            "--noise-px", help="--sim --no-render: centroid noise of a captured dot per axis, "
+                               "px (0.035 leaves the rendered capture's 0.05 px "
+                               "residual).")] = 0.035,
         seed: Annotated[int, typer.Option(help="--sim: random seed.")] = 0,
         size: Annotated[str | None, typer.Option(
             help="--sim without --sim-rig: camera size (default 640x480).")] = None,

@@ -196,10 +196,16 @@ def register(app: typer.Typer) -> None:
             if sim_rig is not None and cameras is not None:
                 raise UserError("give --sim-rig or --cameras, not both: the rig file sets the "
                                 "cameras")
+            # without --sim-rig: the ring `calibkit intrinsic --sim` made with the same
+            # options, whose image size the estimate file records
             true_rig = sim_hardware(sim_rig, cameras or len(intr), volume, seed,
                                     intr.cameras[0].size)
             check_estimate(intr, true_rig, rig_path or intrinsics,
                            "--rig" if rig_path is not None else "--intrinsics")
+            # the cameras as the hardware numbers them, as a live capture's --camera order
+            intr = Rig(tuple(intr[n] for n in true_rig.names), intr.quality, intr.meta)
+            if initial is not None:
+                initial = intr
             volume = float(true_rig.meta.get("volume_m", volume))
             truth = sim.wand_motion(frames, 100.0, volume, spec.spacing_m, seed)
             obs_all = sim.observe(true_rig, truth, noise_px=noise_px, ghosts_per_camera=ghosts,
