@@ -80,9 +80,13 @@ def grid_points(rig: Rig, steps: int = GRID_STEPS) -> np.ndarray:
     return pts[seen >= 2]
 
 
-def grid_rms_mm(a: Rig, b: Rig) -> tuple[float, int]:
+GROSS_MM = 10.0  # a grid point further than this from the truth is a gross error
+
+
+def grid_rms_mm(a: Rig, b: Rig) -> tuple[float, int, int]:
     """RMS 3D distance (mm) between grid points and their triangulation with rig b from
-    rig a's exact projections, and the number of grid points used."""
+    rig a's exact projections, the number of grid points used, and how many of them are
+    gross errors (over GROSS_MM, or not triangulated at all)."""
     pts = grid_points(a)
     point, camera, uv = [], [], []
     b_index = {name: i for i, name in enumerate(b.names)}
@@ -95,14 +99,16 @@ def grid_rms_mm(a: Rig, b: Rig) -> tuple[float, int]:
         camera.append(np.full(len(vis), b_index[cam.name]))
         uv.append(px[vis])
     if not point:
-        return float("nan"), 0
+        return float("nan"), 0, 0
     point, camera, uv = np.concatenate(point), np.concatenate(camera), np.concatenate(uv)
     tri = triangulate(b, point, camera, uv, n_points=len(pts), ray_distance=False)
     d = np.linalg.norm(tri.xyz - pts, axis=1)
+    lost = int(np.count_nonzero(~np.isfinite(d)))
     d = d[np.isfinite(d)]
     if not len(d):
-        return float("nan"), 0
-    return float(np.sqrt(np.mean(d**2)) * 1000.0), int(len(d))
+        return float("nan"), 0, lost
+    gross = lost + int(np.count_nonzero(d * 1000.0 > GROSS_MM))
+    return float(np.sqrt(np.mean(d**2)) * 1000.0), int(len(d)), gross
 
 
 def compare_rigs(a: Rig, b: Rig, align: bool = True) -> dict:
@@ -131,11 +137,12 @@ def compare_rigs(a: Rig, b: Rig, align: bool = True) -> dict:
         })
     rig_b = Rig(tuple(aligned))
     rig_a = Rig(tuple(cams_a), meta=dict(a.meta))
-    rms, n = grid_rms_mm(rig_a, rig_b)
+    rms, n, gross = grid_rms_mm(rig_a, rig_b)
     return {
         "cameras": rows,
         "grid_rms_mm": rms,
         "grid_points": n,
+        "grid_gross_points": gross,
         "alignment": {"applied": bool(align), "rotation_deg": _angle_deg(R),
                       "rotation_vector": rvec_from_rotation(R).tolist(),
                       "translation_m": np.asarray(t, dtype=float).tolist(), "scale": float(s)},

@@ -10,16 +10,33 @@ def test_demo_calibrates_reconstructs_and_tracks(tmp_path, calibkit_cli) -> None
     res = calibkit_cli("demo", "--out", out, "--cameras", "4", "--wand-frames", "600",
                        "--track-frames", "60")
     assert res.code == 0, res.err
-    for step in ("calibkit wand --sim", "calibkit compare", "calibkit triangulate",
-                 "mocapd start --sim"):
-        assert step in res.out
+    # the chain as a user runs it, in order, each step from the previous step's estimate
+    steps = ["calibkit sim rig", "calibkit intrinsic --sim", "calibkit extrinsic --projector",
+             "calibkit wand --sim", "calibkit compare", "calibkit triangulate",
+             "mocapd start --sim"]
+    at = [res.out.index(step) for step in steps]
+    assert at == sorted(at)
+    world = str(out / "world.truth.toml")
+    assert f"--intrinsics {out / 'intrinsics.toml'}" in res.out
+    assert f"--rig {out / 'extrinsic.toml'} --dots {out / 'extrinsic.dots.npz'}" in res.out
+    for line in res.out.splitlines():  # the truth goes only to the simulator and scorers
+        if line.startswith("$ calibkit ") and world in line:
+            assert "--sim-rig " + world in line or line.startswith(
+                ("$ calibkit compare", "$ calibkit sim")), line
+    assert "The intrinsics came from the monitor step" in res.out
+    assert "gross errors" in res.out
+    intr = json.loads((out / "intrinsic.json").read_text())["cameras"]
+    assert len(intr) == 4 and all(abs(c["error"]["fx_rel"]) < 1e-3 for c in intr)
     cmp = json.loads((out / "compare.json").read_text())
-    assert cmp["grid_rms_mm"] < 1.0  # a wand calibration from nothing, against the truth
+    # 4 cameras, 600 wand frames at 0.1 px, from the monitor's intrinsics: about a mm
+    assert cmp["grid_rms_mm"] < 2.0 and cmp["grid_gross_points"] == 0
     points = json.loads((out / "points.json").read_text())
-    assert points["truth"]["recall_3"] > 0.95 and points["truth"]["error_mm_rms"] < 3.0
+    # scored in the true world frame, which the floor dots' 5 mm tape measurements place
+    # to a few mm: the error is mostly that offset
+    assert points["truth"]["recall_3"] > 0.95 and points["truth"]["error_mm_rms"] < 5.0
     track = json.loads((out / "track.json").read_text())
     assert track["frames"] == 60
-    assert track["truth"]["position_error_mm_rms"] < 3.0
+    assert track["truth"]["position_error_mm_rms"] < 5.0
     assert track["truth"]["body_swaps"] == 0
 
 

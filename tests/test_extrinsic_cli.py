@@ -20,13 +20,31 @@ def _one_line_error(res, code=2):
     return lines[0]
 
 
+def _intrinsics(calibkit_cli, tmp_path, cameras: int, seed: int, *extra):
+    """The chain's first step: every camera of the simulated rig (made from --cameras and
+    --seed) estimated from monitor views, into intr.toml."""
+    intr = tmp_path / "intr.toml"
+    r = calibkit_cli("intrinsic", "--sim", "--camera", "all", "--no-render", "--cameras",
+                     cameras, "--seed", seed, "--views", 4, "--step", 120, "--rig", intr,
+                     *extra)
+    assert r.code == 0, r.err
+    return intr
+
+
 def test_sim_writes_the_rig_truth_and_plane_observations(calibkit_cli, tmp_path):
     out = tmp_path / "rig.toml"
-    res = calibkit_cli("extrinsic", "--projector", "--sim", "--cameras", "4", "--seed", "3",
-                       "--out", out, "--json", tmp_path / "r.json")
+    intr = _intrinsics(calibkit_cli, tmp_path, 4, 3)
+    res = calibkit_cli("extrinsic", "--projector", "--sim", "--intrinsics", intr, "--seed",
+                       "3", "--out", out, "--json", tmp_path / "r.json")
     assert res.code == 0, res.err
     rig, truth = Rig.load(out), Rig.load(tmp_path / "rig.truth.toml")
     assert rig.names == truth.names == ["cam0", "cam1", "cam2", "cam3"]
+    # the intrinsics are the file's estimate, passed on with their uncertainty
+    est = Rig.load(intr)
+    for cam, e, t in zip(rig, est, truth, strict=True):
+        assert cam.fx == e.fx and cam.cx == e.cx and cam.fx != t.fx
+        assert rig.quality["intrinsic"][cam.name]["std"] == est.quality["intrinsic"][
+            cam.name]["std"]
     cmp = compare_rigs(truth, rig, align=False)
     assert max(c["position_mm"] for c in cmp["cameras"]) < 10.0
     assert max(c["rotation_deg"] for c in cmp["cameras"]) < 0.1
@@ -52,7 +70,8 @@ def test_sim_writes_the_rig_truth_and_plane_observations(calibkit_cli, tmp_path)
 
 def test_sim_without_a_table_warns_and_still_calibrates(calibkit_cli, tmp_path):
     out = tmp_path / "rig.toml"
-    res = calibkit_cli("extrinsic", "--projector", "--sim", "--cameras", "3",
+    intr = _intrinsics(calibkit_cli, tmp_path, 3, 0)
+    res = calibkit_cli("extrinsic", "--projector", "--sim", "--intrinsics", intr,
                        "--table-height", "0", "--no-joint", "--out", out)
     assert res.code == 0, res.err
     assert "warning: no table" in res.err
@@ -61,7 +80,8 @@ def test_sim_without_a_table_warns_and_still_calibrates(calibkit_cli, tmp_path):
 
 def test_rendered_sim_runs_detection_end_to_end(calibkit_cli, tmp_path):
     out = tmp_path / "rig.toml"
-    res = calibkit_cli("extrinsic", "--projector", "--sim", "--render", "--cameras", "2",
+    intr = _intrinsics(calibkit_cli, tmp_path, 2, 1, "--size", "320x240")
+    res = calibkit_cli("extrinsic", "--projector", "--sim", "--render", "--intrinsics", intr,
                        "--size", "320x240", "--step", "80", "--shifts", "1", "--radius", "10",
                        "--seed", "1", "--table-height", "0", "--out", out,
                        "--json", tmp_path / "r.json")
@@ -140,7 +160,44 @@ def test_intrinsics_without_the_cameras_are_refused(calibkit_cli, tmp_path):
     line = _one_line_error(calibkit_cli("extrinsic", "--projector", "--sim", "--cameras", "2",
                                         "--intrinsics", tmp_path / "i.toml",
                                         "--out", tmp_path / "x.toml"))
-    assert "camera 'cam0' has no intrinsics in the rig file (it has other0, other1)" in line
+    assert "camera 'cam0' of the simulated rig has no intrinsics in --intrinsics" in line
+    assert "(it has other0, other1)" in line and "--sim-rig" in line
+    # a file of another size of camera
+    Rig(tuple(c.replace(size=(320, 240)) for c in rig)).save(tmp_path / "s.toml")
+    line = _one_line_error(calibkit_cli("extrinsic", "--projector", "--sim", "--intrinsics",
+                                        tmp_path / "s.toml", "--out", tmp_path / "x.toml"))
+    assert "is 320x240 in --intrinsics" in line and "640x480 in the simulated rig" in line
+    # no intrinsics at all: the truth is never the start
+    line = _one_line_error(calibkit_cli("extrinsic", "--projector", "--sim",
+                                        "--out", tmp_path / "x.toml"))
+    assert "run `calibkit intrinsic --sim --camera all" in line
+    assert not (tmp_path / "x.toml").exists()
+
+
+def test_sim_starts_from_the_intrinsics_file(calibkit_cli, tmp_path):
+    """A file 1 % off in focal length: the poses come out that far off the truth (the
+    cameras pulled along their axes), which they would not if the truth were used."""
+    world = tmp_path / "world.truth.toml"
+    from calibkit.synthetic import sim
+
+    truth = sim.make_rig(3, 4.0, seed=2)
+    truth.save(world)
+    intr = _intrinsics(calibkit_cli, tmp_path, 3, 2)  # the same rig: --cameras 3 --seed 2
+    good = Rig.load(intr)
+    bad = Rig(tuple(c.replace(fx=c.fx * 1.01, fy=c.fy * 1.01) for c in good))
+    bad.save(tmp_path / "bad.toml")
+    err = {}
+    for name, path in (("good", intr), ("bad", tmp_path / "bad.toml")):
+        out = tmp_path / f"{name}.toml"
+        res = calibkit_cli("extrinsic", "--projector", "--sim", "--sim-rig", world,
+                           "--intrinsics", path, "--seed", 2, "--out", out)
+        assert res.code == 0, res.err
+        rig = Rig.load(out)
+        assert [c.fx for c in rig] == [c.fx for c in Rig.load(path)]
+        err[name] = max(c["position_mm"] for c in compare_rigs(truth, rig, align=False)[
+            "cameras"])
+    # ~3.5 m from the floor's middle, 1 % of focal length moves a camera by ~35 mm
+    assert err["good"] < 10.0 and err["bad"] > 15.0
 
 
 def test_live_path_with_a_stand_in_projector_and_cameras(calibkit_cli, tmp_path, monkeypatch):

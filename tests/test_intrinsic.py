@@ -232,8 +232,66 @@ def test_intrinsic_sim_command(calibkit_cli, tmp_path):
     cam = rig["cam0"]
     assert cam.fx == pytest.approx(data["fx"]) and rig["cam1"].fx == 500
     np.testing.assert_allclose(cam.rvec, [0.1, 0.2, 0.3])  # the pose is kept
+    # the estimate's uncertainty goes into the rig file, one std per parameter
+    assert rig.quality["intrinsic"]["cam0"]["std"] == pytest.approx(data["std"])
+    # the simulated hardware (cam0 of a ring made from --seed) is the truth file's cam0
+    true_cam = Rig.load(tmp_path / "rig.truth.toml")["cam0"]
+    assert t["fx"] == pytest.approx(true_cam.fx) and true_cam.size == (320, 240)
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "views" in r.err  # guidance and progress on stderr
+
+
+def test_every_camera_of_a_simulated_rig(calibkit_cli, tmp_path):
+    """--camera all on a true rig file: each camera estimated from its own monitor views
+    with that camera's own lens; the estimate differs from the truth by about its std."""
+    from calibkit.synthetic import sim
+
+    world = tmp_path / "world.truth.toml"
+    true_rig = sim.make_rig(3, 4.0, (320, 240), seed=5)
+    # cameras of one rig that really differ: each camera's lens must be its own
+    true_rig = Rig(tuple(c.replace(fx=c.fx * (1 + 0.03 * i), dist=c.dist * (1 + 0.5 * i))
+                         for i, c in enumerate(true_rig)), meta=true_rig.meta)
+    true_rig.save(world)
+    intr = tmp_path / "intr.toml"
+    r = calibkit_cli("intrinsic", "--sim", "--sim-rig", world, "--camera", "all",
+                     "--no-render", "--views", 4, "--step", 120, "--rig", intr, "--json",
+                     tmp_path / "i.json")
+    assert r.code == 0, r.err
+    est = Rig.load(intr)
+    assert est.names == true_rig.names
+    assert "cameras: 3/3" in r.err  # progress per camera
+    figures = json.loads((tmp_path / "i.json").read_text())["cameras"]
+    for cam, truth, f in zip(est, true_rig, figures, strict=True):
+        std = est.quality["intrinsic"][cam.name]["std"]
+        assert set(std) == {"fx", "fy", "cx", "cy", "skew", "k1", "k2", "p1", "p2", "k3"}
+        assert cam.fx != truth.fx  # an estimate, not the truth
+        # 0.035 px centroid noise: within 5 std of the truth, which the std says is tight
+        assert abs(cam.fx - truth.fx) < 5 * std["fx"] and std["fx"] < 0.1
+        assert abs(cam.cx - truth.cx) < 5 * std["cx"] and abs(cam.cy - truth.cy) < 5 * std["cy"]
+        assert abs(cam.dist[0] - truth.dist[0]) < 5 * std["k1"]
+        assert f["camera"] == cam.name and abs(f["error"]["fx_rel"]) < 5e-4
+        assert 0.035 < f["rms_px"] < 0.06  # sqrt(2) x 0.035 px per axis
+    assert Rig.load(tmp_path / "intr.truth.toml").names == true_rig.names
+
+
+def test_projected_dots_agree_with_the_rendered_capture():
+    """The fast path reports where the rendered capture finds each dot: the centre of the
+    dot's image, which for large tilted dots is not where the dot's centre projects."""
+    from calibkit.synthetic.monitor import projected_dots
+
+    sim_ = _small_sim(n_views=1, seed=4, noise_dn=0.5)
+    schedule = coded_schedule(SMALL["screen_px"], 60.0, 1, 12.0)
+    with sim_:
+        rendered = DotCapture(sim_, schedule, samples=3).run()
+        fast = projected_dots(sim_.camera, sim_.views[0], schedule.points_xy, 12.0,
+                              SMALL["pixel_pitch_mm"], 0.0, np.random.default_rng(0))
+        centre, _ = sim_.truth_uv(schedule.points_xy)
+    common, i_r, i_f = np.intersect1d(rendered.ids, fast.ids, return_indices=True)
+    assert len(common) > 0.9 * len(rendered.ids) and len(common) > 50
+    d_fast = np.linalg.norm(rendered.uv[i_r] - fast.uv[i_f], axis=1)
+    d_centre = np.linalg.norm(rendered.uv[i_r] - centre[common], axis=1)
+    assert np.sqrt(np.mean(d_fast**2)) < 0.05  # the rendered capture's own noise
+    assert np.sqrt(np.mean(d_centre**2)) > 2 * np.sqrt(np.mean(d_fast**2))
 
 
 @pytest.mark.parametrize("args, message", [
@@ -244,6 +302,10 @@ def test_intrinsic_sim_command(calibkit_cli, tmp_path):
     (("--sim", "--step", 10, "--radius", 6), "dot pattern"),
     (("--sim", "--pixel-pitch", "527/0"), "--pixel-pitch takes"),
     (("--sim", "--fill", 9), "--fill must be"),
+    (("--sim", "--camera", "cam9"), "camera 'cam9' is not in the simulated rig"),
+    (("--sim", "--sim-rig", "/nonexistent/world.toml"), "world.toml"),
+    (("--images", ".", "--board", "chessboard:9x6:25", "--camera", "all"),
+     "--camera all calibrates every camera of a simulated rig"),
 ])
 def test_intrinsic_errors(calibkit_cli, args, message):
     r = calibkit_cli("intrinsic", *args)

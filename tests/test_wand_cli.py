@@ -18,16 +18,30 @@ def _one_line_error(result) -> None:
     assert len(result.err.strip().splitlines()) == 1 and "error:" in result.err
 
 
+def _chain_start(calibkit_cli, tmp_path, cameras: int, seed: int):
+    """The first step of the chain a user runs on the simulator: a true rig (the hardware)
+    and its cameras' intrinsics estimated from simulated monitor views."""
+    world, intr = tmp_path / "world.truth.toml", tmp_path / "intr.toml"
+    assert calibkit_cli("sim", "rig", "--cameras", cameras, "--seed", seed, "--out",
+                        world).code == 0
+    r = calibkit_cli("intrinsic", "--sim", "--sim-rig", world, "--camera", "all",
+                     "--no-render", "--views", 4, "--step", 120, "--seed", seed, "--rig", intr)
+    assert r.code == 0, r.err
+    return world, intr
+
+
 def test_wand_sim_end_to_end(calibkit_cli, tmp_path):
+    world, intr = _chain_start(calibkit_cli, tmp_path, 4, 3)
     out = tmp_path / "rig.toml"
-    r = calibkit_cli("wand", "--sim", "--out", out, "--cameras", "4", "--frames", "400",
-                     "--noise-px", "0.1", "--min-samples", "150", "--min-coverage", "0.1",
-                     "--json", tmp_path / "w.json", "--seed", "3")
+    r = calibkit_cli("wand", "--sim", "--sim-rig", world, "--intrinsics", intr, "--out", out,
+                     "--frames", "400", "--noise-px", "0.1", "--min-samples", "150",
+                     "--min-coverage", "0.1", "--json", tmp_path / "w.json", "--seed", "3")
     assert r.code == 0, r.err
     for name in ("rig.toml", "rig.truth.toml", "rig.capture.mcrec", "rig.layout.png",
                  "rig.residuals.png", "w.json"):
         assert (tmp_path / name).stat().st_size > 0, name
     report = json.loads((tmp_path / "w.json").read_text())
+    assert report["solve"]["refine_intrinsics"] is True  # the default
     # the capture stopped by itself once every camera had 150 sightings
     captured, _ = load_observations(tmp_path / "rig.capture.mcrec")
     assert len(captured.frames()) < 400
@@ -36,11 +50,55 @@ def test_wand_sim_end_to_end(calibkit_cli, tmp_path):
     assert 0.08 < report["held_out"]["reprojection_rms_px"] < 0.16
     assert report["grade"] in ("excellent", "good") and report["checks"]["ok"]
     assert report["world_frame"] == "floor"
-    # the simulated L-frame lies at the true origin: no alignment needed to compare
+    # the truth written beside the result is the hardware it was given, and only that
     est, true = Rig.load(out), Rig.load(tmp_path / "rig.truth.toml")
-    err = np.linalg.norm(est.centres() - true.centres(), axis=1)
-    assert err.max() < 6e-3  # ~1 mm from the wand solve, a few from the L-frame's tilt
+    np.testing.assert_allclose(true.centres(), Rig.load(world).centres())
+    assert [c.fx for c in true] == [c.fx for c in Rig.load(world)]
+    # the intrinsics were refined from the monitor's estimate, never set to the truth
+    assert all(e.fx != t.fx and e.cx != t.cx for e, t in zip(est, true, strict=True))
     assert f"grade: {report['grade']}" in r.out
+
+
+def test_wand_sim_starts_from_the_intrinsics_file(calibkit_cli, tmp_path):
+    """The intrinsics come from the file, not the simulator: kept fixed, the monitor's
+    estimate gives a rig close to the truth, and the same file 1 % off in focal length and
+    4 px in the principal point gives a rig that far off, against a truth it never read."""
+    world, intr = _chain_start(calibkit_cli, tmp_path, 4, 11)
+    good = Rig.load(intr)
+    bad = Rig(tuple(c.replace(fx=c.fx * 1.01, fy=c.fy * 1.01, cx=c.cx + 4.0) for c in good),
+              good.quality)
+    bad.save(tmp_path / "bad.toml")
+    runs = {}
+    for name, path in (("bad", tmp_path / "bad.toml"), ("good", intr)):
+        out = tmp_path / f"{name}.toml"
+        r = calibkit_cli("wand", "--sim", "--sim-rig", world, "--intrinsics", path,
+                         "--fix-intrinsics", "--frames", 400, "--min-samples", 150,
+                         "--min-coverage", 0.1, "--seed", 11, "--no-plots", "--out", out,
+                         "--json", tmp_path / f"{name}.json")
+        assert r.code == 0, r.err
+        runs[name] = Rig.load(out)
+        assert json.loads((tmp_path / f"{name}.json").read_text())["solve"][
+            "refine_intrinsics"] is False
+    truth = Rig.load(world)
+    for rig, given in ((runs["bad"], bad), (runs["good"], good)):
+        for e, g in zip(rig, given, strict=True):
+            assert e.fx == pytest.approx(g.fx) and e.cx == pytest.approx(g.cx)
+    # the simulated L-frame lies at the true origin: compared as they stand; 0.1 px noise
+    # and the monitor's 0.01 % / 0.04 px leave ~1-2 mm, a few from the L-frame's tilt
+    err = np.linalg.norm(runs["good"].centres() - truth.centres(), axis=1)
+    assert err.max() < 6e-3
+    from calibkit.compare import compare_rigs
+
+    grid_bad = compare_rigs(truth, runs["bad"])["grid_rms_mm"]
+    grid_good = compare_rigs(truth, runs["good"])["grid_rms_mm"]
+    assert grid_bad > 5 * grid_good  # the file's error went into the rig
+
+
+def test_wand_sim_without_intrinsics_says_what_to_run(calibkit_cli, tmp_path):
+    r = calibkit_cli("wand", "--sim", "--out", tmp_path / "out.toml")
+    _one_line_error(r)
+    assert "calibkit intrinsic --sim" in r.err and "--intrinsics" in r.err
+    assert not (tmp_path / "out.toml").exists()
 
 
 def test_wand_from_csv_with_intrinsics(calibkit_cli, tmp_path):
@@ -49,8 +107,10 @@ def test_wand_from_csv_with_intrinsics(calibkit_cli, tmp_path):
                         "4").code == 0
     assert calibkit_cli("sim", "wand", "--rig", rig_file, "--out", csv, "--frames", "300",
                         "--noise-px", "0.2", "--ghosts", "0.3", "--seed", "4").code == 0
-    r = calibkit_cli("wand", "--from", csv, "--intrinsics", rig_file, "--out",
-                     tmp_path / "out.toml", "--json", tmp_path / "w.json", "--no-plots")
+    # the file holds the exact intrinsics: kept as they are, the poses alone are tested
+    r = calibkit_cli("wand", "--from", csv, "--intrinsics", rig_file, "--fix-intrinsics",
+                     "--out", tmp_path / "out.toml", "--json", tmp_path / "w.json",
+                     "--no-plots")
     assert r.code == 0, r.err
     report = json.loads((tmp_path / "w.json").read_text())
     assert report["world_frame"].startswith("cameras")  # no floor given: provisional
@@ -99,6 +159,9 @@ def test_wand_with_initial_poses_and_intrinsics_refined(calibkit_cli, tmp_path):
 
 @pytest.mark.parametrize("args", [
     [],  # no source
+    ["--sim"],  # no intrinsics: never the truth
+    ["--sim", "--intrinsics", "rig.toml", "--cameras", "5"],  # not this rig's cameras
+    ["--sim", "--intrinsics", "rig.toml", "--sim-rig", "missing.toml"],
     ["--sim", "--from", "x.mcrec"],
     ["--from", "missing.mcrec", "--intrinsics", "rig.toml"],
     ["--from", "w.mcrec"],  # no intrinsics
@@ -182,8 +245,8 @@ def test_wand_with_an_lframe_recording_sets_the_floor(calibkit_cli, tmp_path):
     lf = Truth(np.repeat(np.arange(30), 3), np.tile(np.arange(3), 30), np.tile(pts, (30, 1)))
     save_observations(tmp_path / "l.mcrec", sim.observe(rig, lf, noise_px=0.1, seed=9))
     r = calibkit_cli("wand", "--from", tmp_path / "w.mcrec", "--intrinsics",
-                     tmp_path / "rig.toml", "--floor", tmp_path / "l.mcrec", "--out",
-                     tmp_path / "out.toml", "--no-plots")
+                     tmp_path / "rig.toml", "--fix-intrinsics", "--floor", tmp_path / "l.mcrec",
+                     "--out", tmp_path / "out.toml", "--no-plots")
     assert r.code == 0, r.err
     assert "world frame: floor" in r.out
     # the L-frame lies at the true origin: the result is in the true frame, no alignment

@@ -12,14 +12,18 @@ from calibkit.compare import compare_rigs
 
 @pytest.fixture(scope="module")
 def extrinsic_run(tmp_path_factory):
-    """An extrinsic calibration on the simulator and a wand capture with the same true rig."""
+    """An extrinsic calibration on the simulator, from the monitor step's intrinsics, and a
+    wand capture with the same true rig."""
     import sys
 
     from calibkit.cli import app
     from calibkit.clitools import run_app
 
     folder = tmp_path_factory.mktemp("ex")
-    for argv in (["extrinsic", "--projector", "--sim", "--out", folder / "ex.toml"],
+    for argv in (["intrinsic", "--sim", "--camera", "all", "--no-render", "--views", "4",
+                  "--step", "120", "--rig", folder / "intr.toml"],
+                 ["extrinsic", "--projector", "--sim", "--intrinsics", folder / "intr.toml",
+                  "--out", folder / "ex.toml"],
                  ["sim", "wand", "--rig", folder / "ex.truth.toml", "--frames", "500",
                   "--out", folder / "w.mcrec"]):
         old = sys.argv
@@ -36,8 +40,10 @@ def extrinsic_run(tmp_path_factory):
 def test_dots_keep_the_tape_frame_and_the_wand_sharpens_the_rig(extrinsic_run,
                                                                 calibkit_cli) -> None:
     f = extrinsic_run
+    # the monitor's intrinsics kept: the poses and the frame are what is tested here
     res = calibkit_cli("wand", "--from", f / "w.mcrec", "--rig", f / "ex.toml", "--dots",
-                       f / "ex.dots.npz", "--out", f / "final.toml", "--json", f / "w.json")
+                       f / "ex.dots.npz", "--fix-intrinsics", "--out", f / "final.toml",
+                       "--json", f / "w.json")
     assert res.code == 0, res.err
     truth, before, after = (Rig.load(f / n) for n in ("ex.truth.toml", "ex.toml",
                                                       "final.toml"))

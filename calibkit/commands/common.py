@@ -37,3 +37,41 @@ def load_rig_option(path: Path | None, option: str = "--rig") -> Rig:
 def truth_rig_path(out: Path) -> Path:
     """Where a simulated run writes the true rig beside its result: NAME.truth.toml."""
     return out.with_name(out.stem + ".truth.toml")
+
+
+def sim_hardware(sim_rig: Path | None, cameras: int, volume_m: float, seed: int,
+                 size: tuple[int, int] = (640, 480)) -> Rig:
+    """The simulated hardware a `--sim` run observes: the true rig in `--sim-rig`, else a
+    ring of `cameras` cameras made from --volume and --seed (`calibkit sim rig` makes the
+    same one). Only the simulator and the truth files see it; the estimate starts from
+    estimate files."""
+    if sim_rig is not None:
+        return Rig.load(sim_rig)
+    from calibkit.synthetic import sim
+
+    return sim.make_rig(cameras, volume_m, size, seed=seed)
+
+
+def check_estimate(estimate: Rig, hardware: Rig, path: Path | None, option: str) -> None:
+    """A `--sim` run's estimate file must hold every simulated camera, at its image size:
+    a file from another simulated rig would otherwise be calibrated against the wrong
+    cameras without a word."""
+    where = f"{option} {path}" if path is not None else option
+    for cam in hardware:
+        if cam.name not in estimate.names:
+            raise UserError(f"camera '{cam.name}' of the simulated rig has no intrinsics in "
+                            f"{where} (it has {', '.join(estimate.names)}): give every step "
+                            "the same --sim-rig (or --cameras, --volume and --seed)")
+        if tuple(estimate[cam.name].size) != tuple(cam.size):
+            w, h = estimate[cam.name].size
+            raise UserError(f"camera '{cam.name}' is {w}x{h} in {where} but "
+                            f"{cam.size[0]}x{cam.size[1]} in the simulated rig: give every "
+                            "step the same --sim-rig (or --cameras, --volume and --seed)")
+
+
+def need_intrinsics_for_sim(command: str) -> UserError:
+    """The error for a `--sim` run given no estimate to start from: the truth is never it."""
+    return UserError(f"{command} --sim starts from estimated intrinsics: run `calibkit "
+                     "intrinsic --sim --camera all --rig intrinsics.toml` first (same "
+                     "--sim-rig, or --cameras and --seed) and pass --intrinsics "
+                     "intrinsics.toml")

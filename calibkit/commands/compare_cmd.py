@@ -9,7 +9,7 @@ import typer
 
 from calibkit.camera import Rig
 from calibkit.clitools import print_table, write_json
-from calibkit.compare import compare_rigs
+from calibkit.compare import GROSS_MM, compare_rigs
 
 
 def register(app: typer.Typer) -> None:
@@ -38,7 +38,8 @@ def register(app: typer.Typer) -> None:
                f"{al['scale']:.6f}" if al["applied"] else "compared as they stand (--no-align)")
         typer.echo(f"\n{how}")
         typer.echo(f"grid RMS: {result['grid_rms_mm']:.4f} mm over {result['grid_points']} "
-                   "points that two cameras see")
+                   f"points that two cameras see ({result['grid_gross_points']} off by more "
+                   f"than {GROSS_MM:g} mm)")
         for side, names in (("A", result["only_in_a"]), ("B", result["only_in_b"])):
             if names:
                 typer.echo(f"only in {side}: {', '.join(names)}")

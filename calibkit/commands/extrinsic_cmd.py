@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 from typing import Annotated
@@ -12,7 +13,13 @@ import typer
 from calibkit import extrinsic as ex
 from calibkit.camera import Rig
 from calibkit.clitools import Progress, print_table, write_json
-from calibkit.commands.common import parse_size, truth_rig_path
+from calibkit.commands.common import (
+    check_estimate,
+    need_intrinsics_for_sim,
+    parse_size,
+    sim_hardware,
+    truth_rig_path,
+)
 from calibkit.errors import UserError
 from calibkit.fileio import write_text_atomic
 from projector.patterns import Schedule, coded_schedule
@@ -122,6 +129,16 @@ def _print(result: ex.ExtrinsicResult) -> None:
                "table dots (dots seen by two or more cameras)")
 
 
+def _keep_intrinsic_quality(result: ex.ExtrinsicResult, intr: Rig) -> None:
+    """The intrinsics are passed through unchanged, so their figures (and the per-parameter
+    std the wand solve's priors read) go on with them into the rig file."""
+    per = intr.quality.get("intrinsic", {})
+    kept = {n: per[n] for n in result.rig.names if n in per}
+    if kept:
+        result.rig = dataclasses.replace(result.rig,
+                                         quality={**result.rig.quality, "intrinsic": kept})
+
+
 def register(app: typer.Typer) -> None:
     @app.command("extrinsic")
     def extrinsic(
@@ -169,17 +186,27 @@ def register(app: typer.Typer) -> None:
         json_path: Annotated[Path | None, typer.Option(
             "--json", help="Write the figures as JSON.")] = None,
         sim: Annotated[bool, typer.Option(
-            "--sim", help="A simulated projector, table and rig; the true rig goes to "
-                          "NAME.truth.toml, the simulated tape measurements to "
+            "--sim", help="A simulated projector, table and rig, calibrated from the "
+                          "--intrinsics file (calibkit intrinsic --sim); the true rig goes "
+                          "to NAME.truth.toml, the simulated tape measurements to "
                           "NAME.refs.toml.")] = False,
+        sim_rig: Annotated[Path | None, typer.Option(
+            "--sim-rig", help="--sim: the simulated hardware, a true rig (calibkit sim rig); "
+                              "default: a ring made from --cameras, --volume, --seed.")]
+        = None,
         render: Annotated[bool, typer.Option(
             "--render/--no-render", help="--sim: render every camera frame and detect the "
                                          "dots (slow) instead of projecting them.")] = False,
-        cameras: Annotated[int, typer.Option("--cameras", help="--sim: cameras.")] = 6,
-        volume: Annotated[float, typer.Option("--volume", help="--sim: metres across.")] = 4.0,
+        cameras: Annotated[int | None, typer.Option(
+            "--cameras", help="--sim without --sim-rig: cameras (default: as many as the "
+                              "--intrinsics file has).")] = None,
+        volume: Annotated[float, typer.Option(
+            "--volume", help="--sim: metres across (a --sim-rig file's own volume wins).")]
+        = 4.0,
         table_height: Annotated[float, typer.Option(
             "--table-height", help="--sim: table height, metres (0: no table).")] = 0.75,
-        size: Annotated[str, typer.Option(help="--sim: camera size.")] = "640x480",
+        size: Annotated[str | None, typer.Option(
+            help="--sim without --sim-rig: camera size (default 640x480).")] = None,
         noise_px: Annotated[float, typer.Option(
             "--noise-px", help="--sim (projected dots): centroid noise.")] = 0.2,
         ref_error_mm: Annotated[float, typer.Option(
@@ -220,10 +247,18 @@ def register(app: typer.Typer) -> None:
 
             if not 0 <= table_height < 2.0:
                 raise UserError(f"--table-height must be in [0, 2) m, got {table_height}")
-            scene = sp.make_scene(cameras, volume, table_height or None, parse_size(size),
-                                  seed)
+            if intrinsics is None:
+                raise need_intrinsics_for_sim("calibkit extrinsic --projector")
+            if sim_rig is not None and (size is not None or cameras is not None):
+                raise UserError("give --sim-rig or --cameras/--size, not both: the rig file "
+                                "sets the cameras")
+            intr = Rig.load(intrinsics)
+            hardware = sim_hardware(sim_rig, cameras or len(intr), volume, seed,
+                                    parse_size(size or "640x480"))
+            check_estimate(intr, hardware, intrinsics, "--intrinsics")
+            volume = float(hardware.meta.get("volume_m", volume))
+            scene = sp.scene_for_rig(hardware, volume, table_height or None, seed)
             truth = scene.rig
-            intr = scene.rig if intrinsics is None else Rig.load(intrinsics)
             tpx = sp.table_reference_px(scene) if scene.table is not None else np.zeros((0, 2))
             m = sp.measured_references(scene, ex.reference_layout_px(proj_px), tpx,
                                        ref_error_mm / 1000.0, seed=seed)
@@ -298,6 +333,7 @@ def register(app: typer.Typer) -> None:
         _print(result)
         typer.echo(f"capture: {frames} camera frames, {frames / 30.0:.1f} s at 30 fps"
                    + (" (estimated from the latencies)" if sim and not render else ""))
+        _keep_intrinsic_quality(result, intr)
         result.rig.save(out)
         ex.save_dots(out.with_name(out.stem + ".dots.npz"), result.dots, result.inlier)
         rec = ex.floor_recording(result.rig, result.dots, result.inlier)

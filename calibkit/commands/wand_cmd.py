@@ -14,7 +14,13 @@ import typer
 from calibkit import floor
 from calibkit.camera import Rig
 from calibkit.clitools import Progress, print_table, write_json
-from calibkit.commands.common import parse_floats, truth_rig_path
+from calibkit.commands.common import (
+    check_estimate,
+    need_intrinsics_for_sim,
+    parse_floats,
+    sim_hardware,
+    truth_rig_path,
+)
 from calibkit.errors import UserError
 from calibkit.observations import Observations, Truth
 from calibkit.recording import RecordingWriter, load_observations
@@ -98,8 +104,13 @@ def register(app: typer.Typer) -> None:
         source: Annotated[Path | None, typer.Option(
             "--from", help="A recording (.mcrec) or plain CSV of the wand dance.")] = None,
         use_sim: Annotated[bool, typer.Option(
-            "--sim", help="Simulate a rig and a wand dance; the true rig goes to "
-                          "NAME.truth.toml.")] = False,
+            "--sim", help="Simulate a rig and a wand dance, calibrated from the --intrinsics "
+                          "or --rig file (calibkit intrinsic / extrinsic --sim); the true "
+                          "rig goes to NAME.truth.toml.")] = False,
+        sim_rig: Annotated[Path | None, typer.Option(
+            "--sim-rig", help="--sim: the simulated hardware, a true rig (calibkit sim rig); "
+                              "default: a ring made from --cameras, --volume, --seed.")]
+        = None,
         camera: Annotated[list[str] | None, typer.Option(
             "--camera", help="Live: a camera device number or video, once per camera of "
                              "--intrinsics, in its order.")] = None,
@@ -115,8 +126,9 @@ def register(app: typer.Typer) -> None:
         spacing: Annotated[str, typer.Option(
             "--spacing", help="Marker positions along the wand, metres.")] = "0,0.2,0.5",
         refine_intrinsics: Annotated[bool, typer.Option(
-            "--refine-intrinsics", help="Refine focal lengths, centres and k1 k2 p1 p2 too "
-                                        "(k3 is kept).")] = False,
+            "--refine-intrinsics/--fix-intrinsics",
+            help="Refine the intrinsics with the poses (held near the intrinsic step's "
+                 "estimate by its uncertainty), or keep them as given.")] = True,
         holdout: Annotated[float, typer.Option(
             "--holdout", help="Share of wand frames kept out of the solve to check it.")] = 0.1,
         floor_rec: Annotated[Path | None, typer.Option(
@@ -135,12 +147,16 @@ def register(app: typer.Typer) -> None:
             "--json", help="Write the figures as JSON.")] = None,
         plots: Annotated[bool, typer.Option(
             "--plots/--no-plots", help="Write NAME.layout.png and NAME.residuals.png.")] = True,
-        cameras: Annotated[int, typer.Option("--cameras", help="--sim: cameras.")] = 8,
+        cameras: Annotated[int | None, typer.Option(
+            "--cameras", help="--sim without --sim-rig: cameras (default: as many as the "
+                              "--intrinsics/--rig file has).")] = None,
         frames: Annotated[int, typer.Option("--frames", help="--sim: wand frames.")] = 3000,
         noise_px: Annotated[float, typer.Option("--noise-px", help="--sim: noise.")] = 0.1,
         ghosts: Annotated[float, typer.Option(
             "--ghosts", help="--sim: stray blobs per camera per frame.")] = 0.0,
-        volume: Annotated[float, typer.Option("--volume", help="--sim: metres across.")] = 4.0,
+        volume: Annotated[float, typer.Option(
+            "--volume", help="--sim: metres across (a --sim-rig file's own volume wins).")]
+        = 4.0,
         seed: Annotated[int, typer.Option("--seed", help="Random seed.")] = 0,
     ) -> None:
         """Calibrate every camera at once from a wand waved through the volume."""
@@ -175,16 +191,30 @@ def register(app: typer.Typer) -> None:
         capture_path = save_capture or out.with_name(out.stem + ".capture.mcrec")
         world = None
         if use_sim:
-            true_rig = sim.make_rig(cameras, volume, seed=seed)
             if intr is None:
-                intr = true_rig
+                raise need_intrinsics_for_sim("calibkit wand")
+            if sim_rig is not None and cameras is not None:
+                raise UserError("give --sim-rig or --cameras, not both: the rig file sets the "
+                                "cameras")
+            # without --sim-rig: the ring `calibkit intrinsic --sim` made with the same
+            # options, whose image size the estimate file records
+            true_rig = sim_hardware(sim_rig, cameras or len(intr), volume, seed,
+                                    intr.cameras[0].size)
+            check_estimate(intr, true_rig, rig_path or intrinsics,
+                           "--rig" if rig_path is not None else "--intrinsics")
+            # the cameras as the hardware numbers them, as a live capture's --camera order
+            intr = Rig(tuple(intr[n] for n in true_rig.names), intr.quality, intr.meta)
+            if initial is not None:
+                initial = intr
+            volume = float(true_rig.meta.get("volume_m", volume))
             truth = sim.wand_motion(frames, 100.0, volume, spec.spacing_m, seed)
             obs_all = sim.observe(true_rig, truth, noise_px=noise_px, ghosts_per_camera=ghosts,
                                   seed=seed)
-            floor_obs = _lframe_obs(true_rig, floor.LFrame(), seed, noise_px)
+            if dots is None:  # else the projector's dots hold the world frame
+                floor_obs = _lframe_obs(true_rig, floor.LFrame(), seed, noise_px)
 
-            def world(r, _xyz):  # the L-frame lies at the true origin: truth's world frame
-                return floor.world_from_recording(r, floor_obs, "lframe")
+                def world(r, _xyz):  # the L-frame lies at the true origin: truth's frame
+                    return floor.world_from_recording(r, floor_obs, "lframe")
             batches: Iterator[Observations] = _sim_batches(obs_all)
         elif camera:
             if intr is None:

@@ -8,6 +8,11 @@ camera pixel (area integration, so there is no pixel locking), then blurred by t
 given sensor noise. Time is simulated too: the display shows a requested pattern only after
 its latency, a camera frame exposed across the switch records a blend, frames can be
 dropped, and between views the user tilts the monitor (calibkit.synthetic.sim.monitor_views).
+
+`projected_dots` is the fast path for rigs of many cameras: no image, the capture's output
+directly. Each dot's outline is projected through the true lens and the centre of the
+imaged shape (not the projection of the dot's centre: a tilted disc images off-centre, as
+on the real screen) is reported with Gaussian noise, as a perfect decoder would report it.
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ import cv2
 import numpy as np
 
 from calibkit.camera import Camera
+from calibkit.dotcapture import DotView
 from calibkit.synthetic.sim import MonitorView, monitor_points, monitor_views
 from projector.display import Dots, OffscreenDisplay
 
@@ -228,3 +234,39 @@ def make_monitor_sim(n_views: int, size: tuple[int, int] = (640, 480), seed: int
     views = monitor_views(cam, n_views, cfg.screen_px, cfg.pixel_pitch_mm, fill=fill,
                           seed=seed)
     return MonitorSim(cam, views, cfg)
+
+
+def _polygon_centroid(xy: np.ndarray) -> np.ndarray:
+    """Area centroids of polygons (N, K, 2) -> (N, 2)."""
+    x, y = xy[..., 0], xy[..., 1]
+    xn, yn = np.roll(x, -1, axis=1), np.roll(y, -1, axis=1)
+    cross = x * yn - xn * y
+    area = cross.sum(axis=1) / 2.0
+    cx = ((x + xn) * cross).sum(axis=1) / (6.0 * area)
+    cy = ((y + yn) * cross).sum(axis=1) / (6.0 * area)
+    return np.column_stack([cx, cy])
+
+
+def projected_dots(camera: Camera, view: MonitorView, screen_xy: np.ndarray,
+                   radius_screen_px: float, pixel_pitch_mm: float, noise_px: float,
+                   rng: np.random.Generator, margin_px: float = 4.0,
+                   outline: int = 32) -> DotView:
+    """The dots (screen pixel centres (N, 2), all of one radius) of one monitor view as an
+    ideal capture reports them: ids of the dots whose whole image lies `margin_px` inside
+    the image, and the centre of each dot's image (the area centroid of its projected
+    outline, distortion included) plus Gaussian noise `noise_px` per axis."""
+    cam0 = camera.replace(rvec=np.zeros(3), t=np.zeros(3))
+    a = np.linspace(0.0, 2.0 * np.pi, outline, endpoint=False)
+    ring = radius_screen_px * np.column_stack([np.cos(a), np.sin(a)])
+    pts = (np.asarray(screen_xy, np.float64)[:, None, :] + ring[None]).reshape(-1, 2)
+    uv, front = cam0.project(monitor_points(view, pts, pixel_pitch_mm))
+    uv, front = uv.reshape(-1, outline, 2), front.reshape(-1, outline)
+    w, h = camera.size
+    inside = ((uv[..., 0] >= margin_px) & (uv[..., 0] <= w - 1 - margin_px)
+              & (uv[..., 1] >= margin_px) & (uv[..., 1] <= h - 1 - margin_px))
+    seen = np.flatnonzero((front & inside).all(axis=1))
+    centre = _polygon_centroid(uv[seen]) + rng.normal(0.0, noise_px, (len(seen), 2))
+    radius = float(np.median(np.linalg.norm(uv[seen] - uv[seen].mean(axis=1, keepdims=True),
+                                            axis=2))) if len(seen) else float("nan")
+    return DotView(seen.astype(np.int64), centre, np.full(len(seen), noise_px), 1,
+                   dot_radius_px=radius)

@@ -52,7 +52,13 @@ def default_table(volume_m: float = 4.0, height_m: float = 0.75) -> Table:
 
 def make_scene(n_cameras: int = 6, volume_m: float = 4.0, table_height_m: float | None = 0.75,
                size: tuple[int, int] = (640, 480), seed: int = 0) -> ProjectorScene:
-    rig = sim.make_rig(n_cameras, volume_m, size, seed=seed)
+    return scene_for_rig(sim.make_rig(n_cameras, volume_m, size, seed=seed), volume_m,
+                         table_height_m, seed)
+
+
+def scene_for_rig(rig: Rig, volume_m: float = 4.0, table_height_m: float | None = 0.75,
+                  seed: int = 0) -> ProjectorScene:
+    """A given true rig (the simulated hardware) with a ceiling projector and a table."""
     projector = sim.make_projector(volume_m, seed=seed)
     table = None if table_height_m is None else default_table(volume_m, table_height_m)
     return ProjectorScene(rig, projector, table)
