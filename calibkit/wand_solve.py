@@ -5,12 +5,13 @@ command line and the demo call; each step lives in its own module.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from calibkit import bundle, floor, wand_report
+from calibkit import bundle, floor, intrinsic_prior, wand_report
 from calibkit.camera import Rig
 from calibkit.errors import UserError
 from calibkit.geometry import RigArrays, triangulate
@@ -69,14 +70,16 @@ def labelled_wand_data(rig: Rig, obs: Observations, spacing_m) -> bundle.BundleD
 
 
 def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None = None,
-              refine_intrinsics: bool = False, holdout: float = 0.1, seed: int = 0,
+              refine_intrinsics: bool = True, holdout: float = 0.1, seed: int = 0,
               world: Callable[[Rig, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
               options: bundle.BundleOptions | None = None, progress=None,
               extra: Callable[[Rig], bundle.BundleData] | None = None) -> WandCalibration:
     """Everything: see calibrate_wand. `extra(start_rig)` gives more points to solve with
     (the projector's floor and table dots: calibkit.extrinsic.bundle_data), joined to the
     wand's; their plane and position priors then hold the world frame, so it needs
-    `initial` poses already in that frame (from calibkit extrinsic)."""
+    `initial` poses already in that frame (from calibkit extrinsic). `options` sets the
+    bundle adjustment's other knobs; `refine_intrinsics` and the intrinsics' priors
+    (calibkit.intrinsic_prior, from the rig file's quality.intrinsic) are set here."""
     if extra is not None and initial is None:
         raise UserError("points on known planes need initial poses in the world frame: give "
                         "--rig (e.g. from calibkit extrinsic)")
@@ -95,13 +98,10 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
         raise UserError(f"fewer than two cameras saw the wand in {MIN_WAND_FRAMES} frames or "
                         f"more (frames with the wand: {seen}); capture longer, or check "
                         "--spacing")
-    # hold out 10 % of the wand frames, chosen at random
-    rng = np.random.default_rng(seed)
-    frames = wand.frames()
-    n_held = int(round(holdout * len(frames))) if holdout > 0 else 0
-    held_frames = np.sort(rng.choice(frames, n_held, replace=False)) if n_held else frames[:0]
-    train = wand.select(~np.isin(wand.frame, held_frames) & np.isin(wand.camera, keep_cams))
     sub = Rig(tuple(intr[c] for c in keep_cams), dict(intr.quality), dict(intr.meta))
+    seen_by_kept = wand.select(np.isin(wand.camera, keep_cams))
+    # the start from every frame (it is only where the solve begins), then the frames held
+    # out of the solve: some at random, some in whole regions of the volume
     if initial is not None:
         absent = [n for n in sub.names if n not in set(initial.names)]
         if absent:
@@ -110,16 +110,27 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
                           for n in sub.names))
         missing: list[str] = []
     elif spec.n_markers == 2:
-        start, missing = _two_marker_start(_renumber(train, keep_cams, len(intr)), sub, spec)
+        start, missing = _two_marker_start(_renumber(seen_by_kept, keep_cams, len(intr)), sub,
+                                           spec)
     else:
-        local_wand = _renumber(train, keep_cams, len(intr))
-        start, missing = initial_poses(local_wand, sub, spec)
+        start, missing = initial_poses(_renumber(seen_by_kept, keep_cams, len(intr)), sub,
+                                       spec)
         for name in missing:
             warnings.append(f"camera {name} could not be placed (it shares too few wand "
                             "sightings with the others): left out, not calibrated")
     camera_of = np.full(len(intr), -1)
     for k, name in enumerate(start.names):
         camera_of[intr.index(name)] = k
+    frames = wand.frames()
+    placed = _two_marker_labels(wand, start, camera_of) if spec.n_markers == 2 else wand
+    held_random, held_region = wand_report.hold_out(
+        frames, _frame_centres(placed, start, camera_of, spec, frames), holdout, seed)
+    held_frames = np.union1d(held_random, held_region)
+    prior = Rig(tuple(intr[n] for n in start.names), dict(intr.quality))
+    sigmas, prior_source = intrinsic_prior.prior_sigmas(intrinsics, start.names)
+    if refine_intrinsics and spec.n_markers < 2:
+        refine_intrinsics = False
+        warnings.append("intrinsics held: a 1-marker wand has no length to check them against")
     raw = wand
     # a 2-marker wand started from midpoints is labelled again with the solved poses and
     # solved once more: the start's labels are wrong where its poses were a little off
@@ -127,7 +138,7 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
     for _ in range(passes):
         if spec.n_markers == 2:
             wand = _two_marker_labels(raw, start, camera_of)
-            train = wand.select(~np.isin(wand.frame, held_frames))
+        train = wand.select(~np.isin(wand.frame, held_frames))
         tw = train.select(camera_of[train.camera] >= 0)
         cam = camera_of[tw.camera]
         pidx, pinfo = point_index(tw, spec.n_markers)
@@ -138,15 +149,24 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
             from calibkit.extrinsic import join_bundle_data
 
             data = join_bundle_data(data, extra(start))
-        opts = options or bundle.BundleOptions(refine_intrinsics=refine_intrinsics,
-                                               reference_camera=int(np.argmax(
-                                                   np.bincount(cam, minlength=len(start)))))
+        opts = dataclasses.replace(
+            options or bundle.BundleOptions(reference_camera=int(np.argmax(
+                np.bincount(cam, minlength=len(start))))),
+            refine_intrinsics=refine_intrinsics,
+            intrinsic_sigma=tuple(map(tuple, sigmas.tolist())))
         try:
             result = bundle.solve(data, opts, progress)
         except RuntimeError as exc:  # GTSAM: an indeterminate system (too little data)
             raise UserError(f"the bundle adjustment failed ({str(exc).splitlines()[0]}): a "
                             "camera sees too few wand markers; capture longer") from None
-        start = result.rig
+        # the next pass starts from these poses; its intrinsics' priors stay the file's
+        start = Rig(tuple(p.replace(rvec=c.rvec, t=c.t)
+                          for p, c in zip(prior, result.rig, strict=True)))
+    intrinsics_moved: list[dict] = []
+    if refine_intrinsics:
+        intrinsics_moved, moved_warnings = intrinsic_prior.check_refined(prior, result.rig,
+                                                                         sigmas)
+        warnings.extend(moved_warnings)
     # the world frame
     if world is None and extra is not None:  # the extra points' priors set the frame
         def world(_rig, _xyz):
@@ -154,21 +174,36 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
     A, b = (world or floor.frame_from_cameras)(result.rig, result.xyz)
     rig = floor.transform_rig(result.rig, A, b)
     solved = wand_report.evaluate(rig, wand, spec, np.setdiff1d(frames, held_frames), camera_of)
-    held = wand_report.evaluate(rig, wand, spec, held_frames, camera_of) if n_held else solved
+    held = wand_report.evaluate(rig, wand, spec, held_frames, camera_of) if len(held_frames) \
+        else solved
+    region = wand_report.evaluate(rig, wand, spec, held_region, camera_of) if len(held_region) \
+        else None
+    syst = wand_report.systematics([solved, held] if len(held_frames) else [solved], region,
+                                   spec.length_m)
     try:
         cov = bundle.camera_covariances(result)
     except RuntimeError as exc:  # an indeterminate system: say so rather than fail
         warnings.append(f"no uncertainty: the marginals failed ({exc})")
         cov = None
     found = wand_report.checks(rig, solved["xyz"], solved["behind_share"])
-    grade, reason = wand_report.grade(held, found, spec.length_m)
+    grade, reason = wand_report.grade(held, found, spec.length_m, syst)
     report = _report(rig, spec, result, solved, held, cov, found, grade, reason, warnings,
                      never + missing, wand, intr, world is not None)
+    report["systematic"] = syst
+    report["held_out"]["random_frames"] = int(len(held_random))
+    report["held_out"]["region_frames"] = int(len(held_region))
+    report["intrinsics"] = _intrinsics_report(refine_intrinsics, prior, sigmas, prior_source,
+                                              intrinsics_moved, cov)
     quality = {"reprojection_rms_px": report["solve"]["reprojection_rms_px"],
                "held_out_rms_px": report["held_out"]["reprojection_rms_px"],
                "wand_length_error_sd_mm": report["held_out"]["wand_length_error_sd_mm"],
                "mean_ray_distance_mm": report["held_out"]["mean_ray_distance_mm"],
+               "length_variation_volume_pct": syst["volume_pct"],
+               "length_variation_radius_pct": syst["radius_pct"],
+               "intrinsics_refined": bool(refine_intrinsics),
                "grade": grade}
+    if isinstance(intrinsics.quality.get("intrinsic"), dict):
+        quality["intrinsic"] = intrinsics.quality["intrinsic"]  # where they came from
     meta = {"source": "calibkit wand", "wand_spacing_m": list(spec.spacing_m),
             "world_frame": report["world_frame"]}
     rig = Rig(rig.cameras, quality, {**{k: v for k, v in intrinsics.meta.items()
@@ -176,8 +211,42 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
     return WandCalibration(rig, report, wand, solved, held, result, held_frames)
 
 
+def _frame_centres(wand: WandObservations, rig: Rig, camera_of: np.ndarray, spec: WandSpec,
+                   frames: np.ndarray) -> np.ndarray:
+    """Each frame's wand centre triangulated with `rig` (NaN where fewer than two cameras
+    saw a marker): where in the volume the frame was, to hold out whole regions."""
+    w = wand.select(camera_of[wand.camera] >= 0)
+    pidx, pinfo = point_index(w, spec.n_markers)
+    xyz = triangulate(rig, pidx, camera_of[w.camera], w.uv, n_points=len(pinfo),
+                      ray_distance=False).xyz
+    ok = np.isfinite(xyz[:, 0])
+    f = np.searchsorted(frames, pinfo[ok, 0])
+    n = np.bincount(f, minlength=len(frames))
+    with np.errstate(invalid="ignore"):
+        return np.stack([np.bincount(f, xyz[ok, k], len(frames)) for k in range(3)],
+                        axis=1) / np.where(n > 0, n, np.nan)[:, None]
+
+
+def _intrinsics_report(refined: bool, prior: Rig, sigmas: np.ndarray, source: list[str],
+                       moved: list[dict], cov: dict | None) -> dict:
+    """Per camera: where the priors came from and their sigmas; when refined, how far the
+    wand moved each camera's intrinsics and how well it now knows them."""
+    rows = []
+    for k, cam in enumerate(prior):
+        row = {"name": cam.name, "prior_from": source[k],
+               "prior_sigma": dict(zip(intrinsic_prior.CAL3DS2, sigmas[k].tolist(),
+                                       strict=True))}
+        if refined:
+            row.update({key: v for key, v in moved[k].items() if key != "name"})
+            if cov is not None and "intrinsic_std" in cov:
+                row["std_after"] = dict(zip(intrinsic_prior.CAL3DS2,
+                                            cov["intrinsic_std"][k].tolist(), strict=True))
+        rows.append(row)
+    return {"refined": bool(refined), "cameras": rows}
+
+
 def calibrate_wand(observations: Observations, intrinsics_rig: Rig, wand_spacing_m,
-                   initial_rig: Rig | None = None, refine_intrinsics: bool = False,
+                   initial_rig: Rig | None = None, refine_intrinsics: bool = True,
                    holdout: float = 0.1, seed: int = 0, world=None) -> tuple[Rig, dict]:
     """Calibrate a rig from a wand capture: (the rig, the report's figures).
 
@@ -295,6 +364,7 @@ def _report(rig, spec, result, solved, held, cov, found, grade, reason, warnings
         "checks": found, "grade": grade, "grade_reason": reason,
         "grade_thresholds": [{"grade": g, "held_out_rms_px": p, "wand_length_sd_pct": m}
                              for g, p, m in wand_report.GRADES],
+        "systematic_thresholds_pct": dict(wand_report.SYSTEMATIC_GRADES),
         "left_out_cameras": left_out, "warnings": warnings,
         "world_frame": "floor" if floor_given else "cameras (provisional: run calibkit floor)",
         "identification": {"frames_with_wand": dict(zip(intr.names,

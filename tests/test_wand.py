@@ -228,12 +228,14 @@ def test_two_marker_wand_with_initial_poses_and_from_nothing():
     obs = sim.observe(rig, truth, noise_px=0.2, seed=12)
     start = Rig(tuple(c.replace(t=c.t + np.random.default_rng(0).normal(0, 0.01, 3))
                       for c in rig))
-    cal = calibrate(obs, rig, spacing, initial=start, seed=0)
+    # the true intrinsics, held: this is about the labels and the start (the intrinsics'
+    # refinement is tested on a scene of the size it needs, below)
+    cal = calibrate(obs, rig, spacing, initial=start, seed=0, refine_intrinsics=False)
     # labels made consistent across cameras: the wand's length comes out right
     assert abs(cal.report["held_out"]["wand_length_error_mean_mm"]) < 1.0
     assert cal.report["held_out"]["reprojection_rms_px"] < 0.35
     # from nothing: poses from the blobs' midpoints, labels from those poses, solved twice
-    cal = calibrate(obs, rig, spacing, seed=0)
+    cal = calibrate(obs, rig, spacing, seed=0, refine_intrinsics=False)
     held = cal.report["held_out"]
     # unbiased within the spread of 30 held-out frames' lengths
     assert abs(held["wand_length_error_mean_mm"]) < 3 * held["wand_length_error_sd_mm"] / \
@@ -308,10 +310,102 @@ def test_projector_dots_join_the_wand_solve_and_hold_the_world_frame():
 
     rng = np.random.default_rng(3)
     start = Rig(tuple(c.replace(t=c.t + rng.normal(0, 0.02, 3)) for c in rig))
-    cal = calibrate(obs, rig, SPACING, initial=start, extra=extra)
+    cal = calibrate(obs, rig, SPACING, initial=start, extra=extra, refine_intrinsics=False)
     assert cal.report["world_frame"] == "floor"
     # the dots' surveyed positions (1 mm) hold the frame: no alignment needed
     err = np.linalg.norm(cal.rig.centres() - rig.centres(), axis=1)
     assert err.max() < 5e-3
     with pytest.raises(UserError, match="world frame"):
         calibrate(obs, rig, SPACING, extra=extra)
+
+
+# ---- intrinsics as an intrinsic calibration leaves them ------------------------------------
+
+def _off_intrinsics(rig: Rig, focal_rel: float, centre_px: float, k1: float) -> Rig:
+    """The rig's intrinsics as a calibration might leave them: every focal length off by
+    focal_rel (either sign), the principal point by centre_px (any direction), k1 by k1."""
+    rng = np.random.default_rng(5)
+    cams = []
+    for c in rig:
+        sf, sk = rng.choice([-1, 1], 2)
+        a = rng.uniform(0, 2 * np.pi)
+        cams.append(c.replace(fx=c.fx * (1 + sf * focal_rel), fy=c.fy * (1 + sf * focal_rel),
+                              cx=c.cx + centre_px * np.cos(a), cy=c.cy + centre_px * np.sin(a),
+                              dist=c.dist + [sk * k1, 0, 0, 0, 0]))
+    return Rig(tuple(cams), meta=dict(rig.meta))
+
+
+@pytest.fixture(scope="module")
+def six_cameras():
+    rig = sim.make_rig(6, 4.0, seed=3)
+    truth = sim.wand_motion(700, 100.0, 4.0, SPACING, seed=3)
+    return rig, sim.observe(rig, truth, noise_px=0.1, seed=3)
+
+
+def test_grade_sees_wrong_intrinsics_that_the_pixels_hide(six_cameras):
+    from calibkit.compare import compare_rigs
+
+    rig, obs = six_cameras
+    good = calibrate(obs, rig, SPACING, refine_intrinsics=False, seed=0)
+    assert compare_rigs(rig, good.rig)["grid_rms_mm"] < 0.3
+    assert good.report["grade"] == "excellent", good.report["grade_reason"]
+    off = _off_intrinsics(rig, 0.005, 2.0, 0.005)
+    bad = calibrate(obs, off, SPACING, refine_intrinsics=False, seed=0)
+    assert compare_rigs(rig, bad.rig)["grid_rms_mm"] > 1.0
+    # the pixels alone would pass it as 'good' at least ...
+    held = bad.report["held_out"]
+    assert held["reprojection_rms_px"] < wand_report.GRADES[1][1]
+    # ... the length's variation across the image does not
+    assert bad.report["grade"] not in ("excellent", "good"), bad.report["grade_reason"]
+    assert "warped" in bad.report["grade_reason"]
+    worst = max(bad.report["systematic"][k] for k in ("volume_pct", "radius_pct", "region_pct"))
+    assert worst > 2.5 * wand_report.SYSTEMATIC_GRADES[0][1]
+    assert max(good.report["systematic"][k] for k in ("volume_pct", "radius_pct",
+                                                      "region_pct")) <= \
+        wand_report.SYSTEMATIC_GRADES[0][1]
+    # refined (the default) from the same wrong intrinsics: back within a millimetre
+    refined = calibrate(obs, off, SPACING, seed=0)
+    assert refined.report["intrinsics"]["refined"]
+    assert compare_rigs(rig, refined.rig)["grid_rms_mm"] < 1.0
+    assert refined.report["grade"] in ("excellent", "good")
+
+
+def test_held_out_frames_come_at_random_and_in_whole_regions():
+    rng = np.random.default_rng(0)
+    frames = np.arange(2000)
+    centre = rng.uniform(-1, 1, (2000, 3))
+    centre[:50] = np.nan  # frames not triangulated: only the random share may take them
+    random, region = wand_report.hold_out(frames, centre, 0.1, seed=1)
+    assert len(np.intersect1d(random, region)) == 0
+    assert abs(len(random) + len(region) - 200) <= 1 and len(region) >= 100
+    # the regions are whole cells: a box around them holds no frame that was kept
+    inside = centre[region]
+    lo, hi = np.nanmin(inside, axis=0), np.nanmax(inside, axis=0)
+    boxed = np.all((centre >= lo) & (centre <= hi), axis=1)
+    assert np.mean(np.isin(frames[boxed], region)) > 0.5
+
+
+def test_intrinsic_priors_from_the_rig_file():
+    from calibkit import intrinsic_prior as ip
+
+    rig = sim.make_rig(2, 4.0, seed=1)
+    std = {"fx": 0.02, "fy": 0.02, "cx": 0.03, "cy": 0.03, "skew": 0.0, "k1": 0.0001,
+           "k2": 0.5, "p1": 1e-5, "p2": 1e-5, "k3": 1.0}
+    rig = Rig(rig.cameras, {"intrinsic": {"cam0": {"rms_px": 0.05, "std": std}}})
+    sigma, source = ip.prior_sigmas(rig)
+    assert source == ["intrinsic step", "default"]
+    f = rig[0].fx
+    # tiny reported sigmas are floored at what calibrations really leave; a k2 made loose
+    # by its trade-off with k3 (held here) is capped
+    assert sigma[0, 0] == pytest.approx(ip.FLOOR["focal_rel"] * f)
+    assert sigma[0, 3] == ip.FLOOR["centre_px"] and sigma[0, 5] == ip.FLOOR["radial"]
+    assert sigma[0, 6] == ip.DEFAULT["radial"]
+    assert sigma[1, 0] == pytest.approx(ip.DEFAULT["focal_rel"] * rig[1].fx)
+    big = dict(std, fx=1.0)  # a reported 1 px: inflated to 3 px
+    sigma, _ = ip.prior_sigmas(Rig(rig.cameras, {"intrinsic": {"cam0": {"std": big}}}))
+    assert sigma[0, 0] == pytest.approx(ip.INFLATE * 1.0)
+    # a lens model that folds over inside the image is caught
+    folding = rig[0].replace(dist=[0.0, -2.0, 0, 0, 0])
+    assert ip.folds_over(folding, 0.8) and not ip.folds_over(rig[0], 0.8)
+    rows, warnings = ip.check_refined(Rig((rig[0],)), Rig((folding,)), sigma[:1])
+    assert rows[0]["largest_change_parameter"] == "k2" and len(warnings) == 2
