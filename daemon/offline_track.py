@@ -93,8 +93,7 @@ def track_cloud(cloud: MarkerCloud, bodies: list[BodyDef],
     track sits where a body misses a marker, no lost body has enough free points to be
     searched for): such runs of frames are fitted at once with the tracker's own compiled
     kernel, and only the frames where something may change go through update() itself.
-    Runs are cut where the set of tracks (or which are seen) changes, since that is where
-    the state usually changes. `batched=False` sends every frame through update().
+    `batched=False` sends every frame through update().
     """
     cfg = rigid_config or RigidConfig(refine=False)
     tracks = associate(cloud.xyz, cloud.counts(), cloud.frame, point_config)
@@ -102,16 +101,15 @@ def track_cloud(cloud: MarkerCloud, bodies: list[BodyDef],
     out = _Poses(len(cloud), len(bodies))
     fast = batched and cfg.compiled and bool(bodies) and all(b.smoothing == 0 for b in bodies)
     n_frames = len(cloud)
-    cuts = np.append(np.flatnonzero(_track_set_changes(tracks)), n_frames)
     f = reported = 0
+    length = 64  # frames tried at once: doubled after a steady run, halved after a change
     while f < n_frames:
         if fast:
-            # up to the first cut at least MIN_RUN frames on, at most MAX_RUN frames
-            nxt = int(cuts[min(np.searchsorted(cuts, f + MIN_RUN, "right"), len(cuts) - 1)])
-            end = min(max(nxt, f + 1), f + MAX_RUN, n_frames)
+            end = min(f + length, n_frames)
             done = _steady_run(rigid, tracks, f, end, out)
             rigid.frame += done
             f += done
+            length = min(2 * length, MAX_RUN) if f == end else max(length // 2, MIN_RUN)
         if f < n_frames and not (fast and f == end):
             out.put(f, rigid.update(tracks.tracks_at(f)))
             f += 1
@@ -146,23 +144,37 @@ MIN_RUN, MAX_RUN = 8, 4096  # frames fitted at once: the least worth the overhea
 _ID_SPAN = np.int64(1) << 40  # frame * _ID_SPAN + track id orders a run's rows
 
 
-def _track_set_changes(tracks: TakeTracks) -> np.ndarray:
-    """(F,) True where a frame's tracks (ids, or which of them are seen) differ from the
-    previous frame's: a hash of the set per frame, compared."""
-    n = len(tracks)
-    if not len(tracks.ids):
-        return np.zeros(n, dtype=bool)
-    mix = (tracks.ids.astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)
-           + tracks.seen.astype(np.uint64) * np.uint64(0xD1B54A32D192ED03))
-    mix ^= mix >> np.uint64(29)
-    per = np.diff(tracks.start)
-    h = np.zeros(n, dtype=np.uint64)
-    nonempty = per > 0
-    h[nonempty] = np.add.reduceat(mix, tracks.start[:-1][nonempty])
-    h += per.astype(np.uint64) * np.uint64(0xBF58476D1CE4E5B9)
-    changed = np.ones(n, dtype=bool)
-    changed[1:] = h[1:] != h[:-1]
-    return changed
+def _search_may_succeed(rigid, tracks, s0, local, free, row, seen, fi, bi) -> np.ndarray:
+    """For lost body bi[j] in run frame fi[j]: False where RigidTracker._identify's search
+    (find_body) must fail, so skipping it changes nothing. find_body needs `need` points
+    each at a distance of one of the body's own (within distance_tol_m) from at least
+    need - 1 others of its pool (the free seen tracks and the body's own seen ones); with
+    fewer such points no assignment exists. Batched over the (frame, body) pairs."""
+    tol = rigid.config.distance_tol_m
+    free_rows = np.flatnonzero(free)
+    n_free = np.bincount(local[free_rows], minlength=int(fi.max()) + 1)
+    first = np.concatenate([[0], np.cumsum(n_free)[:-1]])
+    wf = max(int(n_free[fi].max()), 1)
+    slot = np.arange(wf)
+    idx_free = free_rows[np.minimum(first[fi, None] + slot, len(free_rows) - 1)] \
+        if len(free_rows) else np.zeros((len(fi), wf), np.int64)
+    ok_free = slot < n_free[fi, None]
+    idx = np.concatenate([s0 + idx_free, row[fi, bi]], axis=1)  # (M, W)
+    mask = np.concatenate([ok_free, seen[fi, bi]], axis=1)
+    pts = tracks.xyz[idx]
+    d = np.linalg.norm(pts[:, :, None] - pts[:, None], axis=3)  # (M, W, W)
+    k = max(len(b.markers) for b in rigid.bodies)
+    bd = np.full((len(rigid.bodies), k * (k - 1) // 2), np.nan)
+    need = np.zeros(len(rigid.bodies), dtype=np.int64)
+    for i, body in enumerate(rigid.bodies):  # per body definition, not per frame
+        kb = len(body.markers)
+        bd[i, :kb * (kb - 1) // 2] = body.distances[np.triu_indices(kb, 1)]
+        need[i] = max(3, min(body.min_markers_start, kb))
+    fits = (np.abs(d[..., None] - bd[bi][:, None, None, :]) < tol).any(axis=3)
+    fits &= mask[:, :, None] & mask[:, None, :]
+    fits &= ~np.eye(idx.shape[1], dtype=bool)[None]
+    partners = fits.sum(axis=2)
+    return np.sum(partners >= (need[bi] - 1)[:, None], axis=1) >= need[bi]
 
 
 def _steady_run(rigid: RigidTracker, tracks: TakeTracks, a: int, b: int, out: _Poses) -> int:
@@ -202,10 +214,6 @@ def _steady_run(rigid: RigidTracker, tracks: TakeTracks, a: int, b: int, out: _P
     taken = np.isin(tracks.ids[s0:s1], assigned[has])
     free = tracks.seen[s0:s1] & ~taken
     n_free = np.bincount(local[free], minlength=n)
-    # a lost body with enough points to search among
-    pool = n_free[:, None] + seen.sum(axis=2)
-    need = np.array([min(bd.min_markers_start, len(bd.markers)) for bd in rigid.bodies])
-    bad |= (~valid & (pool >= need[None])).any(axis=1)
     # a free track near a missing marker of a valid body
     slot_free = valid[:, :, None] & rigid.slot[None] & ~has[None]  # (n, B, K)
     if slot_free.any() and free.any():
@@ -219,6 +227,20 @@ def _steady_run(rigid: RigidTracker, tracks: TakeTracks, a: int, b: int, out: _P
         d = np.linalg.norm(where[:, None, :] - cand[fi], axis=2)
         near = (d < cfg.max_error_m).any(axis=1)
         bad[fi[near]] = True
+    # a lost body with enough points to search among, unless its search must fail
+    pool = n_free[:, None] + seen.sum(axis=2)
+    need = np.array([min(bd.min_markers_start, len(bd.markers)) for bd in rigid.bodies])
+    first = int(np.argmax(bad)) if bad.any() else n  # only frames before it matter
+    fi, bi = np.nonzero(~valid[:first] & (pool[:first] >= need[None]))
+    lo, step = 0, 8
+    while lo < len(fi):  # in growing blocks of frames: the first possible search ends the run
+        hi = int(np.searchsorted(fi, fi[lo] + step))
+        may = _search_may_succeed(rigid, tracks, s0, local, free, row, seen, fi[lo:hi],
+                                  bi[lo:hi])
+        if may.any():
+            bad[fi[lo:hi][may]] = True
+            break
+        lo, step = hi, 2 * step
     done = int(np.argmax(bad)) if bad.any() else n
     if done:
         sl = slice(a, a + done)
