@@ -13,6 +13,7 @@ COMMAND_MODULES = (
     "unit_cmd",
     "markerset_cmd",
     "evaluate_cmd",
+    "track_cmd",
 )
 
 app = build_app("mocapd", "Track markers and rigid bodies with a calibrated rig and serve "

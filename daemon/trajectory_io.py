@@ -158,3 +158,89 @@ def write_tum(path: str | Path, traj: Trajectory) -> None:
     lines = ["# timestamp tx ty tz qx qy qz qw"]
     lines += [" ".join(f"{v:.9f}" for v in row) for row in rows]
     write_text_atomic(path, "\n".join(lines) + "\n")
+
+
+# ---- the poses CSV of `mocapd track`: every body in every frame ------------------------------
+
+POSES_COLUMNS = ("frame", "t_s", "body", "id", "valid", "x", "y", "z", "qx", "qy", "qz", "qw",
+                 "error_mm", "markers")
+
+
+@dataclass(frozen=True, eq=False)
+class PoseTable:
+    """Poses of several bodies per frame: (F,) frames and times, (F, B, ...) per body, NaN
+    where a body has no valid pose."""
+
+    frame: np.ndarray
+    t_s: np.ndarray
+    names: list[str]
+    ids: np.ndarray
+    valid: np.ndarray
+    xyz: np.ndarray
+    quat: np.ndarray
+    error_mm: np.ndarray
+    markers: np.ndarray
+
+    def trajectory(self, name: str) -> Trajectory:
+        b = self.names.index(name)
+        v = self.valid[:, b]
+        return Trajectory(self.t_s[v], self.xyz[v, b], self.quat[v, b], name)
+
+
+def write_poses_csv(path: str | Path, table: PoseTable, comment: str = "") -> None:
+    """One row per frame and body, frame-major; an invalid pose keeps its row (valid 0)
+    with the pose fields empty. Metres, quaternions x y z w body-to-world, to 0.1 um and
+    1e-8; written whole or not at all."""
+    from calibkit.fileio import atomic_write
+
+    n_frames, n_bodies = table.valid.shape
+    with atomic_write(path, "w", newline="", encoding="utf-8") as handle:
+        if comment:
+            handle.write(f"# {comment}\n")
+        handle.write(",".join(POSES_COLUMNS) + "\n")
+        names = [n.replace(",", "_") for n in table.names]
+        ids = table.ids.tolist()
+        frames, times = table.frame.tolist(), table.t_s.tolist()
+        pose = np.concatenate([table.xyz, table.quat, table.error_mm[..., None]], axis=2)
+        rows = pose.reshape(-1, 8).tolist()
+        valid = table.valid.reshape(-1).tolist()
+        count = table.markers.reshape(-1).tolist()
+        lines = []
+        for i in range(n_frames * n_bodies):  # file output, a row at a time
+            f, b = divmod(i, n_bodies)
+            if valid[i]:
+                x, y, z, qx, qy, qz, qw, e = rows[i]
+                lines.append(f"{frames[f]},{times[f]:.6f},{names[b]},{ids[b]},1,{x:.7f},"
+                             f"{y:.7f},{z:.7f},{qx:.8f},{qy:.8f},{qz:.8f},{qw:.8f},{e:.4f},"
+                             f"{count[i]}\n")
+            else:
+                lines.append(f"{frames[f]},{times[f]:.6f},{names[b]},{ids[b]},0,,,,,,,,,"
+                             f"{count[i]}\n")
+        handle.writelines(lines)
+
+
+def read_poses_csv(path: str | Path) -> PoseTable:
+    """A poses CSV as `mocapd track` writes it (see write_poses_csv)."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path} not found")
+    with open(path, encoding="utf-8", newline="") as handle:
+        reader = csv.reader(line for line in handle if not line.startswith("#"))
+        header = [h.strip().lower() for h in next(reader, [])]
+        if tuple(header[:len(POSES_COLUMNS)]) != POSES_COLUMNS:
+            raise UserError(f"{path}: not a poses CSV (its header should be "
+                            f"{','.join(POSES_COLUMNS)})")
+        rows = list(reader)
+    names = list(dict.fromkeys(r[2] for r in rows))
+    n_bodies = len(names)
+    if not rows or len(rows) % n_bodies:
+        raise UserError(f"{path}: {len(rows)} rows do not make whole frames of "
+                        f"{n_bodies} bodies")
+    try:
+        num = np.array([[float(v) if v.strip() else np.nan for v in (r[:2] + r[3:])]
+                        for r in rows]).reshape(-1, n_bodies, len(POSES_COLUMNS) - 1)
+    except ValueError as exc:
+        raise UserError(f"{path}: {exc}") from None
+    return PoseTable(num[:, 0, 0].astype(np.int64), num[:, 0, 1], names,
+                     num[0, :, 2].astype(np.int64), num[:, :, 3] > 0, num[:, :, 4:7],
+                     num[:, :, 7:11], num[:, :, 11], num[:, :, 12].astype(np.int64))
