@@ -25,6 +25,7 @@ import numpy as np
 
 from calibkit.camera import Rig
 from calibkit.errors import UserError
+from calibkit.gates import correspondence_config, rig_residual, tracker_gates
 from daemon.config import Config, default_runtime_dir, load_config
 from daemon.live_label import LiveLabeller
 from daemon.live_label import load as load_markerset
@@ -306,10 +307,10 @@ class Daemon:
         self.label_score = (LabelScore(self.scene) if getattr(self.scene, "person_labels", None)
                             else None)
         hooks = [h for h in (self.evaluator, self.label_score) if h is not None]
-        self.tracker_config = self._tracker_config(cfg)
+        publishers = make_publishers(cfg, bodies, self._markerset(), self.handle)
+        self.tracker_config = self._tracker_config(cfg)  # logged once the outputs are fine
         self.pipeline = Pipeline(self.rig, self.tracker_config, cfg.rigid, bodies,
-                                 make_publishers(cfg, bodies, self._markerset(), self.handle),
-                                 hooks=hooks, labeller=self.labelling)
+                                 publishers, hooks=hooks, labeller=self.labelling)
         self._warm_up()
         runtime = cfg.runtime_dir or default_runtime_dir()
         self.control = ControlServer(runtime, self.handle)
@@ -321,14 +322,12 @@ class Daemon:
         """The tracker's configuration with its pixel gates (and its correspondence's, for
         new markers) following the rig's recorded residual, calibkit.gates' rule, except
         the gates the configuration file sets; unchanged when the rig records none."""
-        from calibkit.gates import correspondence_config, rig_residual, tracker_gates
-
         try:
             residual = rig_residual(self.rig)
         except UserError as exc:
             raise UserError(f"{cfg.rig or 'rig'}: {exc}") from None
         if residual is None:
-            log.info("tracker gates: fixed (the rig records no residual)")
+            log.debug("tracker gates: fixed (the rig records no residual)")
             return cfg.tracker
         t = cfg.tracker
         names = ("gate_px", "outlier_px", "two_view_px")
