@@ -394,13 +394,13 @@ def test_intrinsic_priors_from_the_rig_file():
     rig = Rig(rig.cameras, {"intrinsic": {"cam0": {"rms_px": 0.05, "std": std}}})
     sigma, source = ip.prior_sigmas(rig)
     assert source == ["intrinsic step", "default"]
-    f = rig[0].fx
+    f = 0.5 * (rig[0].fx + rig[0].fy)
     # tiny reported sigmas are floored at what calibrations really leave; a k2 made loose
     # by its trade-off with k3 (held here) is capped
     assert sigma[0, 0] == pytest.approx(ip.FLOOR["focal_rel"] * f)
     assert sigma[0, 3] == ip.FLOOR["centre_px"] and sigma[0, 5] == ip.FLOOR["radial"]
     assert sigma[0, 6] == ip.DEFAULT["radial"]
-    assert sigma[1, 0] == pytest.approx(ip.DEFAULT["focal_rel"] * rig[1].fx)
+    assert sigma[1, 0] == pytest.approx(ip.DEFAULT["focal_rel"] * 0.5 * (rig[1].fx + rig[1].fy))
     big = dict(std, fx=1.0)  # a reported 1 px: inflated to 3 px
     sigma, _ = ip.prior_sigmas(Rig(rig.cameras, {"intrinsic": {"cam0": {"std": big}}}))
     assert sigma[0, 0] == pytest.approx(ip.INFLATE * 1.0)
