@@ -394,7 +394,7 @@ def test_intrinsic_priors_from_the_rig_file():
     rig = Rig(rig.cameras, {"intrinsic": {"cam0": {"rms_px": 0.05, "std": std}}})
     sigma, source = ip.prior_sigmas(rig)
     assert source == ["intrinsic step", "default"]
-    f = 0.5 * (rig[0].fx + rig[0].fy)  # one focal sigma for both axes, from their mean
+    f = 0.5 * (rig[0].fx + rig[0].fy)
     # tiny reported sigmas are floored at what calibrations really leave; a k2 made loose
     # by its trade-off with k3 (held here) is capped
     assert sigma[0, 0] == pytest.approx(ip.FLOOR["focal_rel"] * f)
