@@ -27,9 +27,8 @@ have come late.
 
 from __future__ import annotations
 
+import math
 from collections import deque
-
-import numpy as np
 
 BLOCK_NS = 500_000_000  # one envelope point per half second of arrivals
 BLOCKS = 40  # the drift is fitted over the last 40 points (20 s)
@@ -73,7 +72,7 @@ class CameraClock:
         self._y0 = 0
         self._points: deque = deque(maxlen=self.blocks)  # (dx, r): each block's lowest
         self._block_end = 0.0
-        self._block_min = np.inf
+        self._block_min = math.inf
         self._block_dx = 0.0
         self._a = 0.0  # the envelope r = a + s * dx, r = arrival - device time (relative)
         self._s = 0.0
@@ -121,9 +120,9 @@ class CameraClock:
         return self.capture_ns(device_ns, arrival_ns)
 
     def _close_block(self, dy: float) -> None:
-        if np.isfinite(self._block_min):
+        if math.isfinite(self._block_min):
             self._points.append((self._block_dx, self._block_min))
-        self._block_min = np.inf
+        self._block_min = math.inf
         self._block_end = dy + self.block_ns
         pts = self._points
         if len(pts) >= MIN_FIT:

@@ -29,7 +29,7 @@ from daemon.sources import CameraSample
 class FrameSet:
     """Samples of one instant from the cameras that delivered them."""
 
-    index: int  # the daemon's frame number: frame periods since the first set
+    index: int  # the daemon's frame number: frame periods since it started
     t_ns: int  # the median of the samples' capture times (daemon clock)
     arrival_ns: int  # when the set was complete (the last sample's arrival)
     samples: list[CameraSample]
@@ -98,8 +98,11 @@ class Multiplexer:
 
     def __init__(self, n_cameras: int, mode: str = "triggered", fps: float = 240.0,
                  timeout_frames: float = 1.5, connected=None,
-                 tolerance_frames: float = 0.5) -> None:
+                 tolerance_frames: float = 0.5, origin_ns: int | None = None) -> None:
+        """`origin_ns`: when frame 0 was (the daemon's start); frame numbers count frame
+        periods from it (from the first set if None)."""
         self.n = n_cameras
+        self.origin_ns = origin_ns
         self.mode = mode
         self.period_ns = 1e9 / fps
         self.tol_ns = tolerance_frames * self.period_ns
@@ -209,8 +212,7 @@ class Multiplexer:
         if self.last_t is not None and t < self.last_t + self.tol_ns:
             self.late += len(samples)  # a set whose time fell back onto the last one's
             return
-        self.last_index = 0 if self.last_t is None else self.last_index + max(
-            1, round((t - self.last_t) / self.period_ns))
+        self.last_index = self._number(t, 1)
         self.last_t = t
         if len(samples) < self.n:
             self.incomplete += 1
@@ -218,6 +220,17 @@ class Multiplexer:
             got[list(group.samples)] = True
             self.missing[~got] += 1
         self._put(FrameSet(self.last_index, t, max(s.arrival_ns for s in samples), samples))
+
+    def _number(self, t: float, least_step: int) -> int:
+        """The frame number of a set taken at t: frame periods since the origin (or since
+        the first set), at least least_step past the last one (never back)."""
+        if self.origin_ns is not None:
+            number = round((t - self.origin_ns) / self.period_ns)
+        elif self.last_t is None:
+            number = 0
+        else:
+            number = self.last_index + round((t - self.last_t) / self.period_ns)
+        return number if self.last_t is None else max(number, self.last_index + least_step)
 
     def _expire(self, now_ns: int) -> None:
         for g in list(self.pending):
@@ -228,12 +241,9 @@ class Multiplexer:
         """Every camera's latest blobs, moved to the newest sample's time along their 2D
         velocity (see blob_velocity). Sets of the same instant share a frame number."""
         t = newest.t_ns
-        if self.last_t is None:
-            self.last_t, self.last_index = t, 0
-        else:
-            step = round((t - self.last_t) / self.period_ns)
-            if step > 0:
-                self.last_t, self.last_index = t, self.last_index + step
+        number = self._number(t, 0)
+        if number > self.last_index or self.last_t is None:
+            self.last_t, self.last_index = t, number
         out = []
         for hist in self.latest:
             if not hist:

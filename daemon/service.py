@@ -501,7 +501,7 @@ class Daemon:
             return ok
 
         self.mux = Multiplexer(n, cfg.mode, fps, cfg.timeout_frames, connected=connected,
-                               tolerance_frames=cfg.pair_tolerance)
+                               tolerance_frames=cfg.pair_tolerance, origin_ns=t0)
         for cap in self.captures:
             cap.push = self.mux.push
             cap.on_open = self.mux.reset_camera

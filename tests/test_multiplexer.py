@@ -1,95 +1,26 @@
 """Frames paired by capture time (daemon.multiplexer, daemon.clocks), on the simulator's
-cameras run in virtual time: cameras that open up to 2 s apart, a camera that reconnects
-with a new counter and clock epoch, clocks drifting by 50 ppm for three minutes. Every set
-is checked against the simulator's truth: the instants its cameras really took their frames
-(the scene's ledger, found from each sample's own frame id and timestamp)."""
+cameras run in virtual time (daemon.synthetic.virtual): cameras that open up to 2 s apart,
+a camera that reconnects with a new counter and clock epoch, clocks drifting by 50 ppm for
+two minutes. Every set is checked against the simulator's truth: the instants its cameras
+really took their frames (the scene's ledger, found from each sample's own frame id and
+timestamp). benchmarks/bench_pairing.py runs the same scenes with pairing by counter."""
 
 from __future__ import annotations
-
-import heapq
 
 import numpy as np
 
 from daemon.clocks import SETTLE_NS, CameraClock
 from daemon.config import SimConfig
-from daemon.multiplexer import Multiplexer
-from daemon.synthetic.scene import SimCamera, SimScene
-
-START_NS = 10**12
-GRACE_NS = 1_000_000_000  # as the service: sets wait this long for cameras not open yet
-
-
-class VirtualClock:
-    """A camera's own view of time, advanced only by its sleeps: capture runs as fast as
-    the code goes, the frames and their truth as in real time."""
-
-    def __init__(self, t_ns: int) -> None:
-        self.t = t_ns
-
-    def now(self) -> int:
-        return self.t
-
-    def sleep(self, seconds: float) -> None:
-        self.t += round(seconds * 1e9)
-
-
-def capture(scene: SimScene, seconds: float, retry_s: float = 0.2, mux=None):
-    """Every camera of `scene` for `seconds` of virtual time, its samples pushed to a
-    multiplexer in arrival order as capture threads would (a failed camera reopened after
-    retry_s, its clock reset when it delivers again; sets expired on their timeout).
-    Returns (sets, multiplexer, per camera the times it started delivering)."""
-    n = len(scene.rig)
-    clocks = [VirtualClock(START_NS) for _ in range(n)]
-    cams = [SimCamera(scene, c, START_NS, clocks[c].now, clocks[c].sleep) for c in range(n)]
-    gens = [cam.open() for cam in cams]
-    live = np.zeros(n, dtype=bool)  # delivering in its current session
-    delivered = np.zeros(n, dtype=bool)
-    now = [START_NS]
-
-    def connected():
-        return live | (~delivered & (now[0] < START_NS + GRACE_NS))
-
-    mux = mux or Multiplexer(n, "triggered", scene.fps, 1.5, connected=connected)
-    fresh = np.ones(n, dtype=bool)  # its next sample starts a session
-    starts: list[list[int]] = [[] for _ in range(n)]
-
-    def advance(c):
-        while True:
-            try:
-                return next(gens[c])
-            except OSError:
-                live[c] = False
-                clocks[c].sleep(retry_s)
-                gens[c] = cams[c].open()
-                fresh[c] = True
-
-    heap = [(s.arrival_ns, c, s) for c in range(n) for s in [advance(c)]]
-    heapq.heapify(heap)
-    end = START_NS + round(seconds * 1e9)
-    sets = []
-    while heap and heap[0][0] < end:
-        t, c, s = heapq.heappop(heap)
-        now[0] = t
-        if fresh[c]:
-            fresh[c] = False
-            mux.reset_camera(c)
-            starts[c].append(t)
-        live[c] = delivered[c] = True
-        mux.push(s)
-        with mux.cond:
-            mux._expire(t)
-        sets.extend(mux.ready)
-        mux.ready.clear()
-        s = advance(c)
-        heapq.heappush(heap, (s.arrival_ns, c, s))
-    return sets, mux, starts
+from daemon.synthetic import virtual
+from daemon.synthetic.scene import SimScene
+from daemon.synthetic.virtual import START_NS, capture
 
 
 def spread_ns(scene, fs) -> int:
     """How far apart the set's cameras really took their frames (the ledger's truth)."""
-    taken = [scene.taken_ns(s) for s in fs.samples]
-    assert None not in taken  # every sample found by its camera's frame id and timestamp
-    return max(taken) - min(taken)
+    spread = virtual.spread_ns(scene, fs)
+    assert spread is not None  # every sample found by its camera's frame id and timestamp
+    return spread
 
 
 def _scene(**kw) -> SimScene:

@@ -25,7 +25,7 @@ from calibkit.camera import Rig
 from calibkit.errors import UserError
 from calibkit.synthetic import sim
 from daemon.config import SimConfig
-from daemon.rigid import BodyDef, matrix_from_quaternion
+from daemon.rigid import BodyDef
 from daemon.sources import CameraSample, fine_timer_slack
 
 PERSON_MARKER_BASE = 2000  # the simulated person's truth marker ids start here
@@ -91,8 +91,7 @@ class SimScene:
         # the ledger: per camera, by (frame id, device time), what each delivered frame
         # was (trigger, when taken); a reconnected camera reuses frame ids, not times
         self._ledger: list[dict] = [{} for _ in range(m)]
-        self._poses = None  # (bodies, frames, 4, 4) and (bodies, frames, 4) quaternions
-        self._quats = None  # x y z w, made when first needed
+        self._poses = None  # (bodies, frames, 4, 4), made when first needed
 
     def _add_person(self, truth, n: int):
         """A person wearing the 41-marker set walks a circle in the volume (truth marker
@@ -193,26 +192,24 @@ class SimScene:
 
     def body_poses_at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray]:
         """The bodies' true (R (B, 3, 3), t (B, 3)) at daemon time t_ns: between scene
-        frames, positions linearly and orientations by normalised quaternions."""
+        frames, positions linearly and rotations as the nearest rotation to the blend of
+        the two frames' (its polar factor, by Newton steps: the blend is orthonormal to
+        within (turn between frames)^2 / 8, and each step squares that, so two leave none
+        the scorer's arccos could see). Within 1e-5 degrees of the geodesic for the degree
+        or less a body turns between frames, and cheap on the frame loop, where a
+        quaternion slerp or an SVD costs about 100 us a frame."""
         if self._poses is None:
             self._poses = np.stack([b.poses for b in self.bodies_truth]) \
                 if self.bodies_truth else np.zeros((0, self.n_frames, 4, 4))
-        poses = self._poses
         fa, fb, w = self.frames_at(t_ns)
+        Ta = self._poses[:, fa]
         if w == 0.0:
-            return poses[:, fa, :3, :3], poses[:, fa, :3, 3]
-        if self._quats is None:
-            from scipy.spatial.transform import Rotation
-
-            R = poses[:, :, :3, :3]
-            self._quats = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat().reshape(
-                R.shape[:2] + (4,))
-        qa, qb = self._quats[:, fa], self._quats[:, fb]
-        qb = qb * np.sign(np.sum(qa * qb, axis=1, keepdims=True) + 1e-12)
-        q = (1 - w) * qa + w * qb
-        q /= np.linalg.norm(q, axis=1, keepdims=True)
-        pos = (1 - w) * poses[:, fa, :3, 3] + w * poses[:, fb, :3, 3]
-        return matrix_from_quaternion(q), pos
+            return Ta[:, :3, :3], Ta[:, :3, 3]
+        T = (1 - w) * Ta + w * self._poses[:, fb]
+        R = T[:, :3, :3]
+        for _ in range(2):
+            R = 1.5 * R - 0.5 * R @ np.swapaxes(R, 1, 2) @ R
+        return R, T[:, :3, 3]
 
     def person_at(self, t_ns: int) -> np.ndarray:
         """The person's true markers (41, 3) at daemon time t_ns."""

@@ -1,0 +1,94 @@
+"""The simulated cameras run in virtual time: a capture as capture threads would make it,
+faster than real time, with the same frames and the same truth.
+
+Each camera paces itself by a clock of its own that only its sleeps advance; their samples
+are merged in arrival order and pushed to a multiplexer, a camera that fails is reopened
+after the capture thread's retry delay (its clock reset when it delivers again), and sets
+are expired on their timeout as the frame loop would. Tests and benchmarks use it to run
+minutes of capture in seconds and check each set against the scene's ledger.
+"""
+
+from __future__ import annotations
+
+import heapq
+
+import numpy as np
+
+from daemon.multiplexer import Multiplexer
+from daemon.synthetic.scene import SimCamera, SimScene
+
+START_NS = 10**12
+GRACE_NS = 1_000_000_000  # as the service: sets wait this long for cameras not open yet
+
+
+class VirtualClock:
+    """A camera's own view of time, advanced only by its sleeps."""
+
+    def __init__(self, t_ns: int) -> None:
+        self.t = t_ns
+
+    def now(self) -> int:
+        return self.t
+
+    def sleep(self, seconds: float) -> None:
+        self.t += round(seconds * 1e9)
+
+
+def capture(scene: SimScene, seconds: float, retry_s: float = 0.2, make_mux=Multiplexer):
+    """Every camera of `scene` for `seconds` of virtual time, pushed to
+    `make_mux(n_cameras, mode, fps, timeout_frames, connected=..., origin_ns=...)`.
+    Returns (sets, the multiplexer, per camera the times it started delivering)."""
+    n = len(scene.rig)
+    clocks = [VirtualClock(START_NS) for _ in range(n)]
+    cams = [SimCamera(scene, c, START_NS, clocks[c].now, clocks[c].sleep) for c in range(n)]
+    gens = [cam.open() for cam in cams]
+    live = np.zeros(n, dtype=bool)  # delivering in its current session
+    delivered = np.zeros(n, dtype=bool)
+    now = [START_NS]
+
+    def connected():
+        return live | (~delivered & (now[0] < START_NS + GRACE_NS))
+
+    mux = make_mux(n, "triggered", scene.fps, 1.5, connected=connected, origin_ns=START_NS)
+    fresh = np.ones(n, dtype=bool)  # its next sample starts a session
+    starts: list[list[int]] = [[] for _ in range(n)]
+
+    def advance(c):
+        while True:
+            try:
+                return next(gens[c])
+            except OSError:
+                live[c] = False
+                clocks[c].sleep(retry_s)
+                gens[c] = cams[c].open()
+                fresh[c] = True
+
+    heap = [(s.arrival_ns, c, s) for c in range(n) for s in [advance(c)]]
+    heapq.heapify(heap)
+    end = START_NS + round(seconds * 1e9)
+    sets = []
+    while heap and heap[0][0] < end:
+        t, c, s = heapq.heappop(heap)
+        now[0] = t
+        if fresh[c]:
+            fresh[c] = False
+            mux.reset_camera(c)
+            starts[c].append(t)
+        live[c] = delivered[c] = True
+        mux.push(s)
+        with mux.cond:
+            mux._expire(t)
+        sets.extend(mux.ready)
+        mux.ready.clear()
+        s = advance(c)
+        heapq.heappush(heap, (s.arrival_ns, c, s))
+    return sets, mux, starts
+
+
+def spread_ns(scene: SimScene, fs) -> int | None:
+    """How far apart the set's cameras really took their frames (the ledger's truth); None
+    if a sample is not in the ledger."""
+    taken = [scene.taken_ns(s) for s in fs.samples]
+    if None in taken:
+        return None
+    return max(taken) - min(taken)
