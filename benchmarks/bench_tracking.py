@@ -182,13 +182,14 @@ class AllPoses:
 
     def __call__(self, result):
         self.frames += 1
-        if self.frames <= self.skip or result.scene_frame < 0:
+        if self.frames <= self.skip:
             return
         p = result.poses
-        for b in self.scene.bodies_truth:
+        _, true_t = self.scene.body_poses_at(result.t_ns)  # the truth at the set's time
+        for k, b in enumerate(self.scene.bodies_truth):
             row = np.flatnonzero(p.ids == b.id)
             if len(row) and p.valid[row[0]]:
-                e = p.position[row[0]] - b.poses[result.scene_frame, :3, 3]
+                e = p.position[row[0]] - true_t[k]
                 self.sq += float(e @ e)
                 self.n += 1
 

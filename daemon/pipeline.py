@@ -228,10 +228,11 @@ class Pipeline:
             camera = np.concatenate([np.full(len(s.uv), s.camera, dtype=np.int64)
                                      for s in samples])
             uv = np.concatenate([s.uv for s in samples])
+            area = np.concatenate([s.area for s in samples])  # merged blobs show by their size
         else:
-            camera, uv = np.zeros(0, np.int64), np.zeros((0, 2))
+            camera, uv, area = np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0)
         self._learn_period(fs)
-        tracks = self.tracker.update(camera, uv, fs.t_ns)
+        tracks = self.tracker.update(camera, uv, fs.t_ns, area)
         poses = self.rigid.update(tracks, uv, self.tracker.cams)
         result = FrameResult(fs.index, fs.t_ns, fs.arrival_ns, time.monotonic_ns(), camera, uv,
                              tracks, poses, samples)
