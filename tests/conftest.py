@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import os
+import subprocess
 import sys
 from dataclasses import dataclass
+from pathlib import Path
 
 import pytest
 
@@ -13,6 +15,26 @@ import pytest
 # loads its BLAS (nothing above imports numpy); .ci/run sets the same.
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
+
+
+ROOT = Path(__file__).resolve().parents[1]
+# test modules that start mocapd and time what it does live
+LIVE_DAEMON_MODULES = {"test_daemon_e2e", "test_daemon_pipeline", "test_live_label",
+                       "test_mavlink", "test_natnet", "test_natnet_protocol", "test_vrpn",
+                       "test_logs", "test_daemon_config"}
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _daemon_kernels_compiled(request):
+    """Compile mocapd's kernels into the on-disk cache once, before tests that run the
+    daemon live: on a fresh checkout the first start compiles for tens of seconds (an
+    installed daemon does it once, at its first start), and a live test timing its first
+    packets would measure the compiler instead of the daemon."""
+    modules = {Path(str(item.fspath)).stem for item in request.session.items}
+    if modules & LIVE_DAEMON_MODULES:
+        subprocess.run([sys.executable, "-m", "daemon.cli", "start", "--sim", "--frames",
+                        "30", "--fast"], cwd=ROOT, capture_output=True, timeout=900,
+                       check=True, env=dict(os.environ, PYTHONPATH=str(ROOT)))
 
 
 @dataclass
