@@ -86,7 +86,7 @@ def write_json(path: str | Path, data) -> None:
 def print_table(rows: list[list], header: list[str], file=None) -> None:
     """A plain aligned text table: numbers right-aligned, text left-aligned."""
     file = file or sys.stdout
-    cells = [[_fmt(v) for v in row] for row in rows]
+    cells = [[format_cell(v) for v in row] for row in rows]
     widths = [max(len(h), *(len(r[i]) for r in cells)) if cells else len(h)
               for i, h in enumerate(header)]
     numeric = [all(isinstance(r[i], (int, float, np.number)) for r in rows) if rows else False
@@ -102,7 +102,8 @@ def print_table(rows: list[list], header: list[str], file=None) -> None:
         print(line(r), file=file)
 
 
-def _fmt(v) -> str:
+def format_cell(v) -> str:
+    """A table cell: floats to a few significant digits, NaN and inf as '-'."""
     if isinstance(v, (float, np.floating)):
         if not math.isfinite(v):
             return "-"

@@ -9,7 +9,6 @@ and a progress line every few seconds, with always a last one.
 
 from __future__ import annotations
 
-import math
 import sys
 import time
 
@@ -20,6 +19,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, TaskProgressColumn, Tex
 from rich.progress import Progress as RichProgress
 from rich.table import Table
 
+from calibkit.clitools import format_cell
 from daemon.logs import writes_to_journal
 
 WIDE = 10_000  # off a terminal: wide enough that no table is folded
@@ -32,16 +32,7 @@ def console(file=None) -> Console:
                    soft_wrap=not tty)
 
 
-def cell(v) -> str:
-    """A table cell: floats to a few significant digits, NaN and inf as '-'."""
-    if isinstance(v, (float, np.floating)):
-        if not math.isfinite(v):
-            return "-"
-        a = abs(v)
-        if a != 0 and (a < 1e-3 or a >= 1e6):
-            return f"{v:.3g}"
-        return f"{v:.3f}" if a < 100 else f"{v:.1f}"
-    return str(v)
+cell = format_cell  # the same cells as calibkit's plain tables
 
 
 def print_table(rows: list[list], header: list[str], file=None) -> None:
