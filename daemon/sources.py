@@ -45,12 +45,6 @@ class CameraSample:
     device_time_ns: int = -1  # the camera's own timestamp, ns on its own clock (-1: none)
     device_frame_id: int = -1  # the camera's own frame counter (-1: none)
 
-    @property
-    def marker(self) -> None:
-        """Samples carry no truth: writers with an optional true-marker column (the
-        recorder) get None."""
-        return None
-
 
 def missing_plugins(kinds) -> list[str]:
     """The camera plugins asked for whose library is not installed."""

@@ -255,7 +255,10 @@ def _report(fig: dict) -> None:
                       b["position_error_mm_rms"] if b["position_error_mm_rms"] is not None
                       else float("nan"),
                       b["orientation_error_deg_rms"] if b["orientation_error_deg_rms"]
-                      is not None else float("nan")]
+                      is not None else float("nan"), b["gross_error_frames"]]
                      for name, b in truth["bodies"].items()],
-                    ["body", "id", "valid_%", "pos_err_mm_rms", "rot_err_deg_rms"])
-        typer.echo(f"\nidentity swaps: {truth['track_swaps']} track, {truth['body_swaps']} body")
+                    ["body", "id", "valid_%", "pos_err_mm_rms", "rot_err_deg_rms",
+                     "gross (>2 cm / 5 deg)"])
+        typer.echo(f"\nidentity swaps: {truth['track_swaps']} track, {truth['body_swaps']} body;"
+                   f" frame sets mixing instants: {truth.get('sets_mixing_instants', 0)} of "
+                   f"{truth.get('sets_checked_for_instants', 0)}")

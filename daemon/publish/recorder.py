@@ -21,7 +21,7 @@ class RecorderPublisher(Publisher):
 
     def send(self, result) -> None:
         for s in result.samples or ():
-            self.writer.append(result.frame, s.camera, s.t_ns, s.uv, s.area, s.peak, s.marker)
+            self.writer.append(result.frame, s.camera, s.t_ns, s.uv, s.area, s.peak)
 
     def close(self) -> None:
         if self.writer is not None:
