@@ -73,8 +73,9 @@ ROOT = Path(__file__).resolve().parents[1]
 # ---- what the daemon is given: a calibrated rig and bodies defined live -------------------------
 
 def monitor_intrinsics(true_rig, seed):
-    """The true cameras with intrinsics as a monitor calibration leaves them (focal lengths
-    0.1 % off, principal points 0.5 px, k1 0.005): what the wand step starts from."""
+    """The true cameras' intrinsics as a monitor calibration leaves them (focal lengths
+    0.1 % off, principal points 0.5 px, k1 0.005), without their poses: what the wand step
+    starts from."""
     rng = np.random.default_rng(seed)
     cams = []
     for c in true_rig:
@@ -82,7 +83,8 @@ def monitor_intrinsics(true_rig, seed):
         dist[0] += rng.normal(0, 0.005)
         scale = 1 + rng.normal(0, 0.001)
         cams.append(c.replace(fx=c.fx * scale, fy=c.fy * scale, cx=c.cx + rng.normal(0, 0.5),
-                              cy=c.cy + rng.normal(0, 0.5), dist=dist))
+                              cy=c.cy + rng.normal(0, 0.5), dist=dist, rvec=np.zeros(3),
+                              t=np.zeros(3)))
     return Rig(tuple(cams), meta=dict(true_rig.meta))
 
 

@@ -69,6 +69,7 @@ from calibkit.clitools import print_table, write_json
 from calibkit.compare import compare_rigs
 from calibkit.geometry import RigArrays
 from calibkit.synthetic import sim
+from calibkit.synthetic.miscalibrate import off_intrinsics
 from calibkit.wand_report import evaluate
 from calibkit.wand_solve import calibrate
 
@@ -186,18 +187,11 @@ LEVELS = {  # name: (focal share, principal point px, k1)
 
 
 def perturbed(rig: Rig, focal_rel: float, centre_px: float, k1: float, seed: int) -> Rig:
-    """The rig's intrinsics as an intrinsic calibration might leave them (random signs and
-    directions, fixed sizes); the poses are dropped (the solve starts from nothing)."""
-    rng = np.random.default_rng(seed + 1000)
-    cams = []
-    for c in rig:
-        sf, sk = rng.choice([-1, 1], 2)
-        a = rng.uniform(0, 2 * np.pi)
-        cams.append(c.replace(fx=c.fx * (1 + sf * focal_rel), fy=c.fy * (1 + sf * focal_rel),
-                              cx=c.cx + centre_px * np.cos(a), cy=c.cy + centre_px * np.sin(a),
-                              dist=c.dist + [sk * k1, 0, 0, 0, 0], rvec=np.zeros(3),
-                              t=np.zeros(3)))
-    return Rig(tuple(cams), meta={"volume_m": rig.meta.get("volume_m")})
+    """The rig's intrinsics as an intrinsic calibration might leave them; the poses are
+    dropped (the solve starts from nothing)."""
+    off = off_intrinsics(rig, focal_rel, centre_px, k1, np.random.default_rng(seed + 1000))
+    return Rig(tuple(c.replace(rvec=np.zeros(3), t=np.zeros(3)) for c in off),
+               meta={"volume_m": rig.meta.get("volume_m")})
 
 
 def run_intrinsics(cameras: int, seed: int) -> list[dict]:

@@ -12,6 +12,7 @@ from calibkit.errors import UserError
 from calibkit.geometry import rigid_fit
 from calibkit.observations import Observations, Truth
 from calibkit.synthetic import sim
+from calibkit.synthetic.miscalibrate import off_intrinsics
 from calibkit.wand import CaptureMonitor, WandSpec, identify, initial_poses
 from calibkit.wand_solve import calibrate
 
@@ -322,17 +323,7 @@ def test_projector_dots_join_the_wand_solve_and_hold_the_world_frame():
 # ---- intrinsics as an intrinsic calibration leaves them ------------------------------------
 
 def _off_intrinsics(rig: Rig, focal_rel: float, centre_px: float, k1: float) -> Rig:
-    """The rig's intrinsics as a calibration might leave them: every focal length off by
-    focal_rel (either sign), the principal point by centre_px (any direction), k1 by k1."""
-    rng = np.random.default_rng(5)
-    cams = []
-    for c in rig:
-        sf, sk = rng.choice([-1, 1], 2)
-        a = rng.uniform(0, 2 * np.pi)
-        cams.append(c.replace(fx=c.fx * (1 + sf * focal_rel), fy=c.fy * (1 + sf * focal_rel),
-                              cx=c.cx + centre_px * np.cos(a), cy=c.cy + centre_px * np.sin(a),
-                              dist=c.dist + [sk * k1, 0, 0, 0, 0]))
-    return Rig(tuple(cams), meta=dict(rig.meta))
+    return off_intrinsics(rig, focal_rel, centre_px, k1, np.random.default_rng(5))
 
 
 @pytest.fixture(scope="module")

@@ -36,6 +36,21 @@ def perturb(rig: Rig, scale: float, seed: int = 0) -> Rig:
     return Rig(tuple(cams), dict(rig.quality), dict(rig.meta))
 
 
+def off_intrinsics(rig: Rig, focal_rel: float, centre_px: float, k1: float,
+                   rng: np.random.Generator) -> Rig:
+    """The rig's intrinsics as an intrinsic calibration might leave them: every focal length
+    off by focal_rel (either sign), the principal point by centre_px (any direction), k1 by
+    k1 (either sign); fixed sizes, random signs and directions. Poses are kept."""
+    cams = []
+    for c in rig:
+        sf, sk = rng.choice([-1, 1], 2)
+        a = rng.uniform(0, 2 * np.pi)
+        cams.append(c.replace(fx=c.fx * (1 + sf * focal_rel), fy=c.fy * (1 + sf * focal_rel),
+                              cx=c.cx + centre_px * np.cos(a), cy=c.cy + centre_px * np.sin(a),
+                              dist=c.dist + [sk * k1, 0, 0, 0, 0]))
+    return Rig(tuple(cams), dict(rig.quality), dict(rig.meta))
+
+
 def labelled_residual_px(rig: Rig, obs: Observations, min_cameras: int = 3) -> float:
     """The residual as the calibrations define it, measured with the true labels: each
     marker seen by >= min_cameras cameras triangulated from its blobs with `rig`, then the
