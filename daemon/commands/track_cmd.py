@@ -14,45 +14,9 @@ from calibkit.clitools import Progress, print_table, write_json
 from calibkit.errors import UserError
 
 
-def _csv_rate(path: Path) -> float | None:
-    """The `# rate_hz=` comment our CSV writers put first, if there."""
-    with open(path, encoding="utf-8", errors="replace") as handle:
-        first = handle.readline()
-    if first.startswith("# rate_hz="):
-        try:
-            return float(first.split("=", 1)[1])
-        except ValueError:
-            return None
-    return None
-
-
-def read_points_fast(path: Path):
-    """A points CSV (frame,x,y,z,...) parsed by numpy's C reader; anything it cannot take
-    (empty cells, text) goes to the checking reader, which names the problem."""
-    from daemon.c3dio import Points, read_points_csv
-
-    with open(path, encoding="utf-8", errors="replace") as handle:
-        skip = 0
-        for line in handle:
-            skip += 1
-            if not line.startswith("#"):
-                break
-    header = [h.strip().lower() for h in line.split(",")]
-    if not all(c in header for c in ("frame", "x", "y", "z")):
-        return read_points_csv(path)
-    cols = [header.index(c) for c in ("frame", "x", "y", "z")]
-    try:
-        data = np.loadtxt(path, delimiter=",", comments="#", skiprows=skip, usecols=cols,
-                          ndmin=2, dtype=np.float64)
-    except ValueError:
-        return read_points_csv(path)
-    ok = np.isfinite(data[:, 1:]).all(axis=1)
-    return Points(data[ok, 0].astype(np.int64), data[ok, 1:])
-
-
 def load_markers(path: Path, rate_hz: float | None):
     """(MarkerCloud, MotiveTake or None, what the file is) from any 3D marker file."""
-    from daemon.c3dio import read_c3d
+    from daemon.c3dio import csv_rate, read_c3d, read_points_csv
     from daemon.motive_csv import read_motive_csv, sniff
     from daemon.offline_track import cloud_from_arrays, cloud_from_points
 
@@ -71,8 +35,8 @@ def load_markers(path: Path, rate_hz: float | None):
         motive = read_motive_csv(path)
         return (cloud_from_arrays(motive.all_markers(), motive.t_s, motive.frame), motive,
                 f"Motive CSV {motive.meta.get('format_version', '')}")
-    points = read_points_fast(path)
-    rate = rate_hz or _csv_rate(path)
+    points = read_points_csv(path)
+    rate = rate_hz or csv_rate(path)
     if rate is None:
         raise UserError(f"{path} has no frame rate: give --rate HZ (the cameras' rate)")
     if not len(points.frame):
