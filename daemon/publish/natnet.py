@@ -9,8 +9,9 @@ client that asks gets its own version (3.0, 3.1, 4.1, 4.2 and later: natnet_wire
 The command port (UDP, default 1510): NAT_CONNECT and NAT_DISCOVERY get NAT_SERVERINFO
 (application name, versions, the clock frequency of the tick stamps, the data port,
 multicast or not, the group); NAT_REQUEST_MODELDEF gets NAT_MODELDEF in the sender's
-version; NAT_ECHOREQUEST gets NAT_ECHORESPONSE (its stamp back and our clock on arrival:
-what NatNet clients' clock synchronisation, and so SecondsSinceHostTimestamp, rests on);
+version; NAT_ECHOREQUEST gets NAT_ECHORESPONSE (its stamp back and our clock in the middle
+of the request's stay with us, from the kernel's arrival stamp: arrival_stamps.py; what
+NatNet clients' clock synchronisation, and so SecondsSinceHostTimestamp, rests on);
 NAT_KEEPALIVE subscribes the sender to unicast frames for `keepalive_timeout_s`;
 NAT_REQUEST_FRAMEOFDATA gets the latest frame; NAT_DISCONNECT (and the "Disconnect"
 command) unsubscribes; NAT_REQUEST carries Motive's command strings
@@ -44,6 +45,7 @@ import struct
 import threading
 import time
 
+from daemon.publish.arrival_stamps import receive_stamped, residence_midpoint_ns, stamp_arrivals
 from daemon.publish.base import Publisher
 from daemon.publish.natnet_commands import Commands, code
 from daemon.publish.natnet_wire import (
@@ -183,6 +185,7 @@ class NatNetPublisher(Publisher):
                 data.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF,
                                 socket.inet_aton(self.interface))
         cmd.settimeout(0.2)
+        stamp_arrivals(cmd)
         self.cmd_sock, self.data_sock = cmd, data
         with self._lock:
             self.subscribers.update(subscribers)
@@ -312,7 +315,7 @@ class NatNetPublisher(Publisher):
         sock = self.cmd_sock
         while not self._cmd_stop.is_set():
             try:
-                data, addr = sock.recvfrom(65536)
+                data, addr, arrived_ns = receive_stamped(sock)
             except TimeoutError:
                 continue
             except OSError:
@@ -320,7 +323,7 @@ class NatNetPublisher(Publisher):
                     return
                 continue
             try:
-                reply = self.handle(data, addr)
+                reply = self.handle(data, addr, arrived_ns)
             except Exception as exc:  # noqa: BLE001 - a bad request must not end the server
                 log.warning("%s: bad request from %s:%d: %s", self.name, *addr, exc)
                 continue
@@ -330,15 +333,16 @@ class NatNetPublisher(Publisher):
                 except OSError:
                     pass
 
-    def handle(self, data: bytes, addr) -> bytes | None:
-        """The reply to one command-port datagram (None: no reply)."""
+    def handle(self, data: bytes, addr, arrived_ns: int | None = None) -> bytes | None:
+        """The reply to one command-port datagram (None: no reply). `arrived_ns`: when the
+        kernel received it (monotonic), if the socket stamps arrivals."""
         if len(data) < 4:
             return None
         msg_id, size = struct.unpack_from("<HH", data)
         self.requests += 1
         if msg_id == NAT_ECHOREQUEST:
             self.echoes += 1
-            return echo_response(data, time.monotonic_ns())
+            return echo_response(data, residence_midpoint_ns(arrived_ns))
         if msg_id == NAT_CONNECT:  # a new session: no frames until its keep-alives
             with self._lock:
                 self.subscribers.pop(addr, None)

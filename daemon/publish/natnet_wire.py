@@ -87,7 +87,8 @@ def _sized(version) -> bool:
 
 def echo_response(request: bytes, received_ns: int) -> bytes:
     """NAT_ECHORESPONSE: the client's 8-byte stamp back, and the server's clock (ns, the
-    tick frequency of the server info) when the request arrived."""
+    tick frequency of the server info) at `received_ns`, the moment the client's arithmetic
+    takes as the middle of its round trip."""
     stamp = request[4:12].ljust(8, b"\0")
     return message(NAT_ECHORESPONSE, stamp + struct.pack("<Q", received_ns))
 
