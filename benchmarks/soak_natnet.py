@@ -12,7 +12,8 @@ version), `s` (data descriptions), with `--switch-versions` in unicast `3` then 
 (bitstream 3.1, then 4.1 again), and `q` at the end. It prints "MoCap Frame: N" for each
 frame it has parsed; an error in
 parsing prints ERROR/WARNING or a traceback. Counted: frames parsed, frame numbers missing
-between the first and the last (UDP loss), duplicates, error lines.
+between the first and the last (UDP loss), duplicates, error lines, and the namespace's UDP
+receive-buffer drops (datagrams sent that a too-slow reader's full buffer refused).
 
 Echo: a socket sends NAT_ECHOREQUEST with its monotonic clock every `--echo-ms`; the
 server's answer carries its clock on arrival. On loopback both clocks are the same, so the
@@ -116,8 +117,28 @@ class Echo:
                 "offset_ms_max_abs": float(off_ms.max()) if len(off_ms) else None}
 
 
+def udp_receive_buffer_drops() -> int:
+    """Datagrams this network namespace's kernel dropped because a socket's receive buffer
+    was full (its reader too slow): frames the server sent that a client never read."""
+    lines = [line.split() for line in Path("/proc/net/snmp").read_text().splitlines()
+             if line.startswith("Udp:")]
+    return int(lines[1][lines[0].index("RcvbufErrors")])
+
+
+def daemon_side(runtime: Path) -> dict:
+    """What the daemon says it did: sets it skipped to stay live when it fell behind (their
+    frame numbers never go out), frames its NatNet output sent and pushed out of its queue."""
+    from daemon.service import request
+
+    st = request(runtime, {"cmd": "status"})
+    natnet = next((o for o in st["outputs"] if "natnet" in o["name"].lower()), {})
+    return {"daemon_skipped_behind": (st.get("multiplexer") or {}).get("skipped_behind"),
+            "natnet_sent": natnet.get("sent"), "natnet_queue_dropped": natnet.get("dropped")}
+
+
 def run(args) -> dict:
     loopback_up()
+    drops_before = udp_receive_buffer_drops()
     runtime = Path(tempfile.mkdtemp(prefix="soak-natnet-"))
     multicast = args.mode == "multicast"
     (runtime / "mocapd.toml").write_text(
@@ -171,6 +192,8 @@ def run(args) -> dict:
             sample.wait()
         reader.join(5)
         clock = echo.figures()
+        buffer_drops = udp_receive_buffer_drops() - drops_before
+        daemon = daemon_side(runtime)
     finally:
         mocapd.terminate()
         mocapd.communicate(timeout=30)
@@ -179,17 +202,22 @@ def run(args) -> dict:
               if re.search(r"ERROR|WARNING|Traceback|Exception|Error:", line)]
     f = np.array(frames)
     span = int(f.max() - f.min() + 1) if len(f) else 0
+    settled = np.unique(f[f >= f.min() + args.settle_s * args.fps]) if len(f) else f
+    missing_settled = int(settled.max() - settled.min() + 1 - len(settled)) if len(settled) \
+        else 0
     versions = sorted({line.split("NatNetVersion", 1)[1].strip() for line in out
                        if "NatNetVersion" in line})
     if args.log:
         Path(args.log).write_text("".join(out))
     return {"mode": args.mode, "seconds": args.seconds, "frames_parsed": len(frames),
             "frame_span": span, "frames_missing": span - len(set(frames)),
-            "duplicates": len(frames) - len(set(frames)), "error_lines": errors[:20],
+            f"frames_missing_after_{args.settle_s:g}s": missing_settled,
+            "duplicates": len(frames) - len(set(frames)), "receive_buffer_drops": buffer_drops,
+            "error_lines": errors[:20],
             "errors": len(errors), "versions_seen": versions,
             "bitstream_changes": sum("Bitstream version at" in line for line in out),
             "quit_cleanly": any("shutdown called" in line for line in out),
-            "sample_starts": attempts, **clock}
+            "sample_starts": attempts, **daemon, **clock}
 
 
 def main(argv=None) -> int:
@@ -200,6 +228,8 @@ def main(argv=None) -> int:
     ap.add_argument("--fps", type=float, default=100.0)
     ap.add_argument("--bodies", type=int, default=2)
     ap.add_argument("--echo-ms", type=float, default=100.0)
+    ap.add_argument("--settle-s", type=float, default=5.0,
+                    help="frames missing are also counted from this long after the first")
     ap.add_argument("--json", default=None)
     ap.add_argument("--log", default=None, help="write the sample's output here")
     ap.add_argument("--switch-versions", action="store_true",

@@ -683,6 +683,7 @@ class Daemon:
             "outputs": [p.status() for p in self.pipeline.publishers],
             "recording": str(self.recorder.path) if self.recorder else None,
             "labelling": None if self.labelling is None else self.labelling.status(),
+            "multiplexer": self.mux_stats(),
         }
 
     def figures(self) -> dict:
