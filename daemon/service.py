@@ -32,6 +32,7 @@ from daemon.live_label import load as load_markerset
 from daemon.pipeline import CaptureThread, FrameSet, Multiplexer, Pipeline, latency_figures
 from daemon.publish.line import fit_mavlink, fit_serial
 from daemon.publish.mavlink import MavlinkPublisher
+from daemon.publish.mcap_recorder import McapRecorderPublisher
 from daemon.publish.natnet import NatNetPublisher
 from daemon.publish.recorder import RecorderPublisher
 from daemon.publish.serial import SerialPublisher
@@ -631,7 +632,10 @@ class Daemon:
         if self.recorder is not None:
             raise UserError(f"already recording to {self.recorder.path}; "
                             "`mocapd record --stop` first")
-        rec = RecorderPublisher(Path(path), self.rig, self.scene.fps if self.scene else None)
+        if Path(path).suffix.lower() == ".mcap":
+            rec = McapRecorderPublisher(Path(path), [b.name for b in self.pipeline.rigid.bodies])
+        else:
+            rec = RecorderPublisher(Path(path), self.rig, self.scene.fps if self.scene else None)
         rec.start()
         self.recorder = rec
         self.pipeline.hooks.append(rec.submit)

@@ -115,6 +115,11 @@ def test_live_daemon_outputs_control_reload_and_stop(tmp_path, mocapd_cli):
         time.sleep(0.3)
         r = mocapd_cli("record", "--stop", "--runtime-dir", rt)
         assert r.code == 0 and "recorded" in r.out
+        # poses and markers as MCAP (Foxglove's schemas) while the stream goes on
+        assert mocapd_cli("record", tmp_path / "live.mcap", "--runtime-dir", rt).code == 0
+        time.sleep(0.5)
+        assert mocapd_cli("record", "--stop", "--runtime-dir", rt).code == 0
+        _check_live_mcap(tmp_path / "live.mcap", st["bodies"])
         # SIGHUP: a second UDP output appears without stopping the stream
         cfg.write_text(base + f'[[udp]]\naddress = "127.0.0.1:{rx2.getsockname()[1]}"\n')
         n_before = len(got)
@@ -426,3 +431,23 @@ def test_late_opener_and_a_reconnecting_camera_live(tmp_path):
     assert cams["cam1"]["failures"] >= 1 and cams["cam1"]["clock"]["resets"] >= 1
     assert all(c["clock"]["source"] == "device time" for c in cams.values())
     assert fig["multiplexer"]["late_samples"] < 10
+
+
+def _check_live_mcap(path, bodies) -> None:
+    """Both bodies posed in most of the recorded frames, on the wall clock, with unit
+    quaternions; markers held by bodies marked as such."""
+    from test_mcap import read_mcap
+
+    topics, _ = read_mcap(path)
+    frames = len(topics["/mocap/markers"])
+    assert frames > 20  # 0.5 s at 100 fps, on a loaded machine
+    for b in bodies:
+        msgs = topics[f"/mocap/{b['name']}/pose"]
+        assert len(msgs) > 0.9 * frames
+        q = np.array([[m["pose"]["orientation"][k] for k in "xyzw"] for _, _, m in msgs])
+        np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-6)
+        t_s = np.array([t for t, _, _ in msgs]) / 1e9
+        assert abs(t_s[-1] - time.time()) < 30  # capture times on the wall clock
+    held = [s["color"]["g"] > 0.7 for _, _, m in topics["/mocap/markers"]
+            for s in m["entities"][0]["spheres"]]
+    assert any(held)

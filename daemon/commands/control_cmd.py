@@ -55,10 +55,11 @@ def register(app: typer.Typer) -> None:
 
     @app.command("record")
     def record(path: Annotated[Path | None, typer.Argument(
-                   help="Recording to write (.mcrec).")] = None,
+                   help="Recording to write: .mcrec (the blobs, for replay) or .mcap "
+                        "(poses and markers, for Foxglove).")] = None,
                stop: Annotated[bool, typer.Option("--stop", help="Stop recording.")] = False,
                runtime_dir: RuntimeDir = None) -> None:
-        """Record the cameras' blobs to a .mcrec recording, or stop recording."""
+        """Record the cameras' blobs (.mcrec) or the poses and markers (.mcap), or stop."""
         from calibkit.errors import UserError
 
         if stop:

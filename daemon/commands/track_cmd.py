@@ -71,7 +71,9 @@ def register(app: typer.Typer) -> None:
         markers: Annotated[Path, typer.Argument(
             help="3D markers: a points CSV (calibkit triangulate --out), a C3D or a Motive "
                  "CSV export.")],
-        out: Annotated[Path, typer.Option("--out", help="Poses CSV to write.")],
+        out: Annotated[Path, typer.Option(
+            "--out", help="Poses to write: a CSV, or an MCAP (.mcap: Foxglove's schemas, "
+                          "the markers too).")],
         bodies: Annotated[Path | None, typer.Option(
             "--bodies", help="mocapd.toml whose [[rigid_body]] tables (and [rigid] "
                              "settings) to track.")] = None,
@@ -114,9 +116,12 @@ def register(app: typer.Typer) -> None:
             if value is not None and not value > 0:
                 raise UserError(f"{name} must be positive, got {value}")
         outputs = [p for p in (out, motive_out) if p is not None]
+        if out.suffix.lower() not in (".csv", ".mcap"):
+            raise UserError(f"{out}: poses are written as CSV or MCAP; give a .csv or .mcap "
+                            "path")
+        if motive_out is not None and motive_out.suffix.lower() != ".csv":
+            raise UserError(f"{motive_out}: a Motive export is a CSV; give a .csv path")
         for p in outputs:
-            if p.suffix.lower() != ".csv":
-                raise UserError(f"{p}: poses are written as CSV; give a .csv path")
             if markers.exists() and p.resolve() == markers.resolve():
                 raise UserError(f"{p} is the input file; write to another path")
         if motive_out is not None and motive_out.resolve() == out.resolve():
@@ -158,7 +163,12 @@ def register(app: typer.Typer) -> None:
         table = PoseTable(result.frame, result.t_s, result.names, result.ids, result.valid,
                           result.position, result.quaternion, result.error_m * 1000.0,
                           result.n_markers)
-        write_poses_csv(out, table, f"mocapd track {markers.name} ({kind})")
+        if out.suffix.lower() == ".mcap":
+            from daemon.mcap_poses import write_poses_mcap
+
+            write_poses_mcap(out, table, cloud.xyz)
+        else:
+            write_poses_csv(out, table, f"mocapd track {markers.name} ({kind})")
         if motive_out is not None:
             _write_motive(motive_out, cloud, result, defs)
         for name, b in figs["bodies"].items():
