@@ -230,7 +230,8 @@ def test_optitrack_sample_client_unicast_against_mocapd(tmp_path):
     assert fig["quit_cleanly"] and fig["versions_seen"] == ["4 1 0 0"]
     assert fig["frames_parsed"] > 0.8 * 100 * 14 * 0.8  # 100 fps, the first 2 s connecting
     assert fig["frames_missing"] <= 0.02 * fig["frame_span"] and fig["duplicates"] == 0
-    assert fig["offset_ms_max_abs"] < 1.0  # echo clock sync on loopback (figures: docs)
+    # echo clock sync on loopback: target 0.1 ms, 0.023 ms worst in 10 min at load 9 (docs)
+    assert fig["offset_ms_max_abs"] < 0.25
 
 
 @needs_netns
