@@ -54,5 +54,26 @@ class PoseReceiver:
             elif time.monotonic() > deadline:
                 raise TimeoutError(f"no valid pose of body {body_id} within {timeout_s} s")
 
+    def every(self, body_id: int, timeout_s: float = 1.0):
+        """Every frame's (frame, t_ns, valid, position (3,), rotation 3x3) of the body, in
+        order, for programs that want the whole path (painting, logging); stops after
+        timeout_s with no packet."""
+        self.sock.settimeout(timeout_s)
+        while True:
+            try:
+                data = self.sock.recv(65536)
+            except TimeoutError:
+                return
+            packet = decode(data)
+            hit = np.flatnonzero(packet.ids == body_id)
+            if not len(hit):
+                continue
+            b = hit[0]
+            self.frame = packet.frame
+            valid = bool(packet.valid[b])
+            rotation = Rotation.from_quat(packet.quaternion[b].astype(float)).as_matrix() \
+                if valid else None
+            yield packet.frame, packet.t_ns, valid, packet.position[b].astype(float), rotation
+
     def close(self) -> None:
         self.sock.close()

@@ -17,6 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "examples"))
 
 import head_tracking as ht  # noqa: E402
+import paint3d  # noqa: E402
 
 # a 0.6 x 0.34 m screen standing at y = -3 m, facing +y (into the tracked volume)
 LL, LR, UL = np.array([0.3, -3.0, 0.8]), np.array([-0.3, -3.0, 0.8]), np.array([0.3, -3.0, 1.14])
@@ -160,4 +161,87 @@ def test_head_tracking_refuses_a_bad_screen(tmp_path):
                          capture_output=True, text=True, timeout=60,
                          env=dict(os.environ, PYTHONPATH=str(ROOT)))
     assert run.returncode != 0 and "needs 3 points" in run.stderr
+    assert len(run.stderr.strip().splitlines()) == 1
+
+
+def _helix_poses(n=400, fps=100.0):
+    """A wand sweeping a helix while turning about z and x: (t_ns, positions, rotations)."""
+    from scipy.spatial.transform import Rotation
+
+    t = np.arange(n) / fps
+    pos = np.stack([0.5 * np.cos(t), 0.5 * np.sin(t), 1.0 + 0.1 * t], axis=1)
+    rot = Rotation.from_euler("zx", np.stack([t, 0.5 * np.sin(2 * t)], axis=1)).as_matrix()
+    return (t * 1e9).astype(np.int64), pos, rot
+
+
+def test_painting_follows_the_tip_and_breaks_strokes_where_the_wand_was_lost():
+    tip = np.array([0.02, -0.01, 0.12])
+    t_ns, pos, rot = _helix_poses()
+    truth_tip = pos + np.einsum("nij,j->ni", rot, tip)
+    lost = (np.arange(len(t_ns)) >= 150) & (np.arange(len(t_ns)) < 180)  # 0.3 s unseen
+    painting = paint3d.Painting(tip, gap_s=0.1, jump_m=0.1, spacing_m=0.004)
+    for i in range(len(t_ns)):
+        painting.add(t_ns[i], not lost[i], pos[i], rot[i])
+    # a teleport: the body re-acquired 1 m away starts a new stroke, not a line across
+    painting.add(t_ns[-1] + 10_000_000, True, pos[-1] + [1.0, 0, 0], rot[-1])
+    painting.add(t_ns[-1] + 20_000_000, True, pos[-1] + [1.0, 0, 0.01], rot[-1])
+    strokes = painting.points()
+    assert len(strokes) == 3
+    for stroke, span in zip(strokes[:2], (slice(0, 150), slice(180, None)), strict=True):
+        path = truth_tip[span]
+        d_to_path = np.linalg.norm(stroke[:, None] - path[None], axis=2).min(axis=1)
+        assert d_to_path.max() < 1e-12  # every painted point is the tip at some frame
+        d_to_paint = np.linalg.norm(path[:, None] - stroke[None], axis=2).min(axis=1)
+        assert d_to_paint.max() < 0.004 + 0.01  # the path covered to the spacing (+1 step)
+        assert (np.linalg.norm(np.diff(stroke, axis=0), axis=1) >= 0.004).all()
+
+
+def test_ply_round_trip(tmp_path):
+    strokes = [np.array([[0.0, 0.1, 0.2], [0.3, 0.4, 0.5]]), np.random.default_rng(0)
+               .uniform(-2, 2, (7, 3))]
+    paint3d.write_ply(tmp_path / "p.ply", strokes)
+    v, e = paint3d.read_ply(tmp_path / "p.ply")
+    np.testing.assert_allclose(v, np.concatenate(strokes), atol=5e-7)
+    np.testing.assert_array_equal(e, [[0, 1]] + [[i, i + 1] for i in range(2, 8)])
+
+
+def test_paint3d_against_the_simulated_daemon(tmp_path):
+    port = _free_udp_port()
+    cfg = tmp_path / "mocapd.toml"
+    cfg.write_text(f'[sim]\ncameras = 4\nbodies = 2\nfps = 100\n'
+                   f'[[udp]]\naddress = "127.0.0.1:{port}"\n')
+    env = dict(os.environ, PYTHONPATH=f"{ROOT}{os.pathsep}{ROOT / 'examples'}")
+    daemon = subprocess.Popen([sys.executable, "-m", "daemon.cli", "start", "--config", cfg,
+                               "--duration", "60", "--runtime-dir", tmp_path],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+    try:
+        run = subprocess.run([sys.executable, str(ROOT / "examples" / "paint3d.py"),
+                              "--port", str(port), "--body", "1", "--tip", "0,0,0.1",
+                              "--seconds", "3", "--timeout", "30",
+                              "--out", tmp_path / "painting.ply"],
+                             capture_output=True, text=True, env=env, timeout=120)
+    finally:
+        daemon.terminate()
+        daemon.communicate(timeout=30)
+    assert run.returncode == 0, run.stderr
+    v, e = paint3d.read_ply(tmp_path / "painting.ply")
+    assert len(v) > 20 and len(e) >= len(v) // 2
+    assert (np.abs(v[:, :2]) < 2.5).all() and (v[:, 2] > -0.5).all()  # in the volume
+    step = np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)
+    assert step.max() <= 0.1  # no line across the room (the jump limit)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--tip", "0,0"], "--tip needs x,y,z"),
+    (["--out", "x.obj"], "PLY file"),
+])
+def test_paint3d_refuses_bad_input(tmp_path, args, message):
+    base = {"--port": "9", "--body": "1", "--out": str(tmp_path / "p.ply")}
+    for k, v in zip(args[::2], args[1::2], strict=True):
+        base[k] = v
+    run = subprocess.run([sys.executable, str(ROOT / "examples" / "paint3d.py"),
+                          *[x for kv in base.items() for x in kv]],
+                         capture_output=True, text=True, timeout=60,
+                         env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    assert run.returncode == 2 and message in run.stderr
     assert len(run.stderr.strip().splitlines()) == 1
