@@ -72,7 +72,7 @@ def _solve(H, g, out):
 @jit
 def gate_and_solve(pred, gate, need, R, t, fx, fy, cx, cy, skew, dist, order, starts, uv,
                    outlier_px, two_view_px, area, track_area, merge_ratio, merge_margin_px,
-                   ambiguous_px):
+                   ambiguous_px, min_cos_two_view):
     """Tracks (pred (T, 3), gate_px (T,), cameras needed (T,)) against the frame's blobs
     (uv (M, 2); `order` sorts them by camera, `starts` (C + 1) bound each camera's run).
 
@@ -81,7 +81,9 @@ def gate_and_solve(pred, gate, need, R, t, fx, fy, cx, cy, skew, dist, order, st
     `ambiguous_px` farther from its reprojection, every other track whose gate holds the
     blob is at least `ambiguous_px` farther from it, and the blob is no other track's
     nearest (a blob nearest to two tracks is two markers merged, or one of them hidden:
-    neither's). With blob areas (`area` (M,), empty if unknown) a blob larger
+    neither's). A point from two cameras whose rays meet closer to parallel or antiparallel
+    than |cos| = `min_cos_two_view` is not taken (ok False): along the rays it is not
+    determined. With blob areas (`area` (M,), empty if unknown) a blob larger
     than merge_ratio times the track's own marker image at its depth, plus merge_margin_px,
     is not its own either (a merged blob with one tracked marker in it). `track_area` (T,)
     is each track's marker size (blob area x depth^2 / fx^2, m^2; 0 while unknown), updated
@@ -209,6 +211,8 @@ def gate_and_solve(pred, gate, need, R, t, fx, fy, cx, cy, skew, dist, order, st
                 good = False
         for a in range(3):
             xyz[i, a] = pred[i, a] - step[a]
+        if good and n == 2:
+            good = _rays_apart(R, t, blobs[i], xyz[i], min_cos_two_view)
         ok[i] = good
         sigma[i] = np.sqrt(max(tr, 0.0) / 3.0)
         if sized and good:
@@ -219,6 +223,24 @@ def gate_and_solve(pred, gate, need, R, t, fx, fy, cx, cy, skew, dist, order, st
                     k += 1
             track_area[i] = learn_size(track_area[i], np.median(sizes[:k]))
     return blobs, explained, xyz, ok, n_used, sigma, merged
+
+
+@jit
+def _rays_apart(R, t, row, X, min_cos):
+    """Whether the rays from the two cameras with a blob in `row` (C,) to X meet at an
+    angle whose |cos| is below min_cos."""
+    ray = np.zeros((2, 3))
+    k = 0
+    for c in range(row.shape[0]):
+        if row[c] < 0 or k == 2:
+            continue
+        for a in range(3):  # X - centre, centre = -R^T t
+            ray[k, a] = X[a] + R[c, 0, a] * t[c, 0] + R[c, 1, a] * t[c, 1] + R[c, 2, a] * t[c, 2]
+        k += 1
+    dot = ray[0, 0] * ray[1, 0] + ray[0, 1] * ray[1, 1] + ray[0, 2] * ray[1, 2]
+    n0 = ray[0, 0] ** 2 + ray[0, 1] ** 2 + ray[0, 2] ** 2
+    n1 = ray[1, 0] ** 2 + ray[1, 1] ** 2 + ray[1, 2] ** 2
+    return dot * dot < min_cos * min_cos * n0 * n1
 
 
 @jit
