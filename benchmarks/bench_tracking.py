@@ -16,8 +16,8 @@ tracked markers over 60 frames clustered). The truth is read by the scorer only
 
 Speed, one core: Pipeline.process per frame set (tracker, rigid bodies, no outputs) on
 frame sets prepared beforehand, median of `--repeats` runs; in the same process: the
-tracker fed the blobs' areas (its merged-blob test by area, which the pipeline's frame sets
-do not pass yet), and the baseline of matching every frame from scratch with the epipolar
+tracker fed the blobs' areas directly (as the pipeline now does too: the two rows should
+agree), and the baseline of matching every frame from scratch with the epipolar
 correspondence (calibkit.correspondence.match_frame), no bodies.
 
 Long run: `--minutes` of motion in 30 s scenes (daemon.synthetic.scene.SimScene), each with

@@ -8,12 +8,19 @@ blobs left over go to the correspondence, which finds new markers. A track that 
 blobs coasts on its prediction for a few frames and takes them back, so an identity (and a
 rigid body's marker assignment) survives short occlusions.
 
-Merged blobs: two markers whose images overlap give one blob at neither's place, and a
-track that took it would be pulled towards the other marker (and, as they part, could
-follow it: an identity swap). A blob within the gate of two tracks is therefore neither's,
-and with the blobs' areas a blob larger than the track's own marker image at its predicted
-depth (each track learns its marker's size) is not its own either. Such a track is
-triangulated from its other cameras, or coasts.
+Close markers: two markers passing each other lie within each other's gates in many
+cameras, and where their images overlap they give one blob at neither's place; a track that
+took it would be pulled towards the other marker (and, as they part, could follow it: an
+identity swap). So in each camera a track takes its nearest blob only when the pairing is
+unambiguous both ways: every other blob in its gate, and every other track whose gate holds
+the blob, at least `ambiguous_px` farther, and the blob no other track's nearest (one blob
+nearest to two tracks is the two merged, or one of them hidden). Refusing every blob within
+two gates instead threw away the cameras that do see the pair apart, and a track left with
+two cameras that saw merged blobs was triangulated centimetres off, took a wrong velocity
+from it and flew away, leaving its neighbour's track to take its blobs. With the blobs'
+areas a blob larger than the track's own marker image at its predicted depth (each track
+learns its marker's size) is not its own either. A track left without blobs is triangulated
+from its other cameras, or coasts.
 """
 
 from __future__ import annotations
@@ -44,6 +51,16 @@ class TrackerConfig:
     # in px^2) is two markers merged, not the track's own; 0 turns the area test off
     merge_area_ratio: float = 1.4
     merge_margin_px2: float = 1.0
+    # a track takes its nearest blob in a camera only if every other blob in its gate, and
+    # every other track whose gate holds that blob, is at least this much farther (px):
+    # two markers passing close keep the cameras that see them apart, and give up those
+    # that cannot tell them apart (about four times the centroid noise of a good rig)
+    ambiguous_px: float = 1.0
+    # a point from two cameras is taken only if their rays meet at least this far from
+    # parallel and from antiparallel (cameras facing each other across the volume): along
+    # the rays such a point is determined only to (pixel error) / sin(angle), at 12 degrees
+    # a centimetre for 0.2 px, and a track that took it would also take a wrong velocity
+    min_two_view_deg: float = 25.0
     compiled: bool = True  # the numba kernel for gating and triangulation (else numpy)
     correspondence: CorrespondenceConfig = field(
         default_factory=lambda: CorrespondenceConfig(two_camera=False))
@@ -124,6 +141,8 @@ class Tracker:
         self.cams = AllCameras(self.arrays)
         self.n_cameras = len(rig)
         self.sizes = np.array([c.size for c in rig], dtype=np.float64)  # (C, 2)
+        self.centres = -np.einsum("cji,cj->ci", self.arrays.R, self.arrays.t)  # (C, 3)
+        self.min_cos_two_view = float(np.cos(np.radians(self.config.min_two_view_deg)))
         self.ids = np.zeros(0, dtype=np.int64)
         self.xyz = np.zeros((0, 3))
         self.vel = np.zeros((0, 3))
@@ -197,7 +216,8 @@ class Tracker:
             blobs, explained, xyz, ok, n_used, sigma, merged = gate_and_solve(
                 pred, gate.astype(np.float64), need, a.R, a.t, a.fx, a.fy, a.cx, a.cy, a.skew,
                 a.dist, order, starts, uv, cfg.outlier_px, cfg.two_view_px, area,
-                self.size_m2, cfg.merge_area_ratio, cfg.merge_margin_px2)
+                self.size_m2, cfg.merge_area_ratio, cfg.merge_margin_px2, cfg.ambiguous_px,
+                self.min_cos_two_view)
             self.merged_blobs += int(merged.sum())
             self.sigma = sigma
             seen = ok
@@ -258,23 +278,26 @@ class Tracker:
 
     def _associate(self, proj: np.ndarray, z: np.ndarray, camera: np.ndarray,
                    uv: np.ndarray, area: np.ndarray):
-        """(T, C) blob index per track and camera: the only blob within the gate, and the
-        track the only one whose reprojection falls within the gate of that blob, and not
-        larger than the track's marker at its depth (a merged blob); and which blobs lie
-        within some track's gate (explained: not a new marker).
+        """(T, C) blob index per track and camera, and which blobs lie within some track's
+        gate (explained: not a new marker). A track takes its nearest blob within the gate
+        when the pairing is unambiguous both ways (see the module docstring): every other
+        blob in its gate and every other track whose gate holds the blob at least
+        ambiguous_px farther, the blob no other track's nearest, and not larger than the
+        track's marker at its depth (a merged blob).
 
         proj (T, C, 2) and z (T, C) are the tracks' predictions in every camera. The
         blobs are padded into a (C, Mmax) table so all cameras are compared at once."""
+        cfg = self.config
         front = z > 0
         n_tracks, n_cams = front.shape
         order = np.argsort(camera, kind="stable")
         cam_sorted = camera[order]
         starts = np.searchsorted(cam_sorted, np.arange(n_cams))
         rank = np.arange(len(order)) - starts[cam_sorted]
-        width = int(rank.max(initial=-1)) + 1
-        table = np.full((n_cams, max(width, 1), 2), np.inf)
+        width = max(int(rank.max(initial=-1)) + 1, 1)
+        table = np.full((n_cams, width, 2), np.inf)
         table[cam_sorted, rank] = uv[order]
-        index = np.full((n_cams, max(width, 1)), -1, dtype=np.int64)
+        index = np.full((n_cams, width), -1, dtype=np.int64)
         index[cam_sorted, rank] = order
         gate = self._gates()  # (T,)
         dx = proj[:, :, 0, None] - table[None, :, :, 0]
@@ -283,13 +306,28 @@ class Tracker:
         within = (d2 <= (gate * gate)[:, None, None]) & front[:, :, None]
         per_track = np.count_nonzero(within, axis=2)  # (T, C)
         per_blob = np.count_nonzero(within, axis=0)  # (C, W)
-        d2[~within] = np.inf
-        j = np.argmin(d2, axis=2)  # (T, C)
+        d = np.where(within, np.sqrt(d2), np.inf)
+        j = np.argmin(d, axis=2)  # (T, C)
         c = np.arange(n_cams)[None, :]
-        good = (per_track == 1) & (per_blob[c, j] == 1)
+        t = np.arange(n_tracks)[:, None]
+        d1 = d[t, c, j]
+        second = (np.partition(d, 1, axis=2)[:, :, 1] if width > 1
+                  else np.full(d1.shape, np.inf))
+        # the blob's side: its nearest and second nearest track, and how many tracks it is
+        # the nearest blob of
+        bt1 = np.argmin(d, axis=0)  # (C, W)
+        bd = np.sort(d, axis=0)[:2] if n_tracks > 1 else np.concatenate(
+            [d, np.full(d.shape, np.inf)])
+        has = np.isfinite(d1)
+        nearest_of = np.zeros(n_cams * width, dtype=np.int64)
+        np.add.at(nearest_of, (np.broadcast_to(c, j.shape) * width + j)[has], 1)
+        nearest_of = nearest_of.reshape(n_cams, width)
+        other = np.where(bt1[c, j] == t, bd[1][c, j], bd[0][c, j])
+        d1 = np.where(has, d1, 0.0)
+        good = (has & (nearest_of[c, j] == 1) & (second - d1 >= cfg.ambiguous_px)
+                & (other - d1 >= cfg.ambiguous_px))
         out = np.where(good, index[c, j], -1)
         if len(area):
-            cfg = self.config
             expected = self.size_m2[:, None] * self.arrays.fx[None, :] ** 2 / np.where(
                 front, z, 1.0) ** 2
             oversize = (per_track > 0) & (self.size_m2[:, None] > 0) & (
@@ -356,6 +394,13 @@ class Tracker:
         limit = np.where(n_used == 2, min(cfg.outlier_px, cfg.two_view_px), cfg.outlier_px)
         need = np.where(self.missing > 0, 3, 2)
         ok = (n_used >= need) & np.all(e <= limit[:, None], axis=1) & np.isfinite(xyz[:, 0])
+        two = np.flatnonzero(ok & (n_used == 2))
+        if len(two):  # the two rays must meet well away from parallel and antiparallel
+            cams = np.argsort(~have[two], axis=1, kind="stable")[:, :2]  # (P, 2)
+            ray = xyz[two][:, None, :] - self.centres[cams]  # (P, 2, 3)
+            dot = np.sum(ray[:, 0] * ray[:, 1], axis=1)
+            norms = np.sum(ray[:, 0] ** 2, axis=1) * np.sum(ray[:, 1] ** 2, axis=1)
+            ok[two] = dot * dot < self.min_cos_two_view ** 2 * norms
         blobs = np.where(have, blobs, -1)
         # H^-1 is the point's covariance per unit pixel variance: a track seen by two
         # cameras at a narrow angle is far less certain (along its depth) than one seen by six

@@ -71,12 +71,19 @@ def _solve(H, g, out):
 
 @jit
 def gate_and_solve(pred, gate, need, R, t, fx, fy, cx, cy, skew, dist, order, starts, uv,
-                   outlier_px, two_view_px, area, track_area, merge_ratio, merge_margin_px):
+                   outlier_px, two_view_px, area, track_area, merge_ratio, merge_margin_px,
+                   ambiguous_px, min_cos_two_view):
     """Tracks (pred (T, 3), gate_px (T,), cameras needed (T,)) against the frame's blobs
     (uv (M, 2); `order` sorts them by camera, `starts` (C + 1) bound each camera's run).
 
-    A blob within the gate of two tracks is neither's (two markers merged into one blob, or
-    too close to tell apart); with blob areas (`area` (M,), empty if unknown) a blob larger
+    A track takes, in each camera, its nearest blob within its gate when that pairing is
+    unambiguous both ways: every other blob within the track's gate is at least
+    `ambiguous_px` farther from its reprojection, every other track whose gate holds the
+    blob is at least `ambiguous_px` farther from it, and the blob is no other track's
+    nearest (a blob nearest to two tracks is two markers merged, or one of them hidden:
+    neither's). A point from two cameras whose rays meet closer to parallel or antiparallel
+    than |cos| = `min_cos_two_view` is not taken (ok False): along the rays it is not
+    determined. With blob areas (`area` (M,), empty if unknown) a blob larger
     than merge_ratio times the track's own marker image at its depth, plus merge_margin_px,
     is not its own either (a merged blob with one tracked marker in it). `track_area` (T,)
     is each track's marker size (blob area x depth^2 / fx^2, m^2; 0 while unknown), updated
@@ -90,8 +97,13 @@ def gate_and_solve(pred, gate, need, R, t, fx, fy, cx, cy, skew, dist, order, st
     M = uv.shape[0]
     blobs = np.full((T, C), -1, np.int64)
     near = np.full((T, C), -1, np.int64)
-    count = np.zeros((T, C), np.int64)
-    per_blob = np.zeros(M, np.int64)
+    near_d = np.full((T, C), np.inf)  # px from the track's reprojection to its nearest blob
+    second_d = np.full((T, C), np.inf)  # ... and to its second nearest within the gate
+    per_blob = np.zeros(M, np.int64)  # tracks whose gate holds the blob
+    nearest_of = np.zeros(M, np.int64)  # tracks whose nearest blob it is
+    blob_d1 = np.full(M, np.inf)  # px to the blob's nearest track (within that track's gate)
+    blob_d2 = np.full(M, np.inf)  # ... and to its second nearest
+    blob_t1 = np.full(M, -1, np.int64)
     Js = np.zeros((T, C, 2, 3))
     res = np.zeros((T, C, 2))
     depth = np.zeros((T, C))
@@ -104,19 +116,28 @@ def gate_and_solve(pred, gate, need, R, t, fx, fy, cx, cy, skew, dist, order, st
             u, v, z = _project(R, t, fx, fy, cx, cy, skew, dist, c, pred[i], J)
             if z <= 0 or starts[c] == starts[c + 1]:
                 continue
-            best, best_d = -1, np.inf
-            n = 0
+            best, best_d, next_d = -1, np.inf, np.inf
             for k in range(starts[c], starts[c + 1]):
                 m = order[k]
                 du = u - uv[m, 0]
                 dv = v - uv[m, 1]
                 d2 = du * du + dv * dv
                 if d2 <= g2:
-                    n += 1
+                    d = np.sqrt(d2)
                     per_blob[m] += 1
-                    if d2 < best_d:
-                        best_d, best = d2, m
-            count[i, c] = n
+                    if d < best_d:
+                        best, best_d, next_d = m, d, best_d
+                    elif d < next_d:
+                        next_d = d
+                    if d < blob_d1[m]:
+                        blob_d2[m] = blob_d1[m]
+                        blob_d1[m], blob_t1[m] = d, i
+                    elif d < blob_d2[m]:
+                        blob_d2[m] = d
+            near_d[i, c] = best_d
+            second_d[i, c] = next_d
+            if best >= 0:
+                nearest_of[best] += 1
             if best >= 0 and sized and track_area[i] > 0:
                 expected = track_area[i] * fx[c] * fx[c] / (z * z)
                 if area[best] > merge_ratio * expected + merge_margin_px:
@@ -140,8 +161,13 @@ def gate_and_solve(pred, gate, need, R, t, fx, fy, cx, cy, skew, dist, order, st
     e = np.zeros(C)
     for i in range(T):
         for c in range(C):
-            if count[i, c] == 1 and near[i, c] >= 0 and per_blob[near[i, c]] == 1:
-                blobs[i, c] = near[i, c]
+            m = near[i, c]
+            if m < 0 or nearest_of[m] != 1:
+                continue
+            d = near_d[i, c]
+            other = blob_d2[m] if blob_t1[m] == i else blob_d1[m]
+            if second_d[i, c] - d >= ambiguous_px and other - d >= ambiguous_px:
+                blobs[i, c] = m
         for attempt in range(2):
             H[:, :] = 0.0
             g[:] = 0.0
@@ -185,6 +211,8 @@ def gate_and_solve(pred, gate, need, R, t, fx, fy, cx, cy, skew, dist, order, st
                 good = False
         for a in range(3):
             xyz[i, a] = pred[i, a] - step[a]
+        if good and n == 2:
+            good = _rays_apart(R, t, blobs[i], xyz[i], min_cos_two_view)
         ok[i] = good
         sigma[i] = np.sqrt(max(tr, 0.0) / 3.0)
         if sized and good:
@@ -195,6 +223,24 @@ def gate_and_solve(pred, gate, need, R, t, fx, fy, cx, cy, skew, dist, order, st
                     k += 1
             track_area[i] = learn_size(track_area[i], np.median(sizes[:k]))
     return blobs, explained, xyz, ok, n_used, sigma, merged
+
+
+@jit
+def _rays_apart(R, t, row, X, min_cos):
+    """Whether the rays from the two cameras with a blob in `row` (C,) to X meet at an
+    angle whose |cos| is below min_cos."""
+    ray = np.zeros((2, 3))
+    k = 0
+    for c in range(row.shape[0]):
+        if row[c] < 0 or k == 2:
+            continue
+        for a in range(3):  # X - centre, centre = -R^T t
+            ray[k, a] = X[a] + R[c, 0, a] * t[c, 0] + R[c, 1, a] * t[c, 1] + R[c, 2, a] * t[c, 2]
+        k += 1
+    dot = ray[0, 0] * ray[1, 0] + ray[0, 1] * ray[1, 1] + ray[0, 2] * ray[1, 2]
+    n0 = ray[0, 0] ** 2 + ray[0, 1] ** 2 + ray[0, 2] ** 2
+    n1 = ray[1, 0] ** 2 + ray[1, 1] ** 2 + ray[1, 2] ** 2
+    return dot * dot < min_cos * min_cos * n0 * n1
 
 
 @jit
