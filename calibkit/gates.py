@@ -148,8 +148,11 @@ def tracker_gates(residual_px: float | None, defaults: dict[str, float],
     """The tracker's pixel gates from the residual, for the names in `defaults` that are not
     `fixed`: gate_px (a blob from a track's reprojection) and outlier_px (an observation's
     residual) are single-observation errors (K_REPROJ); two_view_px a two-camera point's
-    RMS (K_TWO_VIEW). Unknown names are left out."""
-    k = {"gate_px": K_REPROJ, "outlier_px": K_REPROJ, "two_view_px": K_TWO_VIEW}
+    RMS (K_TWO_VIEW); ambiguous_px, the margin by which a track's nearest blob must beat
+    the next candidate, is a difference of two such distances, whose spread is the
+    residual itself, so K_REPROJ of it too. Unknown names are left out."""
+    k = {"gate_px": K_REPROJ, "outlier_px": K_REPROJ, "two_view_px": K_TWO_VIEW,
+         "ambiguous_px": K_REPROJ}
     return {name: scaled(value, k[name], residual_px) for name, value in defaults.items()
             if name in k and name not in fixed}
 

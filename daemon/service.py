@@ -331,7 +331,7 @@ class Daemon:
             log.debug("tracker gates: fixed (the rig records no residual)")
             return cfg.tracker
         t = cfg.tracker
-        names = ("gate_px", "outlier_px", "two_view_px")
+        names = ("gate_px", "outlier_px", "two_view_px", "ambiguous_px")
         changes = tracker_gates(residual.px, {n: getattr(t, n) for n in names if hasattr(t, n)},
                                 cfg.tracker_keys)
         changes["correspondence"] = correspondence_config(residual.px, t.correspondence)

@@ -237,6 +237,7 @@ def test_the_daemon_tracker_gates_follow_the_rig_unless_set(tmp_path) -> None:
     cfg = svc._tracker_config(svc.config)
     assert cfg.gate_px == pytest.approx(K_REPROJ * 1.5)
     assert cfg.outlier_px == pytest.approx(K_REPROJ * 1.5)
+    assert cfg.ambiguous_px == pytest.approx(K_REPROJ * 1.5)  # crossing markers' margin
     assert cfg.correspondence.epipolar_px == pytest.approx(K_EPIPOLAR * 1.5)
     assert cfg.correspondence.two_camera is False  # the rest of the tracker's own choice
     path.write_text('rig = "rig.toml"\n[tracker]\ngate_px = 3.5\n')
