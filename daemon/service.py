@@ -22,11 +22,13 @@ import time
 from pathlib import Path
 
 import numpy as np
+import tomllib
 
 from calibkit.camera import Rig
 from calibkit.errors import UserError
+from calibkit.fileio import write_text_atomic
 from calibkit.gates import correspondence_config, rig_residual, tracker_gates
-from daemon.config import Config, default_runtime_dir, load_config
+from daemon.config import Config, default_runtime_dir, load_config, parse_config
 from daemon.live_label import LiveLabeller
 from daemon.live_label import load as load_markerset
 from daemon.pipeline import CaptureThread, FrameSet, Multiplexer, Pipeline, latency_figures
@@ -38,6 +40,7 @@ from daemon.publish.serial import SerialPublisher
 from daemon.publish.udp import UdpPublisher
 from daemon.publish.vrpn import VrpnPublisher
 from daemon.rigid import alike_bodies
+from daemon.rigid_define import bodies_toml, learn_body
 from daemon.sources import DetectCamera, ReplayCamera, ReplayScene, missing_plugins
 from daemon.synthetic.evaluator import Evaluator
 from daemon.synthetic.labelling import LabelScore
@@ -46,6 +49,9 @@ from daemon.synthetic.scene import SimCamera, SimScene
 log = logging.getLogger("mocapd")
 SOCKET_NAME = "mocapd.sock"
 OPEN_GRACE_NS = 1_000_000_000  # after the start, sets wait this long for cameras not open yet
+LEARN_FRAMES = 40  # --sim: frames each body is held still for its live definition
+HOLD_TRIES = 4  # --sim: places each body is held at until its definition has every marker
+LEARNED_BODIES = "sim-bodies.toml"  # where (in the runtime directory) they are written
 
 
 # ---- systemd notify --------------------------------------------------------------------------
@@ -262,6 +268,8 @@ class Daemon:
         self.labelling: LiveLabeller | None = None
         self.label_score: LabelScore | None = None
         self.captures: list[CaptureThread] = []
+        self._learned: tuple[str, list] | None = None  # --sim: bodies defined live (toml, defs)
+        self.learned_path: Path | None = None
         self.rig = self._rig(config)
         self._truth_rig = truth_rig
         self.control: ControlServer | None = None
@@ -288,10 +296,6 @@ class Daemon:
         if cfg.sim is not None:
             self.scene = SimScene(cfg.sim, self.rig, self._truth_rig, n_frames)
             self.rig = self.scene.rig
-            # greedy sets mix instants by design (moved to one time): not checked
-            self.evaluator = Evaluator(self.scene, slots=not cfg.bodies,
-                                       check_instants=cfg.mode == "triggered"
-                                       or not cfg.sim.realtime)
         elif cfg.replay is not None:
             self.scene = ReplayScene(cfg.replay.path, self.rig)
         elif cfg.cameras:
@@ -300,21 +304,28 @@ class Daemon:
             where = f"{cfg.path}: " if cfg.path else ""
             raise UserError(f"{where}camera: no input; add [[camera]] tables, a [replay] "
                             "recording, or use --sim")
+        self.tracker_config = self._tracker_config(cfg)
         bodies = self._bodies(cfg)
         self._warn_alike(bodies)
+        if cfg.sim is not None:  # scored against the scene's bodies, matched by geometry
+            # greedy sets mix instants by design (moved to one time): not checked
+            self.evaluator = Evaluator(self.scene, bodies=bodies,
+                                       check_instants=cfg.mode == "triggered"
+                                       or not cfg.sim.realtime)
         self.labelling, self._markerset_key = self._labeller(cfg), self._set_key(cfg)
         # with the simulated person: the labelled markers scored against its truth
         self.label_score = (LabelScore(self.scene) if getattr(self.scene, "person_labels", None)
                             else None)
         hooks = [h for h in (self.evaluator, self.label_score) if h is not None]
         publishers = make_publishers(cfg, bodies, self._markerset(), self.handle)
-        self.tracker_config = self._tracker_config(cfg)  # logged once the outputs are fine
         self.pipeline = Pipeline(self.rig, self.tracker_config, cfg.rigid, bodies,
                                  publishers, hooks=hooks, labeller=self.labelling)
         self._warm_up()
         runtime = cfg.runtime_dir or default_runtime_dir()
         self.control = ControlServer(runtime, self.handle)
         self.control.open()
+        if self._learned is not None:
+            self._write_learned(runtime)
         for p in self.pipeline.publishers:
             p.start()
 
@@ -413,11 +424,58 @@ class Daemon:
         return None if self.labelling is None else self.labelling.ms
 
     def _bodies(self, cfg: Config) -> list:
-        if cfg.bodies or cfg.sim is None or not cfg.sim.define_bodies:
+        """The configuration's rigid bodies; with --sim and none configured, the scene's
+        bodies defined live, once, as a user would (see _learn_bodies)."""
+        if cfg.bodies or cfg.sim is None or not cfg.sim.define_bodies \
+                or not isinstance(self.scene, SimScene):
             return list(cfg.bodies)
-        if self.scene is None or not hasattr(self.scene, "body_defs"):
-            return []
-        return self.scene.body_defs()
+        if self._learned is None:
+            self._learned = self._learn_bodies(cfg)
+        return list(self._learned[1])
+
+    def _learn_bodies(self, cfg: Config) -> tuple[str, list]:
+        """Each of the scene's bodies held still and alone in the volume for LEARN_FRAMES
+        frames (SimScene.held_alone: blobs only), tracked with this daemon's rig and
+        tracker, and defined from the tracked points as `mocapd rigid-body add --from-live`
+        defines one (daemon.rigid_define); named body0, body1, ... in the order held, as
+        [[rigid_body]] tables read back through the configuration's checks. Never the
+        simulator's definitions: the scorer matches these to its bodies by their shape."""
+        started = time.monotonic()
+        found = []
+        want = cfg.sim.markers_per_body  # the user knows how many markers a body carries
+        for k in range(len(self.scene.bodies_truth)):
+            got, why = None, ""
+            for place in range(HOLD_TRIES):  # short of markers: moved, tried again
+                pipe = Pipeline(self.rig, self.tracker_config, cfg.rigid, [])
+                try:
+                    got = learn_body(lambda fs, p=pipe: p.process(fs).tracks,
+                                     self.scene.held_alone(k, LEARN_FRAMES, place))
+                except UserError as exc:
+                    got, why = None, str(exc)
+                    continue
+                if len(got) == want:
+                    break
+                why = f"found {len(got)} markers, not {want}"
+                log.info("defining body%d live: %s; moving it and trying again", k, why)
+            if got is None or len(got) != want:
+                raise UserError(f"--sim: defining body{k} live failed ({why}) at "
+                                f"{HOLD_TRIES} places; check the rig's calibration")
+            found.append((f"body{k}", k + 1, got))
+        text = bodies_toml(found)
+        bodies = list(parse_config(tomllib.loads(text)).bodies)
+        log.info("defined %d rigid bodies live in %.1f s (%s markers, each held still for "
+                 "%d frames)", len(bodies), time.monotonic() - started,
+                 ", ".join(str(len(b.markers)) for b in bodies), LEARN_FRAMES)
+        return text, bodies
+
+    def _write_learned(self, runtime: Path) -> None:
+        """The bodies defined live, written where a user can read (and keep) them."""
+        path = Path(runtime) / LEARNED_BODIES
+        write_text_atomic(path, "# rigid bodies mocapd --sim defined live at its start; "
+                          "copy them into your configuration to keep them\n\n"
+                          + self._learned[0])
+        self.learned_path = path
+        log.info("rigid bodies defined live written to %s", path)
 
     def _warn_alike(self, bodies) -> None:
         for a, b in alike_bodies(bodies, self.config.rigid.distance_tol_m):
@@ -560,6 +618,8 @@ class Daemon:
             return False
         bodies = self._bodies(new)
         self._warn_alike(bodies)
+        if self.evaluator is not None:
+            self.evaluator.set_bodies(bodies)
         try:
             publishers = make_publishers(new, bodies, labelling.ms if labelling else None,
                                          self.handle)
@@ -707,6 +767,12 @@ class Daemon:
             out["multiplexer"] = self.mux_stats()
         if self.evaluator is not None:
             out["truth"] = self.evaluator.figures()
+        if self._learned is not None:
+            out["bodies_defined_live"] = {
+                "file": None if self.learned_path is None else str(self.learned_path),
+                "frames_each": LEARN_FRAMES,
+                "bodies": [{"name": b.name, "id": b.id, "markers": len(b.markers)}
+                           for b in self._learned[1]]}
         if self.label_score is not None and self.label_score.frames:
             out.setdefault("truth", {})["labelling"] = self.label_score.figures()
         if self.labelling is not None:
