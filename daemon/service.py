@@ -316,10 +316,11 @@ class Daemon:
         # with the simulated person: the labelled markers scored against its truth
         self.label_score = (LabelScore(self.scene) if getattr(self.scene, "person_labels", None)
                             else None)
-        hooks = [h for h in (self.evaluator, self.label_score) if h is not None]
+        # the scorers read results only: run while the frame loop waits for a set
+        scorers = [h for h in (self.evaluator, self.label_score) if h is not None]
         publishers = make_publishers(cfg, bodies, self._markerset(), self.handle)
         self.pipeline = Pipeline(self.rig, self.tracker_config, cfg.rigid, bodies,
-                                 publishers, hooks=hooks, labeller=self.labelling)
+                                 publishers, labeller=self.labelling, idle_hooks=scorers)
         self._warm_up()
         runtime = cfg.runtime_dir or default_runtime_dir()
         self.control = ControlServer(runtime, self.handle)
@@ -510,6 +511,7 @@ class Daemon:
             else:
                 self._run_fast(frames, duration_s, progress)
         finally:
+            self.pipeline.run_idle()  # the scorers see every frame
             self.shutdown()
         return self.figures()
 
@@ -529,6 +531,7 @@ class Daemon:
             samples = [scene.sample(c, i, t_ns) for c in range(len(self.rig))
                        if not scene.dropped(c, i)]
             self.pipeline.process(FrameSet(i, t_ns, time.monotonic_ns(), samples))
+            self.pipeline.run_idle()
             i += 1
             self._tick(progress)
 
@@ -574,9 +577,13 @@ class Daemon:
                 break
             if frames is not None and self.pipeline.stats.frames >= frames:
                 break
-            fs = self.mux.next(0.1)
+            idle = self.pipeline.idle_pending
+            fs = self.mux.next(0.0 if idle else 0.1)
             if fs is not None:
                 self.pipeline.process(fs)
+            elif idle:  # no set waiting: the scorers' turn, one frame at a time
+                self.pipeline.run_idle(1)
+                continue
             elif not any(c.thread.is_alive() for c in self.captures):
                 log.info("every source has ended")
                 break
@@ -619,6 +626,7 @@ class Daemon:
         bodies = self._bodies(new)
         self._warn_alike(bodies)
         if self.evaluator is not None:
+            self.pipeline.run_idle()  # frames tracked so far are scored against the old
             self.evaluator.set_bodies(bodies)
         try:
             publishers = make_publishers(new, bodies, labelling.ms if labelling else None,
