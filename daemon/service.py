@@ -20,6 +20,7 @@ import socket
 import threading
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import tomllib
@@ -29,8 +30,6 @@ from calibkit.errors import UserError
 from calibkit.fileio import write_text_atomic
 from calibkit.gates import correspondence_config, rig_residual, tracker_gates
 from daemon.config import Config, default_runtime_dir, load_config, parse_config
-from daemon.live_label import LiveLabeller
-from daemon.live_label import load as load_markerset
 from daemon.pipeline import CaptureThread, FrameSet, Multiplexer, Pipeline, latency_figures
 from daemon.publish.line import fit_mavlink, fit_serial
 from daemon.publish.mavlink import MavlinkPublisher
@@ -46,10 +45,13 @@ from daemon.synthetic.evaluator import Evaluator
 from daemon.synthetic.labelling import LabelScore
 from daemon.synthetic.scene import SimCamera, SimScene
 
+if TYPE_CHECKING:
+    from daemon.live_label import LiveLabeller
+
 log = logging.getLogger("mocapd")
 SOCKET_NAME = "mocapd.sock"
 OPEN_GRACE_NS = 1_000_000_000  # after the start, sets wait this long for cameras not open yet
-LEARN_FRAMES = 40  # --sim: frames each body is held still for its live definition
+LEARN_FRAMES = 30  # --sim: frames each body is held still (as `rigid-body add`'s default)
 HOLD_TRIES = 4  # --sim: places each body is held at until its definition has every marker
 LEARNED_BODIES = "sim-bodies.toml"  # where (in the runtime directory) they are written
 
@@ -406,6 +408,11 @@ class Daemon:
         """The labelling stage for the configured marker set (None: no marker set)."""
         if cfg.markerset is None:
             return None
+        # imported only with a marker set: the labelling modules (scipy.stats among them)
+        # would cost every start a second
+        from daemon.live_label import LiveLabeller
+        from daemon.live_label import load as load_markerset
+
         fps = self.scene.fps if self.scene is not None else cfg.fps
         return LiveLabeller(load_markerset(cfg.markerset), fps, str(cfg.markerset),
                             background=_paced(cfg))
