@@ -328,6 +328,7 @@ class Daemon:
         self.control = ControlServer(runtime, self.handle)
         self.control.open()
         if self._learned is not None:
+            log.info("%s", self._learn_note)
             self._write_learned(runtime)
         for p in self.pipeline.publishers:
             p.start()
@@ -464,16 +465,18 @@ class Daemon:
                 if len(got) == want:
                     break
                 why = f"found {len(got)} markers, not {want}"
-                log.info("defining body%d live: %s; moving it and trying again", k, why)
+                log.debug("defining body%d live: %s; moving it and trying again", k, why)
             if got is None or len(got) != want:
                 raise UserError(f"--sim: defining body{k} live failed ({why}) at "
                                 f"{HOLD_TRIES} places; check the rig's calibration")
             found.append((f"body{k}", k + 1, got))
         text = bodies_toml(found)
         bodies = list(parse_config(tomllib.loads(text)).bodies)
-        log.info("defined %d rigid bodies live in %.1f s (%s markers, each held still for "
-                 "%d frames)", len(bodies), time.monotonic() - started,
-                 ", ".join(str(len(b.markers)) for b in bodies), LEARN_FRAMES)
+        # logged once the outputs are checked: a start refused for them says only why
+        self._learn_note = (f"defined {len(bodies)} rigid bodies live in "
+                            f"{time.monotonic() - started:.1f} s ("
+                            + ", ".join(str(len(b.markers)) for b in bodies)
+                            + f" markers, each held still for {LEARN_FRAMES} frames)")
         return text, bodies
 
     def _write_learned(self, runtime: Path) -> None:
