@@ -11,6 +11,7 @@ COMMAND_MODULES = (
     "control_cmd",
     "rigid_cmd",
     "unit_cmd",
+    "kernels_cmd",
     "markerset_cmd",
     "evaluate_cmd",
     "track_cmd",

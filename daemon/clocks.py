@@ -20,9 +20,13 @@ A frame that arrives earlier than the envelope allows (the envelope was raised b
 busy spell, or the camera's time jumped forward) lowers it to that frame at once, the
 drift kept. A device time that does not increase (the camera reset its counter or its
 timestamp) starts the clock afresh; the capture thread also resets it whenever it reopens
-a camera. A clock that has just started is not trusted (`settled`) until it has seen a
-tenth of a second of frames: its first frame alone sets its offset, and that frame may
-have come late.
+a camera. A clock that has just started is not trusted (`settled`) until frames arriving
+on the envelope (within a fifth of a frame period, at most 1 ms, of it) have spanned a
+tenth of a second with no frame lowering it by more than that since: its first frames
+alone set its offset, and they may all have come late. A computer busy for longer than
+that tenth of a second as a camera opens hands its frames over together when it is free
+again; each of them lowers the envelope by a frame period, so such a burst never
+settles a clock, and the frames that follow it, on time, do.
 """
 
 from __future__ import annotations
@@ -35,7 +39,7 @@ BLOCKS = 40  # the drift is fitted over the last 40 points (20 s)
 MIN_FIT = 3  # points needed before the drift is fitted
 MAX_DRIFT = 0.05  # a slope beyond 5 % is no crystal: a frame-id clock at a wrong fps
 SETTLE_NS = 100_000_000  # a restarted clock is trusted after this much of its frames
-SETTLE_FRAMES = 5  # and at least this many
+SETTLE_FRAMES = 5  # and at least this many, each arriving on the envelope
 
 
 def _line(points) -> tuple[float, float]:
@@ -60,6 +64,8 @@ class CameraClock:
         # how far below the envelope a frame may arrive before the envelope is lowered to
         # it (its own scatter is microseconds)
         self.ahead_ns = min(1e6, 0.1 * self.period_ns)
+        # a frame this close above the envelope arrived on time: evidence for settling
+        self.on_time_ns = min(1e6, 0.2 * self.period_ns)
         self.lowered = 0  # times the fitted envelope was lowered to an early frame
         self.kind = "arrival"  # what the camera gives: "device time", "frame id" or none
         self.resets = 0
@@ -78,6 +84,8 @@ class CameraClock:
         self._s = 0.0
         self._last_dx = -1.0
         self._n = 0  # frames since the reset
+        self._on_time = 0  # frames on the envelope since it was last lowered much
+        self._on_time_dx = 0.0  # the first of them
         self.settled = False  # seen enough frames since it (re)started to be trusted
         if count and self.samples:
             self.resets += 1
@@ -106,7 +114,12 @@ class CameraClock:
         self.samples += 1
         self._n += 1
         if not self.settled:
-            self.settled = self._n >= SETTLE_FRAMES and dx >= SETTLE_NS
+            if below < -self.on_time_ns or self._on_time == 0:
+                self._on_time, self._on_time_dx = 0, dx  # what came before was late
+            if below <= self.on_time_ns:
+                self._on_time += 1
+            self.settled = (self._on_time >= SETTLE_FRAMES
+                            and dx - self._on_time_dx >= SETTLE_NS)
         if dy >= self._block_end:
             self._close_block(dy)
             a, s = self._a, self._s

@@ -66,7 +66,7 @@ class SimConfig:
     drop_camera: str = ""  # a camera that disconnects (fault injection)
     drop_from_s: float = 0.5
     drop_for_s: float = 0.5
-    define_bodies: bool = True  # track the scene's bodies when the configuration has none
+    define_bodies: bool = True  # none configured: define the scene's bodies live at the start
     person: bool = False  # a person wearing the 41-marker set walks a circle (sim_person)
     person_radius_m: float = 1.0  # radius of that circle, about the volume's centre
     unsync_ms: float = 0.0  # cameras' clocks offset by up to this: unsynchronised cameras

@@ -9,7 +9,11 @@ simulator's truth: scorers find it from the samples (daemon.synthetic).
 
 The per-frame hook (`Pipeline.hooks`, callables taking a FrameResult) is where later
 stages plug in (marker-set labelling, recorders, evaluation); hooks run on the frame loop
-and must be quick, or hand work to a thread of their own as publishers do.
+and must be quick, or hand work to a thread of their own as publishers do. Work that only
+reads the results and need not keep up frame by frame (the simulator's scorers) goes in
+`idle_hooks`: the results wait in a queue and the frame loop runs them while no frame
+set is waiting (`run_idle`), so they never stand between a set's arrival and its poses
+(nor hold the interpreter's lock against it, as a thread of their own would).
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ __all__ = ["CaptureThread", "FrameResult", "FrameSet", "Multiplexer", "Pipeline"
            "blob_velocity", "latency_figures"]
 
 log = logging.getLogger("mocapd.pipeline")
+IDLE_BACKLOG = 2400  # results waiting for the idle hooks; past this they run at once
 
 
 @dataclass(eq=False)
@@ -161,12 +166,14 @@ class Pipeline:
     """The tracker and rigid bodies over frame sets; results to hooks and publishers."""
 
     def __init__(self, rig, tracker_config, rigid_config, bodies, publishers=(),
-                 hooks=(), labeller=None) -> None:
+                 hooks=(), labeller=None, idle_hooks=()) -> None:
         self.rig = rig
         self.tracker = Tracker(rig, tracker_config)
         self.rigid = RigidTracker(list(bodies), rigid_config)
         self.publishers = list(publishers)
         self.hooks = list(hooks)
+        self.idle_hooks = list(idle_hooks)  # run from run_idle, off the latency path
+        self._idle: deque = deque()  # results the idle hooks have not seen yet
         # optional stage between the rigid bodies and the outputs: labeller(result) returns
         # what is stored in result.labelled (named markers when a marker set is configured)
         self.labeller = labeller
@@ -246,6 +253,23 @@ class Pipeline:
         self.tracker.place(*self.rigid.hidden_markers(tracks))
         for hook in self.hooks:
             hook(result)
+        if self.idle_hooks:
+            self._idle.append(result)
+            if len(self._idle) > IDLE_BACKLOG:  # never idle: keep the queue bounded
+                self.run_idle(len(self._idle) - IDLE_BACKLOG)
         self.stats.add(result)
         self.last_result = result
         return result
+
+    @property
+    def idle_pending(self) -> int:
+        """Results the idle hooks have still to see."""
+        return len(self._idle)
+
+    def run_idle(self, n: int | None = None) -> None:
+        """Hand up to `n` waiting results (all when None) to the idle hooks, oldest first."""
+        k = len(self._idle) if n is None else min(n, len(self._idle))
+        for _ in range(k):
+            result = self._idle.popleft()
+            for hook in self.idle_hooks:
+                hook(result)

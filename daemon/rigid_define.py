@@ -10,7 +10,7 @@ points are clustered, and a marker is a cluster seen in most frames, at its medi
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -59,6 +59,29 @@ def body_from_snapshots(snapshots: Sequence[tuple[np.ndarray, np.ndarray]],
                         "volume")
     markers = _in_mean_pose(markers, keep, raw, frame_of, group)
     return markers - markers.mean(axis=0) if len(markers) else markers
+
+
+def learn_body(track: Callable, frame_sets: Iterable, skip_frames: int = 5) -> np.ndarray:
+    """A body's markers (body frame, as body_from_snapshots) from frame sets of it held
+    still and alone: `track(frame_set)` is the daemon's tracker (its TrackFrame), and the
+    points it sees in each frame after the first `skip_frames` (while it finds them) are
+    the snapshots, as `mocapd rigid-body add --from-live` takes them from a running daemon.
+    """
+    snapshots = []
+    for k, fs in enumerate(frame_sets):
+        tr = track(fs)
+        if k >= skip_frames:
+            snapshots.append((tr.ids[tr.seen], tr.xyz[tr.seen]))
+    return body_from_snapshots(snapshots)
+
+
+def bodies_toml(bodies: Sequence[tuple[str, int, np.ndarray]]) -> str:
+    """[[rigid_body]] tables (name, id, markers in metres) as a configuration holds them."""
+    import tomli_w
+
+    return tomli_w.dumps({"rigid_body": [{"name": name, "id": int(body_id),
+                                          "markers": np.round(m, 6).tolist()}
+                                         for name, body_id, m in bodies]})
 
 
 def _in_mean_pose(markers, keep, raw, frame_of, group):

@@ -20,15 +20,16 @@ import socket
 import threading
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+import tomllib
 
 from calibkit.camera import Rig
 from calibkit.errors import UserError
+from calibkit.fileio import write_text_atomic
 from calibkit.gates import correspondence_config, rig_residual, tracker_gates
-from daemon.config import Config, default_runtime_dir, load_config
-from daemon.live_label import LiveLabeller
-from daemon.live_label import load as load_markerset
+from daemon.config import Config, default_runtime_dir, load_config, parse_config
 from daemon.pipeline import CaptureThread, FrameSet, Multiplexer, Pipeline, latency_figures
 from daemon.publish.line import fit_mavlink, fit_serial
 from daemon.publish.mavlink import MavlinkPublisher
@@ -39,14 +40,21 @@ from daemon.publish.serial import SerialPublisher
 from daemon.publish.udp import UdpPublisher
 from daemon.publish.vrpn import VrpnPublisher
 from daemon.rigid import alike_bodies
+from daemon.rigid_define import bodies_toml, learn_body
 from daemon.sources import DetectCamera, ReplayCamera, ReplayScene, missing_plugins
 from daemon.synthetic.evaluator import Evaluator
 from daemon.synthetic.labelling import LabelScore
 from daemon.synthetic.scene import SimCamera, SimScene
 
+if TYPE_CHECKING:
+    from daemon.live_label import LiveLabeller
+
 log = logging.getLogger("mocapd")
 SOCKET_NAME = "mocapd.sock"
 OPEN_GRACE_NS = 1_000_000_000  # after the start, sets wait this long for cameras not open yet
+LEARN_FRAMES = 30  # --sim: frames each body is held still (as `rigid-body add`'s default)
+HOLD_TRIES = 4  # --sim: places each body is held at until its definition has every marker
+LEARNED_BODIES = "sim-bodies.toml"  # where (in the runtime directory) they are written
 
 
 # ---- systemd notify --------------------------------------------------------------------------
@@ -263,6 +271,8 @@ class Daemon:
         self.labelling: LiveLabeller | None = None
         self.label_score: LabelScore | None = None
         self.captures: list[CaptureThread] = []
+        self._learned: tuple[str, list] | None = None  # --sim: bodies defined live (toml, defs)
+        self.learned_path: Path | None = None
         self.rig = self._rig(config)
         self._truth_rig = truth_rig
         self.control: ControlServer | None = None
@@ -289,10 +299,6 @@ class Daemon:
         if cfg.sim is not None:
             self.scene = SimScene(cfg.sim, self.rig, self._truth_rig, n_frames)
             self.rig = self.scene.rig
-            # greedy sets mix instants by design (moved to one time): not checked
-            self.evaluator = Evaluator(self.scene, slots=not cfg.bodies,
-                                       check_instants=cfg.mode == "triggered"
-                                       or not cfg.sim.realtime)
         elif cfg.replay is not None:
             self.scene = ReplayScene(cfg.replay.path, self.rig)
         elif cfg.cameras:
@@ -301,21 +307,30 @@ class Daemon:
             where = f"{cfg.path}: " if cfg.path else ""
             raise UserError(f"{where}camera: no input; add [[camera]] tables, a [replay] "
                             "recording, or use --sim")
+        self.tracker_config = self._tracker_config(cfg)
         bodies = self._bodies(cfg)
         self._warn_alike(bodies)
+        if cfg.sim is not None:  # scored against the scene's bodies, matched by geometry
+            # greedy sets mix instants by design (moved to one time): not checked
+            self.evaluator = Evaluator(self.scene, bodies=bodies,
+                                       check_instants=cfg.mode == "triggered"
+                                       or not cfg.sim.realtime)
         self.labelling, self._markerset_key = self._labeller(cfg), self._set_key(cfg)
         # with the simulated person: the labelled markers scored against its truth
         self.label_score = (LabelScore(self.scene) if getattr(self.scene, "person_labels", None)
                             else None)
-        hooks = [h for h in (self.evaluator, self.label_score) if h is not None]
+        # the scorers read results only: run while the frame loop waits for a set
+        scorers = [h for h in (self.evaluator, self.label_score) if h is not None]
         publishers = make_publishers(cfg, bodies, self._markerset(), self.handle)
-        self.tracker_config = self._tracker_config(cfg)  # logged once the outputs are fine
         self.pipeline = Pipeline(self.rig, self.tracker_config, cfg.rigid, bodies,
-                                 publishers, hooks=hooks, labeller=self.labelling)
+                                 publishers, labeller=self.labelling, idle_hooks=scorers)
         self._warm_up()
         runtime = cfg.runtime_dir or default_runtime_dir()
         self.control = ControlServer(runtime, self.handle)
         self.control.open()
+        if self._learned is not None:
+            log.info("%s", self._learn_note)
+            self._write_learned(runtime)
         for p in self.pipeline.publishers:
             p.start()
 
@@ -395,6 +410,11 @@ class Daemon:
         """The labelling stage for the configured marker set (None: no marker set)."""
         if cfg.markerset is None:
             return None
+        # imported only with a marker set: the labelling modules (scipy.stats among them)
+        # would cost every start a second
+        from daemon.live_label import LiveLabeller
+        from daemon.live_label import load as load_markerset
+
         fps = self.scene.fps if self.scene is not None else cfg.fps
         return LiveLabeller(load_markerset(cfg.markerset), fps, str(cfg.markerset),
                             background=_paced(cfg))
@@ -414,11 +434,60 @@ class Daemon:
         return None if self.labelling is None else self.labelling.ms
 
     def _bodies(self, cfg: Config) -> list:
-        if cfg.bodies or cfg.sim is None or not cfg.sim.define_bodies:
+        """The configuration's rigid bodies; with --sim and none configured, the scene's
+        bodies defined live, once, as a user would (see _learn_bodies)."""
+        if cfg.bodies or cfg.sim is None or not cfg.sim.define_bodies \
+                or not isinstance(self.scene, SimScene):
             return list(cfg.bodies)
-        if self.scene is None or not hasattr(self.scene, "body_defs"):
-            return []
-        return self.scene.body_defs()
+        if self._learned is None:
+            self._learned = self._learn_bodies(cfg)
+        return list(self._learned[1])
+
+    def _learn_bodies(self, cfg: Config) -> tuple[str, list]:
+        """Each of the scene's bodies held still and alone in the volume for LEARN_FRAMES
+        frames (SimScene.held_alone: blobs only), tracked with this daemon's rig and
+        tracker, and defined from the tracked points as `mocapd rigid-body add --from-live`
+        defines one (daemon.rigid_define); named body0, body1, ... in the order held, as
+        [[rigid_body]] tables read back through the configuration's checks. Never the
+        simulator's definitions: the scorer matches these to its bodies by their shape."""
+        started = time.monotonic()
+        found = []
+        want = cfg.sim.markers_per_body  # the user knows how many markers a body carries
+        for k in range(len(self.scene.bodies_truth)):
+            got, why = None, ""
+            for place in range(HOLD_TRIES):  # short of markers: moved, tried again
+                pipe = Pipeline(self.rig, self.tracker_config, cfg.rigid, [])
+                try:
+                    got = learn_body(lambda fs, p=pipe: p.process(fs).tracks,
+                                     self.scene.held_alone(k, LEARN_FRAMES, place))
+                except UserError as exc:
+                    got, why = None, str(exc)
+                    continue
+                if len(got) == want:
+                    break
+                why = f"found {len(got)} markers, not {want}"
+                log.debug("defining body%d live: %s; moving it and trying again", k, why)
+            if got is None or len(got) != want:
+                raise UserError(f"--sim: defining body{k} live failed ({why}) at "
+                                f"{HOLD_TRIES} places; check the rig's calibration")
+            found.append((f"body{k}", k + 1, got))
+        text = bodies_toml(found)
+        bodies = list(parse_config(tomllib.loads(text)).bodies)
+        # logged once the outputs are checked: a start refused for them says only why
+        self._learn_note = (f"defined {len(bodies)} rigid bodies live in "
+                            f"{time.monotonic() - started:.1f} s ("
+                            + ", ".join(str(len(b.markers)) for b in bodies)
+                            + f" markers, each held still for {LEARN_FRAMES} frames)")
+        return text, bodies
+
+    def _write_learned(self, runtime: Path) -> None:
+        """The bodies defined live, written where a user can read (and keep) them."""
+        path = Path(runtime) / LEARNED_BODIES
+        write_text_atomic(path, "# rigid bodies mocapd --sim defined live at its start; "
+                          "copy them into your configuration to keep them\n\n"
+                          + self._learned[0])
+        self.learned_path = path
+        log.info("rigid bodies defined live written to %s", path)
 
     def _warn_alike(self, bodies) -> None:
         for a, b in alike_bodies(bodies, self.config.rigid.distance_tol_m):
@@ -453,6 +522,7 @@ class Daemon:
             else:
                 self._run_fast(frames, duration_s, progress)
         finally:
+            self.pipeline.run_idle()  # the scorers see every frame
             self.shutdown()
         return self.figures()
 
@@ -472,6 +542,7 @@ class Daemon:
             samples = [scene.sample(c, i, t_ns) for c in range(len(self.rig))
                        if not scene.dropped(c, i)]
             self.pipeline.process(FrameSet(i, t_ns, time.monotonic_ns(), samples))
+            self.pipeline.run_idle()
             i += 1
             self._tick(progress)
 
@@ -517,9 +588,13 @@ class Daemon:
                 break
             if frames is not None and self.pipeline.stats.frames >= frames:
                 break
-            fs = self.mux.next(0.1)
+            idle = self.pipeline.idle_pending
+            fs = self.mux.next(0.0 if idle else 0.1)
             if fs is not None:
                 self.pipeline.process(fs)
+            elif idle:  # no set waiting: the scorers' turn, one frame at a time
+                self.pipeline.run_idle(1)
+                continue
             elif not any(c.thread.is_alive() for c in self.captures):
                 log.info("every source has ended")
                 break
@@ -561,6 +636,9 @@ class Daemon:
             return False
         bodies = self._bodies(new)
         self._warn_alike(bodies)
+        if self.evaluator is not None:
+            self.pipeline.run_idle()  # frames tracked so far are scored against the old
+            self.evaluator.set_bodies(bodies)
         try:
             publishers = make_publishers(new, bodies, labelling.ms if labelling else None,
                                          self.handle)
@@ -712,6 +790,12 @@ class Daemon:
             out["multiplexer"] = self.mux_stats()
         if self.evaluator is not None:
             out["truth"] = self.evaluator.figures()
+        if self._learned is not None:
+            out["bodies_defined_live"] = {
+                "file": None if self.learned_path is None else str(self.learned_path),
+                "frames_each": LEARN_FRAMES,
+                "bodies": [{"name": b.name, "id": b.id, "markers": len(b.markers)}
+                           for b in self._learned[1]]}
         if self.label_score is not None and self.label_score.frames:
             out.setdefault("truth", {})["labelling"] = self.label_score.figures()
         if self.labelling is not None:

@@ -257,6 +257,25 @@ def test_fast_sim_run_writes_pose_errors(tmp_path, mocapd_cli):
         assert b["orientation_error_deg_rms"] < 1.5
     assert t["track_swaps"] == 0 and t["body_swaps"] == 0
     assert "pos_err_mm_rms" in r.out
+    # the bodies were defined live, as a user would, not handed over by the simulator:
+    # written as a configuration's tables, each matched to a scene body by its shape, and
+    # off the scene's own markers by the tracking noise (0.2 px: a fraction of a mm)
+    live = fig["bodies_defined_live"]
+    assert [b["markers"] for b in live["bodies"]] == [4, 4, 4]
+    assert "defined live at the start" in r.out
+    from daemon.config import load_config
+    from daemon.synthetic.evaluator import match_bodies
+    from daemon.synthetic.scene import SimScene
+
+    defs = load_config(live["file"]).bodies
+    assert [b.name for b in defs] == ["body0", "body1", "body2"]
+    scene = SimScene(SimConfig(bodies=3, noise_px=0.2), rig, n_frames=200)
+    matched = list(match_bodies([b.markers_body for b in scene.bodies_truth],
+                                [b.markers for b in defs]))
+    assert sorted(m[0] for m in matched) == [0, 1, 2]
+    assert all(0 < m[5] < 0.001 for m in matched)
+    assert {b["defined_as"] for b in t["bodies"].values()} == {"body0", "body1", "body2"}
+    assert all(b["definition_error_mm_rms"] < 1.0 for b in t["bodies"].values())
 
 
 def test_control_commands_without_a_daemon(tmp_path, mocapd_cli):
@@ -271,13 +290,17 @@ def test_install_unit(tmp_path, mocapd_cli):
     out = tmp_path / "mocapd.service"
     r = mocapd_cli("install-unit", "--config", tmp_path / "mocapd.toml", "--out", out)
     assert r.code == 0, r.err
+    # it builds the kernels ahead of the first start (cached already here: a few seconds)
+    assert "[3/3] labelling" in r.out and "kernels built in" in r.out
+    assert r.out.splitlines()[-1].startswith("then: ")
     text = out.read_text()
     assert "Type=notify" in text and "ExecReload=/bin/kill -HUP $MAINPID" in text
     assert f"--config {tmp_path / 'mocapd.toml'}" in text and "WatchdogSec=5" in text
     assert "WantedBy=multi-user.target" in text and "Nice=-10" in text  # a system unit
     user = tmp_path / ".config/systemd/user/mocapd.service"
-    assert mocapd_cli("install-unit", "--config", tmp_path / "mocapd.toml", "--out",
-                      user).code == 0
+    r = mocapd_cli("install-unit", "--config", tmp_path / "mocapd.toml", "--out", user,
+                   "--no-build-kernels")
+    assert r.code == 0 and "kernels built" not in r.out
     assert "Nice=" not in user.read_text()  # a user manager may not raise priority
     r = mocapd_cli("install-unit", "--config", tmp_path / "missing.toml", "--out", out)
     assert r.code == 2
@@ -390,7 +413,7 @@ def test_greedy_multiplexer_with_unsynchronised_cameras(tmp_path, mocapd_cli):
 
 
 def test_late_opener_and_a_reconnecting_camera_live(tmp_path):
-    """The daemon on simulated cameras that open up to 1.5 s apart, each counting from its
+    """The daemon on simulated cameras that open up to 2 s apart, each counting from its
     own start on a clock drifting up to 50 ppm, one of them reconnecting (a new counter and
     clock epoch): no frame set mixes instants (the simulator's truth), and the late opener
     and the reconnected camera are tracked with within 0.5 s of delivering frames (about
@@ -398,7 +421,7 @@ def test_late_opener_and_a_reconnecting_camera_live(tmp_path):
     from daemon.config import Config
     from daemon.service import Daemon
 
-    sim = SimConfig(cameras=5, bodies=2, fps=100.0, seed=11, open_spread_s=1.5,
+    sim = SimConfig(cameras=5, bodies=2, fps=100.0, seed=11, open_spread_s=2.0,
                     clock_drift_ppm=50.0, drop_camera="cam1", drop_from_s=2.0, drop_for_s=0.3)
     daemon = Daemon(Config(sim=sim, fps=sim.fps, runtime_dir=tmp_path / "rt"))
     used = []  # per frame: its time, and which cameras' blobs the tracks took
@@ -412,18 +435,18 @@ def test_late_opener_and_a_reconnecting_camera_live(tmp_path):
     fig = daemon.run(duration_s=3.3, progress=progress)
     scene = daemon.scene
     t = fig["truth"]
-    # live, the capture threads' timing is the machine's: on a fresh CI machine 2 of ~300
-    # sets once mixed instants (0 in every run here and in tests/test_multiplexer.py's
-    # virtual time, which holds the target exactly); live, at most 1 %
+    # live, the capture threads' timing is the machine's, busy or not: a clock settles
+    # only on frames that arrived on time (tests/test_multiplexer.py stalls a thread as
+    # its camera opens), so not one set may mix instants
     assert t["sets_checked_for_instants"] > 200
-    assert t["sets_mixing_instants"] <= 0.01 * t["sets_checked_for_instants"]
+    assert t["sets_mixing_instants"] == 0
     assert t["samples_not_in_ledger"] == 0
 
     def tracked_after(camera, since_ns):
         return min(tn for _, tn, cams in used if tn > since_ns and camera in cams) - since_ns
 
     late = int(np.argmax(scene.open_delay_ns))
-    assert scene.open_delay_ns[late] == 1.5e9
+    assert scene.open_delay_ns[late] == 2e9
     assert tracked_after(late, scene.t0_ns + scene.open_delay_ns[late]) < 0.5e9
     back = scene.t0_ns + round((sim.drop_from_s + sim.drop_for_s) * 1e9)  # cam1 is back
     assert tracked_after(1, back) < 0.5e9

@@ -163,3 +163,33 @@ def test_rigid_body_from_live_markers(tmp_path, mocapd_cli):
         mocapd_cli("stop", "--runtime-dir", rt)
         thread.join(10)
     assert not thread.is_alive()
+
+
+def test_idle_hooks_run_off_the_frame_path_in_order_and_never_pile_up(monkeypatch):
+    """The scorers' hooks (idle_hooks) see every result, oldest first, but only when the
+    frame loop has time (run_idle), never inside process(); a loop that never idles runs
+    them once their queue is full, so it stays bounded."""
+    from calibkit.synthetic import sim
+    from daemon import pipeline as pl
+    from daemon.multiplexer import FrameSet
+    from daemon.rigid import RigidConfig
+    from daemon.tracker import TrackerConfig
+
+    rig = sim.make_rig(3, 4.0, seed=1)
+    seen, during = [], []
+    pipe = pl.Pipeline(rig, TrackerConfig(), RigidConfig(), [],
+                       hooks=[lambda r: during.append(len(seen))],
+                       idle_hooks=[lambda r: seen.append(r.frame)])
+    empty = [CameraSample(c, 0, 0, 0, np.zeros((0, 2)), np.zeros(0), np.zeros(0))
+             for c in range(3)]
+    for i in range(5):
+        pipe.process(FrameSet(i, i * 10**7, i * 10**7, empty))
+    assert seen == [] and during == [0] * 5 and pipe.idle_pending == 5
+    pipe.run_idle(2)
+    assert seen == [0, 1] and pipe.idle_pending == 3
+    pipe.run_idle()
+    assert seen == [0, 1, 2, 3, 4] and pipe.idle_pending == 0
+    monkeypatch.setattr(pl, "IDLE_BACKLOG", 3)
+    for i in range(5, 12):
+        pipe.process(FrameSet(i, i * 10**7, i * 10**7, empty))
+    assert pipe.idle_pending == 3 and seen == list(range(9))

@@ -38,6 +38,11 @@ def test_demo_calibrates_reconstructs_and_tracks(tmp_path, calibkit_cli) -> None
     assert track["frames"] == 60
     assert track["truth"]["position_error_mm_rms"] < 5.0
     assert track["truth"]["body_swaps"] == 0
+    # the bodies were defined live from the blobs, as a user would (not the simulator's)
+    assert len(track["bodies_defined_live"]["bodies"]) == 3
+    assert (out / "rt" / "sim-bodies.toml").exists()
+    assert "defined live" in res.out and "defined from the markers mocapd tracks" in res.out
+    assert all(b["defined_as"] for b in track["truth"]["bodies"].values())
 
 
 def test_demo_rejects_a_tiny_rig(tmp_path, calibkit_cli) -> None:

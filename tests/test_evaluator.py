@@ -94,3 +94,55 @@ def test_samples_the_scene_never_delivered_are_not_scored_as_truth():
     fig = ev.figures()
     assert fig["samples_not_in_ledger"] == 1 and fig["sets_checked_for_instants"] == 0
     assert fig["track_swaps"] == 0 and fig["valid_poses"] == 2
+
+
+def test_defined_bodies_are_matched_to_the_scenes_by_shape():
+    """Bodies defined live carry their own frames, marker order and ids: the scorer finds
+    which is which from their shapes alone and scores each pose in the scene body's frame,
+    so a pose that is right for the defined body scores (near) zero, and a decoy shape is
+    matched to nothing."""
+    from daemon.rigid import BodyDef
+
+    scene = _scene()
+    rng = np.random.default_rng(3)
+    true_a, true_b = (b.markers_body for b in scene.bodies_truth)
+    R_off = Rotation.from_rotvec([0.3, -0.5, 1.1]).as_matrix()
+    t_off = np.array([0.01, -0.02, 0.005])
+    perm_a, perm_b = np.array([2, 0, 1]), np.array([1, 2, 0])
+    # defined = R_off @ true + t_off, markers listed in another order, 0.1 mm of noise
+    def_a = np.empty_like(true_a)
+    def_a[perm_a] = true_a @ R_off.T + t_off + rng.normal(0, 1e-4, true_a.shape)
+    def_b = np.empty_like(true_b)
+    def_b[perm_b] = true_b + rng.normal(0, 1e-4, true_b.shape)
+    decoy = np.array([[0.0, 0.0, 0.0], [0.2, 0.0, 0.0], [0.0, 0.15, 0.0]])
+    defs = [BodyDef("decoy", 3, decoy, np.zeros(3)), BodyDef("b", 7, def_b, np.zeros(3)),
+            BodyDef("a", 9, def_a, np.zeros(3))]
+    ev = Evaluator(scene, skip_frames=0, bodies=defs)
+    assert ev.ids.tolist() == [9, 7]
+    # the slot check follows the defined marker order
+    assert ev.marker_ids[0][perm_a].tolist() == scene.bodies_truth[0].marker_ids.tolist()
+    assert ev.marker_ids[1][perm_b].tolist() == scene.bodies_truth[1].marker_ids.tolist()
+    # poses right for the defined frames: a's frame is R_off^T-turned and offset
+    where = [b.poses[0, :3, 3] for b in scene.bodies_truth]
+    R = np.stack([np.eye(3), np.eye(3), R_off.T])
+    pos = np.array([[0.5, 0.5, 0.5], where[1], where[0] - R_off.T @ t_off])
+    t = PERIOD
+    samples = [scene.deliver(c, 1, 1, 10**9 + PERIOD, t, t, t) for c in range(2)]
+    uv = np.concatenate([s.uv for s in samples])
+    tracks = TrackFrame(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, bool),
+                        np.zeros(0, np.int64), np.zeros((0, 1), np.int64),
+                        np.zeros(0, np.int64))
+    poses = BodyPoses(np.array([3, 7, 9]), np.ones(3, bool), pos, R, np.zeros((3, 4)),
+                      np.zeros(3), np.full(3, 3), np.full((3, 3), -1))
+    ev(FrameResult(1, t, t, t, np.zeros(len(uv), np.int64), uv, tracks, poses, samples))
+    fig = ev.figures()
+    assert fig["valid_poses"] == 2 and fig["gross_error_frames"] == 0
+    assert fig["bodies"]["body0"]["defined_as"] == "a"
+    assert fig["bodies"]["body0"]["definition_error_mm_rms"] < 0.3
+    # the definitions' 0.1 mm noise is all that is left
+    assert fig["position_error_mm_rms"] < 0.5 and fig["orientation_error_deg_rms"] < 0.5
+    # the same poses scored as if the defined frames were the scene's are far off
+    naive = Evaluator(scene, skip_frames=0)
+    naive.ids[:] = [9, 7]
+    naive(FrameResult(1, t, t, t, np.zeros(len(uv), np.int64), uv, tracks, poses, samples))
+    assert naive.figures()["orientation_error_deg_rms"] > 20

@@ -68,6 +68,27 @@ def test_a_reconnecting_camera_pairs_again_at_once():
     assert mux.clocks[1].resets == 1
 
 
+def test_a_camera_whose_thread_stalls_as_it_opens_never_mixes_instants():
+    """The late opener's capture thread does not run for its first 0.12-0.4 s (a busy
+    computer): the frames it took meanwhile arrive together, late. None of them may set
+    its clock: a clock that settled on such frames put them, and the next ones, a frame
+    or more off (one set in 340 mixed instants here before the clock waited for frames
+    on time). Once the stall is over, its frames join their sets within the settling."""
+    for stall_ns in (120_000_000, 250_000_000, 400_000_000):
+        cfg = SimConfig(cameras=5, bodies=1, fps=100.0, seed=11, noise_px=0.0,
+                        open_spread_s=1.5, clock_drift_ppm=50.0)
+        scene = SimScene(cfg, n_frames=int(10 * cfg.fps))
+        late = int(np.argmax(scene.open_delay_ns))
+        opens = int(scene.open_delay_ns[late])
+        sets, mux, starts = capture(scene, 3.0,
+                                    stalls={late: [(opens - 10**6, opens + stall_ns)]})
+        half = 0.5e9 / scene.fps
+        assert max(spread_ns(scene, fs) for fs in sets) <= half, stall_ns
+        back = START_NS + opens + stall_ns
+        joined = min(fs.t_ns for fs in sets if any(s.camera == late for s in fs.samples))
+        assert joined - back <= SETTLE_NS + 3e9 / scene.fps
+
+
 def test_clocks_drifting_50_ppm_for_two_minutes_stay_paired():
     """Three cameras at 120 fps whose clocks gain or lose up to 50 ppm: over two minutes
     they drift apart by up to 11 ms, more than a frame. An offset alone (no drift) lets a

@@ -33,7 +33,8 @@ def _unit(tmp_path, mocapd_cli, out):
     cfg_dir.mkdir(parents=True)
     config = cfg_dir / "my $cfg.toml"
     config.write_text("[sim]\ncameras = 3\n")
-    r = mocapd_cli("install-unit", "--config", config, "--out", out)
+    # the kernels' build is tests/test_daemon_e2e.py's (test_install_unit)
+    r = mocapd_cli("install-unit", "--config", config, "--out", out, "--no-build-kernels")
     assert r.code == 0, r.err
     return config, r.out
 

@@ -138,10 +138,14 @@ def register(app: typer.Typer) -> None:
         step(["triangulate", "--rig", str(rig), "--from", str(out / "capture.mcrec"),
               "--out", str(out / "points.csv"), "--json", str(out / "points.json")])
 
-        typer.echo("6. Track rigid bodies live with mocapd on the calibrated rig")
+        typer.echo("6. Track rigid bodies with mocapd on the calibrated rig: at its start each "
+                   "body is held still, alone,\n   and defined from the markers mocapd "
+                   "tracks (as `mocapd rigid-body add --from-live` does; written to\n   "
+                   f"{out / 'rt' / 'sim-bodies.toml'}), then the bodies move and are tracked")
         step(["start", "--sim", "--rig", str(rig), "--truth-rig", str(world),
               "--frames", str(track_frames), "--fast", "--seed", str(seed),
-              "--json", str(out / "track.json")], tool="mocapd")
+              "--runtime-dir", str(out / "rt"), "--json", str(out / "track.json")],
+             tool="mocapd")
 
         intr_fig, ext_fig = _load(out / "intrinsic.json"), _load(out / "extrinsic.json")
         wand, cmp = _load(out / "wand.json"), _load(out / "compare.json")
@@ -169,6 +173,12 @@ def register(app: typer.Typer) -> None:
             _row("capture", "3D points per frame", pts["points_per_frame"]),
             _row("capture", "3D error vs truth, RMS (mm)", ptruth["error_mm_rms"], ptruth),
             _row("capture", "ghost points (fraction)", ptruth["ghost_fraction"]),
+            _row("mocapd", "rigid bodies defined live (markers each)",
+                 ", ".join(str(b["markers"]) for b in
+                           track.get("bodies_defined_live", {}).get("bodies", []))),
+            _row("mocapd", "body definition error vs truth, worst (mm RMS)",
+                 max((b["definition_error_mm_rms"] for b in truth.get("bodies", {}).values()
+                      if b.get("definition_error_mm_rms") is not None), default=None)),
             _row("mocapd", "frames tracked", track["frames"]),
             _row("mocapd", "latency to poses, median (ms)",
                  track["latency_to_poses"]["median_ms"]),

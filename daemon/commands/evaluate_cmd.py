@@ -10,9 +10,6 @@ import typer
 from calibkit.clitools import print_table, write_json
 from calibkit.errors import UserError
 from calibkit.fileio import write_text_atomic
-from daemon import trajectory_report as report
-from daemon.trajectory_eval import evaluate, figures
-from daemon.trajectory_io import read_trajectory
 
 
 def register(app: typer.Typer) -> None:
@@ -64,6 +61,12 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Line up a trajectory's clock and world frame with a reference, then measure its
         absolute and relative pose errors."""
+        # imported here: scipy.signal and the plotting cost every other mocapd command a
+        # second and more at its start
+        from daemon import trajectory_report as report
+        from daemon.trajectory_eval import evaluate, figures
+        from daemon.trajectory_io import read_trajectory
+
         if delta <= 0 or max_offset <= 0 or gross_mm <= 0:
             raise UserError("--delta, --max-offset and --gross-mm must be positive")
         ref = read_trajectory(reference, ref_format, ref_body, ref_units)

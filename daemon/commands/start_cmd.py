@@ -248,17 +248,23 @@ def _report(fig: dict) -> None:
         rows += [["latency to UDP sent, median (ms)", u["median_ms"] or float("nan")],
                  ["latency to UDP sent, p99 (ms)", u["p99_ms"] or float("nan")]]
     print_table(rows, ["what", "value"])
+    live = fig.get("bodies_defined_live")
+    if live:
+        typer.echo(f"\nrigid bodies defined live at the start (each held still for "
+                   f"{live['frames_each']} frames): "
+                   + ", ".join(f"{b['name']} ({b['markers']} markers)" for b in live["bodies"])
+                   + (f"; written to {live['file']}" if live["file"] else ""))
     truth = fig.get("truth")
     if truth and truth["bodies"]:
         typer.echo("")
-        print_table([[name, b["id"], round(100 * b["valid_fraction"], 1),
+        print_table([[name, b.get("defined_as") or "-", round(100 * b["valid_fraction"], 1),
                       b["position_error_mm_rms"] if b["position_error_mm_rms"] is not None
                       else float("nan"),
                       b["orientation_error_deg_rms"] if b["orientation_error_deg_rms"]
                       is not None else float("nan"), b["gross_error_frames"]]
                      for name, b in truth["bodies"].items()],
-                    ["body", "id", "valid_%", "pos_err_mm_rms", "rot_err_deg_rms",
-                     "gross (>2 cm / 5 deg)"])
+                    ["body (scene)", "tracked as", "valid_%", "pos_err_mm_rms",
+                     "rot_err_deg_rms", "gross (>2 cm / 5 deg)"])
         typer.echo(f"\nidentity swaps: {truth['track_swaps']} track, {truth['body_swaps']} body;"
                    f" frame sets mixing instants: {truth.get('sets_mixing_instants', 0)} of "
                    f"{truth.get('sets_checked_for_instants', 0)}")

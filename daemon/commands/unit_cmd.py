@@ -75,8 +75,13 @@ def register(app: typer.Typer) -> None:
         out: Annotated[Path | None, typer.Option(
             "--out", help="Unit file to write (default: the user's systemd folder).")] = None,
         watchdog: Annotated[int, typer.Option("--watchdog-s", help="WatchdogSec.")] = 5,
+        build_kernels: Annotated[bool, typer.Option(
+            "--build-kernels/--no-build-kernels",
+            help="Compile the daemon's kernels into the cache now (`mocapd build-kernels`), "
+                 "so the service tracks from its first second.")] = True,
     ) -> None:
-        """Write mocapd.service and print the systemctl commands that enable it."""
+        """Write mocapd.service, compile the daemon's kernels ahead of its first start, and
+        print the systemctl commands that enable it."""
         if not config.exists():
             raise UserError(f"{config}: no such configuration file")
         if watchdog < 1:
@@ -87,7 +92,15 @@ def register(app: typer.Typer) -> None:
         user = USER_DIR in target.resolve().as_posix()
         write_text_atomic(target, unit_text(config.resolve(), command, watchdog,
                                             "default.target" if user else "multi-user.target"))
-        typer.echo(f"wrote {target}\nthen: {follow_up(target, user)}")
+        typer.echo(f"wrote {target}")
+        if build_kernels:
+            from daemon.commands.kernels_cmd import build_kernels as build
+            from daemon.commands.kernels_cmd import cache_location
+
+            total = build(typer.echo)
+            typer.echo(f"kernels built in {total:.1f} s; cached in {cache_location()} (run "
+                       "`mocapd build-kernels` as the service's user if it is another)")
+        typer.echo(f"then: {follow_up(target, user)}")
 
 
 def follow_up(target: Path, user: bool) -> str:

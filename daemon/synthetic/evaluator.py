@@ -36,18 +36,21 @@ class Evaluator:
     """
 
     def __init__(self, scene: SimScene, skip_frames: int = 5, slots: bool = True,
-                 check_instants: bool = True) -> None:
+                 check_instants: bool = True, bodies=None) -> None:
+        """`bodies`: the daemon's BodyDefs, matched to the scene's bodies by their shape
+        (match_bodies); None: the daemon's bodies are the scene's, by id, marker for
+        marker (a caller that made them so)."""
         self.scene = scene
         self.skip = skip_frames
         self.slots = slots
         self.check_instants = check_instants
         truth = scene.bodies_truth
         nb = len(truth)
-        self.ids = np.array([b.id for b in truth], dtype=np.int64)
         k = max((len(b.marker_ids) for b in truth), default=0)
-        self.marker_ids = np.full((nb, k), -1, dtype=np.int64)
+        self.true_marker_ids = np.full((nb, k), -1, dtype=np.int64)
         for i, b in enumerate(truth):
-            self.marker_ids[i, :len(b.marker_ids)] = b.marker_ids
+            self.true_marker_ids[i, :len(b.marker_ids)] = b.marker_ids
+        self.set_bodies(bodies)
         self.valid = np.zeros(nb, dtype=np.int64)
         self.gross = np.zeros(nb, dtype=np.int64)
         self.pos_sq = np.zeros(nb)  # sums over every valid pose, m^2 and deg^2
@@ -65,6 +68,35 @@ class Evaluator:
         self.spread_max_ns = 0
         self.unknown_samples = 0  # samples the ledger no longer (or never) held
 
+    def set_bodies(self, bodies) -> None:
+        """Match the daemon's bodies to the scene's (at the start and after a reload): per
+        scene body the daemon body's id (-1: none like it), the fixed transform from the
+        scene body's frame to the daemon body's, and the true marker each of the daemon
+        body's markers is (for the body-swap check)."""
+        truth = self.scene.bodies_truth
+        nb = len(truth)
+        self.ids = np.full(nb, -1, dtype=np.int64)
+        self.R_off = np.tile(np.eye(3), (nb, 1, 1))
+        self.t_off = np.zeros((nb, 3))
+        self.marker_ids = self.true_marker_ids.copy()
+        self.definition_mm = [None] * nb
+        self.defined_as = [None] * nb
+        if bodies is None:
+            self.ids[:] = [b.id for b in truth]
+            return
+        for i, j, perm, R, t, rms in match_bodies([b.markers_body for b in truth],
+                                                  [b.markers for b in bodies]):
+            self.ids[i] = bodies[j].id
+            self.R_off[i], self.t_off[i] = R, t
+            self.definition_mm[i] = rms * 1000
+            self.defined_as[i] = bodies[j].name
+            row = np.full(self.marker_ids.shape[1], -1, dtype=np.int64)
+            slot = np.empty(len(perm), dtype=np.int64)
+            slot[perm] = np.arange(len(perm))  # daemon marker perm[m] is true marker m
+            k = min(len(slot), len(row))
+            row[:k] = np.asarray(truth[i].marker_ids)[slot][:k]
+            self.marker_ids[i] = row
+
     def __call__(self, result) -> None:
         samples = result.samples
         if not samples:
@@ -78,7 +110,7 @@ class Evaluator:
         p = result.poses
         if not len(self.ids) or not len(p.ids):
             return
-        same = self.ids[:, None] == p.ids[None, :]  # (truth bodies, posed bodies)
+        same = (self.ids[:, None] == p.ids[None, :]) & (self.ids[:, None] >= 0)
         row = np.argmax(same, axis=1)
         ok = same.any(axis=1) & p.valid[row]
         if not ok.any():
@@ -97,8 +129,11 @@ class Evaluator:
             self.body_swaps += int(np.sum(ok & wrong & ~self.swapped))
             self.swapped[ok] = wrong[ok]
         R_true, t_true = self.scene.body_poses_at(result.t_ns)
-        e = np.linalg.norm(p.position[row] - t_true, axis=1)
-        cos = (np.einsum("bij,bij->b", p.rotation[row], R_true) - 1) / 2
+        R_est = p.rotation[row]  # the daemon's pose of the scene body's frame
+        t_est = np.einsum("bij,bj->bi", R_est, self.t_off) + p.position[row]
+        R_est = R_est @ self.R_off
+        e = np.linalg.norm(t_est - t_true, axis=1)
+        cos = (np.einsum("bij,bij->b", R_est, R_true) - 1) / 2
         a = np.degrees(np.arccos(np.clip(cos, -1, 1)))
         self.valid += ok
         self.pos_sq[ok] += e[ok] ** 2
@@ -159,6 +194,8 @@ class Evaluator:
             m, g = int(self.valid[i]), int(good_n[i])
             bodies[b.name] = {
                 "id": b.id,
+                "defined_as": self.defined_as[i],
+                "definition_error_mm_rms": self.definition_mm[i],
                 "valid_fraction": m / n,
                 "position_error_mm_rms": rms(self.pos_sq[i], m, 1000),
                 "orientation_error_deg_rms": rms(self.ang_sq[i], m),
@@ -186,3 +223,40 @@ class Evaluator:
             "samples_not_in_ledger": self.unknown_samples,
             "scene_t0_ns": int(self.scene.t0_ns),
         }
+
+
+MATCH_RMS_M = 0.005  # a daemon body whose markers fit a scene body's within this is it
+
+
+def match_bodies(true_markers, defined_markers):
+    """Which defined body is which true one, by shape alone: for every pair with as many
+    markers, the markers paired by their sorted distances to the others (the simulator's
+    bodies have distinct distances), then a rigid fit; pairs fitting within MATCH_RMS_M
+    are assigned one to one, best fits first (the Hungarian method on the fit RMS).
+    Yields (true index, defined index, perm, R, t, rms): defined marker perm[m] is true
+    marker m, defined = R @ true + t."""
+    from scipy.optimize import linear_sum_assignment
+
+    from calibkit.geometry import rigid_fit
+
+    nt, nd = len(true_markers), len(defined_markers)
+    cost = np.full((nt, nd), 1e9)
+    fits = {}
+    for i, a in enumerate(true_markers):
+        for j, b in enumerate(defined_markers):
+            b = np.asarray(b, dtype=np.float64)
+            if len(a) != len(b):
+                continue
+            sig_a = np.sort(np.linalg.norm(a[:, None] - a[None], axis=2), axis=1)
+            sig_b = np.sort(np.linalg.norm(b[:, None] - b[None], axis=2), axis=1)
+            _, perm = linear_sum_assignment(
+                np.linalg.norm(sig_a[:, None] - sig_b[None], axis=2))
+            R, t, _ = rigid_fit(a, b[perm])
+            rms = float(np.sqrt(np.mean(np.sum((a @ R.T + t - b[perm]) ** 2, axis=1))))
+            if rms <= MATCH_RMS_M:
+                cost[i, j] = rms
+                fits[i, j] = (perm, R, t, rms)
+    rows, cols = linear_sum_assignment(cost)
+    for i, j in zip(rows, cols, strict=True):
+        if (i, j) in fits:
+            yield (int(i), int(j), *fits[i, j])

@@ -25,12 +25,14 @@ from calibkit.camera import Rig
 from calibkit.errors import UserError
 from calibkit.synthetic import sim
 from daemon.config import SimConfig
-from daemon.rigid import BodyDef
 from daemon.sources import CameraSample, fine_timer_slack
 
 PERSON_MARKER_BASE = 2000  # the simulated person's truth marker ids start here
 TRANSFER_NS = (100_000, 500_000)  # range of the cameras' smallest capture-to-arrival delay
 JITTER_NS = 50_000  # mean of the exponential delay on top of it
+# where a body is held to be defined, as fractions of the volume from its middle at a
+# quarter of its size up: the middle first, then a little to a side
+HOLD_PLACES = ((0.0, 0.0, 0.0), (0.1, 0.0, 0.0), (0.0, -0.1, 0.02), (-0.08, 0.08, 0.05))
 LEDGER = 1 << 15  # delivered frames remembered per camera (136 s at 240 fps)
 
 
@@ -106,9 +108,38 @@ class SimScene:
                                            + np.tile(np.arange(k), n)]),
                            np.concatenate([truth.xyz, take.markers_m.reshape(-1, 3)]))
 
-    def body_defs(self) -> list[BodyDef]:
-        """The scene's bodies as the daemon would have them defined."""
-        return [BodyDef(b.name, b.id, b.markers_body, np.zeros(3)) for b in self.bodies_truth]
+    def held_alone(self, body: int, n_frames: int, place: int = 0) -> list:
+        """Frame sets of the scene's body `body` held still and alone in the volume (the
+        others, the person and loose markers set aside), squared with the room's axes, as
+        a user holds a body to define it (`mocapd rigid-body add --from-live`): what the
+        cameras see of it with this scene's noise, dropouts and stray blobs, a triggered
+        rig's frame sets. Only the blobs reach the daemon. `place` picks where it is held
+        (HOLD_PLACES, around the middle of the volume): a user whose definition came out
+        short of markers moves the body and tries again."""
+        from calibkit.observations import Truth
+        from daemon.multiplexer import FrameSet
+
+        cfg, b = self.cfg, self.bodies_truth[body]
+        volume = float(self.rig.meta.get("volume_m", cfg.volume_m)) if self.rig.meta \
+            else cfg.volume_m
+        xyz = b.markers_body + [0.0, 0.0, 0.25 * volume] \
+            + np.asarray(HOLD_PLACES[place % len(HOLD_PLACES)]) * volume
+        k = len(xyz)
+        truth = Truth(np.repeat(np.arange(n_frames), k), np.tile(np.arange(k), n_frames),
+                      np.tile(xyz, (n_frames, 1)))
+        obs = sim.observe(self.truth_rig, truth, noise_px=cfg.noise_px, dropout=cfg.dropout,
+                          ghosts_per_camera=cfg.ghosts, fps=cfg.fps,
+                          seed=cfg.seed + 7 + 11 * body + 101 * place).sorted()
+        m = len(self.rig)
+        starts = np.searchsorted(obs.frame * m + obs.camera, np.arange(n_frames * m + 1))
+        sets = []
+        for f in range(n_frames):
+            t = round(f * 1e9 / cfg.fps)
+            samples = [CameraSample(c, f, t, t, obs.uv[s:e], obs.area[s:e], obs.peak[s:e])
+                       for c in range(m) for s, e in [(starts[f * m + c],
+                                                        starts[f * m + c + 1])]]
+            sets.append(FrameSet(f, t, t, samples))
+        return sets
 
     def scene_frame(self, i: int) -> int:
         period = 2 * (self.n_frames - 1)

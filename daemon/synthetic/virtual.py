@@ -22,24 +22,36 @@ GRACE_NS = 1_000_000_000  # as the service: sets wait this long for cameras not 
 
 
 class VirtualClock:
-    """A camera's own view of time, advanced only by its sleeps."""
+    """A camera's own view of time, advanced only by its sleeps. `stalls`: (from, to)
+    spells (ns) in which its capture thread does not run (a busy computer): whatever it
+    would have done then, it does at the spell's end, so frames taken meanwhile arrive
+    together, late."""
 
-    def __init__(self, t_ns: int) -> None:
+    def __init__(self, t_ns: int, stalls=()) -> None:
         self.t = t_ns
+        self.stalls = list(stalls)
 
     def now(self) -> int:
+        for start, end in self.stalls:
+            if start <= self.t < end:
+                return end
         return self.t
 
     def sleep(self, seconds: float) -> None:
-        self.t += round(seconds * 1e9)
+        self.t = self.now() + round(seconds * 1e9)
 
 
-def capture(scene: SimScene, seconds: float, retry_s: float = 0.2, make_mux=Multiplexer):
+def capture(scene: SimScene, seconds: float, retry_s: float = 0.2, make_mux=Multiplexer,
+            stalls=None):
     """Every camera of `scene` for `seconds` of virtual time, pushed to
     `make_mux(n_cameras, mode, fps, timeout_frames, connected=..., origin_ns=...)`.
-    Returns (sets, the multiplexer, per camera the times it started delivering)."""
+    `stalls`: per camera, (from, to) spells in ns from the start in which its capture
+    thread does not run (VirtualClock). Returns (sets, the multiplexer, per camera the
+    times it started delivering)."""
     n = len(scene.rig)
-    clocks = [VirtualClock(START_NS) for _ in range(n)]
+    stalls = stalls or {}
+    clocks = [VirtualClock(START_NS, [(START_NS + a, START_NS + b) for a, b in
+                                      stalls.get(c, ())]) for c in range(n)]
     cams = [SimCamera(scene, c, START_NS, clocks[c].now, clocks[c].sleep) for c in range(n)]
     gens = [cam.open() for cam in cams]
     live = np.zeros(n, dtype=bool)  # delivering in its current session

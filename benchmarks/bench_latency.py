@@ -1,0 +1,121 @@
+"""Latency of the live daemon, frame arrival to UDP datagram: repeated runs, medians.
+
+`mocapd start --sim` in a subprocess, the scene of benchmarks/bench_tracking.py's latency
+run (8 cameras at 240 fps, 10 rigid bodies of 5 markers defined live at the start,
+triggered multiplexer), sending UDP to this process on 127.0.0.1 for `--seconds`. Two
+figures per packet:
+
+- udp: receive time here minus the frame's capture time the packet carries (the daemon's
+  estimate from each camera's clock, which includes the camera's smallest transfer delay,
+  0.1-0.5 ms in the simulator): what a robot sees;
+- daemon: the packet's own latency field, the last sample's arrival to the pose (the
+  frame loop alone).
+
+The first second (tracks being found, late cameras opening) is left out. The machine may
+be shared: each configuration runs `--repeats` times, alternating, and the table gives
+the median of the runs' medians and p99s, and their worst. `--variant NAME=VAR=VALUE,...` adds
+a configuration run with extra environment variables; ROOT=PATH runs the daemon of
+another checkout (e.g. a `git worktree` of the commit before a change), so a before/after
+comparison is made back to back on the same machine.
+
+    python benchmarks/bench_latency.py [--seconds 10] [--repeats 3] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from calibkit.clitools import print_table, write_json
+from daemon.publish.packet import decode
+
+ROOT = Path(__file__).resolve().parents[1]
+FPS, N_CAMERAS, N_BODIES, PER_BODY, NOISE_PX = 240.0, 8, 10, 5, 0.2
+
+
+def one_run(seconds: float, env: dict, extra: list[str]) -> dict:
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", 0))
+    rx.settimeout(0.5)
+    port = rx.getsockname()[1]
+    cfg = ROOT / "benchmarks" / f".bench_latency_{port}.toml"
+    cfg.write_text(f"[sim]\nmarkers_per_body = {PER_BODY}\n")
+    cmd = [sys.executable, "-m", "daemon.cli", "start", "--sim", "--config", str(cfg),
+           "--sim-cameras", str(N_CAMERAS), "--sim-bodies", str(N_BODIES),
+           "--sim-fps", str(FPS), "--noise-px", str(NOISE_PX),
+           "--udp", f"127.0.0.1:{port}", "--duration", str(seconds),
+           "--runtime-dir", f"/tmp/mocapd-bench-latency-{port}", *extra]
+    root = env.get("ROOT", str(ROOT))  # another checkout's daemon (its own imports)
+    proc = subprocess.Popen(cmd, cwd=root, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            env={**os.environ, "PYTHONPATH": root, **env})
+    lat, daemon_lat = [], []
+    try:
+        while proc.poll() is None:
+            try:
+                data = rx.recv(65536)
+            except TimeoutError:
+                continue
+            now = time.monotonic_ns()
+            p = decode(data)
+            lat.append(now - p.t_ns)
+            daemon_lat.append(p.latency_ns)
+    finally:
+        err = proc.communicate()[1]
+        cfg.unlink(missing_ok=True)
+        rx.close()
+    if proc.returncode != 0:
+        raise SystemExit(f"mocapd failed: {err.decode().strip().splitlines()[-1:]}")
+    skip = int(FPS)
+    a = np.array(lat[skip:]) * 1e-6
+    d = np.array(daemon_lat[skip:]) * 1e-6
+    return {"packets": len(a), "udp_median_ms": float(np.median(a)),
+            "udp_p99_ms": float(np.percentile(a, 99)),
+            "daemon_median_ms": float(np.median(d)),
+            "daemon_p99_ms": float(np.percentile(d, 99)), "rate_hz": len(lat) / seconds}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--variant", action="append", default=[],
+                    help="NAME=VAR=VALUE[,VAR=VALUE]: another configuration, run "
+                         "alternately with the default one")
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+    configs = {"default": {}}
+    for v in args.variant:
+        name, _, rest = v.partition("=")
+        configs[name] = dict(kv.split("=", 1) for kv in rest.split(",") if kv)
+    runs: dict[str, list[dict]] = {name: [] for name in configs}
+    for r in range(args.repeats):
+        for name, env in configs.items():
+            res = one_run(args.seconds, env, [])
+            runs[name].append(res)
+            print(f"run {r + 1}/{args.repeats} {name}: udp median {res['udp_median_ms']:.3f} "
+                  f"p99 {res['udp_p99_ms']:.3f} ms, {res['packets']} packets",
+                  file=sys.stderr, flush=True)
+    rows, out = [], {"seconds": args.seconds, "repeats": args.repeats, "configs": {}}
+    for name, rs in runs.items():
+        med = {k: float(np.median([x[k] for x in rs])) for k in rs[0]}
+        worst = {k: float(np.max([x[k] for x in rs])) for k in rs[0]}
+        out["configs"][name] = {"env": configs[name], "median": med, "worst": worst,
+                                "runs": rs}
+        rows.append([name, round(med["rate_hz"], 1), round(med["udp_median_ms"], 3),
+                     round(med["udp_p99_ms"], 3), round(worst["udp_p99_ms"], 3),
+                     round(med["daemon_median_ms"], 3), round(med["daemon_p99_ms"], 3)])
+    print_table(rows, ["config", "rate_hz", "udp_median_ms", "udp_p99_ms",
+                       "udp_p99_worst_ms", "daemon_median_ms", "daemon_p99_ms"])
+    if args.json:
+        write_json(args.json, out)
+
+
+if __name__ == "__main__":
+    main()
