@@ -283,6 +283,23 @@ def _crossing_scene(monkeypatch, miss_m, heading_deg, seed, n=240, speed_mps=1.7
     return SimScene(cfg, rig, rig, n), np.sort(gap.ravel())
 
 
+def _defined_live(scene) -> list:
+    """The scene's bodies as a user defines them (`rigid-body add --from-live`): each held
+    still and alone, tracked, its markers clustered; never the simulator's definitions."""
+    from daemon.pipeline import Pipeline
+    from daemon.rigid import BodyDef, RigidConfig
+    from daemon.rigid_define import learn_body
+
+    defs = []
+    for k in range(len(scene.bodies_truth)):
+        pipe = Pipeline(scene.rig, TrackerConfig(), RigidConfig(), [])
+        markers = learn_body(lambda fs, p=pipe: p.process(fs).tracks,
+                             scene.held_alone(k, 30))
+        assert len(markers) == len(scene.bodies_truth[k].markers_body)
+        defs.append(BodyDef(f"body{k}", k + 1, markers, np.zeros(3)))
+    return defs
+
+
 @pytest.mark.parametrize("miss_m, heading_deg, seed", [(0.006, 60, 0), (0.006, 60, 1),
                                                        (0.006, 0, 2), (0.009, 0, 1)])
 def test_markers_of_two_bodies_crossing_closer_than_the_gate_keep_their_identities(
@@ -299,8 +316,9 @@ def test_markers_of_two_bodies_crossing_closer_than_the_gate_keep_their_identiti
     scene, gap = _crossing_scene(monkeypatch, miss_m, heading_deg, seed)
     assert gap[0] < miss_m + 0.002 and gap[1] > 0.015  # one close pair, the rest apart
     n = scene.n_frames
-    ev = Evaluator(scene, slots=True)
-    pipe = Pipeline(scene.rig, TrackerConfig(), RigidConfig(), scene.body_defs(), hooks=[ev])
+    defs = _defined_live(scene)
+    ev = Evaluator(scene, slots=True, bodies=defs)
+    pipe = Pipeline(scene.rig, TrackerConfig(), RigidConfig(), defs, hooks=[ev])
     for i in range(n):
         t = int(i * 1e9 / FPS)
         pipe.process(FrameSet(i, t, t, [scene.sample(c, i, t) for c in range(8)]))
