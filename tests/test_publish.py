@@ -329,3 +329,51 @@ int main(void) {{
     assert out.decode().split("\n")[0] == "2 0 0"
     bad = subprocess.run([str(exe)], input=new[:-1], capture_output=True)
     assert bad.returncode == 1
+
+
+class _Collecting(Publisher):
+    """Opens when asked (or fails to), keeps what it is sent."""
+
+    name = "collect"
+
+    def __init__(self, fail_open: bool = False) -> None:
+        super().__init__(queue_size=64, retry_s=30.0)
+        self.fail_open, self.opened, self.got = fail_open, 0, []
+
+    def open(self) -> None:
+        self.opened += 1
+        if self.fail_open:
+            raise OSError("no such device")
+
+    def send(self, result) -> None:
+        self.got.append(result)
+
+
+def test_stop_flushes_frames_queued_before_the_output_ever_opened():
+    """A recording stopped before its worker thread ran (a loaded machine) is still
+    written whole: the output is opened at stop and every queued frame sent."""
+    from types import SimpleNamespace
+
+    pub = _Collecting()
+    frames = [SimpleNamespace(arrival_ns=i) for i in range(5)]
+    for f in frames:
+        pub.submit(f)
+    pub._stop = True  # stop asked before the worker's first turn
+    pub.start()
+    pub._thread.join(5)
+    assert pub.opened == 1 and pub.got == frames
+
+
+def test_stop_does_not_wait_on_an_output_that_failed_to_open():
+    pub = _Collecting(fail_open=True)
+    pub.start()
+    pub.submit(0)
+    deadline = time.monotonic() + 5
+    while pub.opened == 0 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    for i in range(1, 4):
+        pub.submit(i)
+    t0 = time.monotonic()
+    pub.stop(timeout=5)
+    assert time.monotonic() - t0 < 2 and not pub._thread.is_alive()
+    assert pub.opened == 1 and pub.got == []

@@ -104,7 +104,11 @@ class Publisher:
             with self._cond:
                 while not self._queue and not self._stop:
                     self._cond.wait(0.5)
-                if self._stop and (not self._queue or not self.connected):
+                # at stop: flush what is queued, opening the output first if it never was
+                # (a recording stopped before its worker ran must still be written); an
+                # output that already failed to open is not waited for
+                if self._stop and (not self._queue
+                                   or (not self.connected and self._next_open > 0)):
                     break
                 result = self._queue.popleft() if self._queue else None
                 self._in_flight = result is not None
