@@ -389,6 +389,7 @@ def _report(rig, spec, result, solved, held, cov, found, grade, reason, warnings
         "cameras": cams,
         "solve": {**figures(solved), "noise_px": result.noise_px,
                   "iterations": result.iterations, "time_s": result.time_s,
+                  "cpu_s": result.cpu_s,
                   "outliers": n_out, "refine_intrinsics": result.options.refine_intrinsics},
         "held_out": figures(held),
         "uncertainty_reference_camera": None if cov is None else cov["reference_camera"],
