@@ -93,7 +93,7 @@ def test_monitor_views_set_the_intrinsics_the_wand_alone_cannot(monitored):
         rows = cal.report["intrinsics"]["cameras"]
         if tv is not None:
             assert all(r["prior_from"] == "intrinsic step's views" for r in rows)
-            # every view's dots fit at the monitor's noise (sqrt(2) x per axis: 2D RMS)
+            # every view's dots fit at the monitor's noise (RMS per axis)
             assert all(r["views_rms_px"] < 1.3 * NOISE_PX for r in rows)
             assert cal.bundle.target_noise_px == pytest.approx(NOISE_PX, rel=0.25)
     assert errs["views"][0] < 3e-4 and errs["views"][1] < 0.3
