@@ -8,7 +8,10 @@ C++ factors only: a Python CustomFactor per observation makes a solve ~60 times 
 
 Intrinsics, when refined, are one Cal3DS2 per camera shared by all its observations, with a
 diagonal prior at the starting values (calibkit.intrinsic_prior gives the sigmas from the
-intrinsic step's uncertainty).
+intrinsic step's uncertainty). The intrinsic step's target views (calibkit.bundle_target:
+a monitor's dots, each view a pose variable, the dots at their known places, seen through
+the camera's shared Cal3DS2) can join the graph, so the target and the wand refine the
+intrinsics together, each weighted by its own noise.
 
 Conventions: GTSAM's camera Pose3 is camera-to-world (the inverse of ours). Cal3DS2 has
 k1, k2, p1, p2 but no k3; a camera whose k3 is not zero gets its measurements corrected
@@ -25,14 +28,14 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
+from calibkit import bundle_target
+from calibkit.bundle_target import TargetData
 from calibkit.camera import Camera, Rig
 from calibkit.geometry import RigArrays
 
 X = gtsam.symbol_shorthand.X  # camera poses
 P = gtsam.symbol_shorthand.P  # 3D points
 K = gtsam.symbol_shorthand.K  # intrinsics (Cal3DS2)
-
-
 @dataclass(eq=False)
 class BundleData:
     """What the graph is built from. Observations are (point, camera, pixel) rows; points
@@ -51,6 +54,7 @@ class BundleData:
     plane_point: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     plane_normal: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     plane_offset_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    target: TargetData | None = None  # the intrinsic step's views, used when refining
 
     def __post_init__(self) -> None:
         self.obs_point = np.asarray(self.obs_point, dtype=np.int64)
@@ -85,6 +89,11 @@ class BundleOptions:
     max_iterations: int = 100
     outlier_sigmas: float = 4.3  # a residual beyond this many robust sigmas is an outlier
     rounds: int = 2  # solve, drop outliers, solve again
+    # rounds solved with the Huber loss; the later ones are plain least squares on the
+    # inliers: the maximum-likelihood fit for Gaussian noise once the outliers are out, and
+    # Gauss-Newton then converges in two or three iterations where reweighting Huber's
+    # residuals crawls (each of ~10 iterations taking half the previous one's decrease)
+    robust_rounds: int = 1
 
 
 @dataclass(eq=False)
@@ -97,11 +106,18 @@ class BundleResult:
     iterations: int
     initial_error: float
     final_error: float
-    time_s: float
+    time_s: float  # wall clock
     data: BundleData
     options: BundleOptions
+    cpu_s: float = float("nan")  # this process's CPU time (one core: the time on a quiet machine)
     values: object = None  # gtsam.Values of the final solve
     graph: object = None  # gtsam.NonlinearFactorGraph of the final solve
+    # the target views in the final solve (their solved poses), observed minus projected
+    # pixels, the rows used and each camera's robust noise (NaN without views)
+    target: TargetData | None = None
+    target_residual_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    target_inlier: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    target_noise_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 # ---- the camera model in GTSAM's terms ----------------------------------------------------------
@@ -153,6 +169,11 @@ def residuals(rig: Rig, data: BundleData, xyz: np.ndarray) -> np.ndarray:
     return r
 
 
+def per_camera_sigma(r: np.ndarray, camera: np.ndarray, n_cams: int) -> np.ndarray:
+    """robust_sigma of each camera's rows (NaN for a camera without any)."""
+    return np.array([robust_sigma(r[camera == c]) for c in range(n_cams)])
+
+
 def robust_sigma(r: np.ndarray) -> float:
     """Per-axis noise from the median absolute residual (1.4826 MAD), outliers ignored."""
     a = np.abs(r[np.isfinite(r)])
@@ -175,12 +196,18 @@ def _intrinsic_sigmas(options: BundleOptions, n_cams: int) -> np.ndarray:
 
 def build_graph(data: BundleData, uv: np.ndarray, use: np.ndarray, noise_px: float,
                 options: BundleOptions, xyz: np.ndarray, rig: Rig,
-                tight_gauge: bool = False, prior_rig: Rig | None = None
+                tight_gauge: bool = False, prior_rig: Rig | None = None,
+                target: TargetData | None = None, target_use: np.ndarray | None = None,
+                target_noise_px: np.ndarray | None = None, robust: bool = True
                 ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, np.ndarray]:
     """Noise models, factors and initial values. Returns the graph, the values and the
     points that take part (seen by two or more cameras in the rows `use`). `rig` holds the
     starting values; the intrinsics' priors sit at `prior_rig`'s (the intrinsic step's;
-    default `rig`), so a second round starts from the first's result without moving them."""
+    default `rig`), so a second round starts from the first's result without moving them.
+    `target` (its pixels k3-corrected, its views' poses the starting values) joins the
+    graph when the intrinsics are refined: rows `target_use`, each camera's pixels with
+    its own noise `target_noise_px`. `robust`: the Huber loss on the wand's pixels, else
+    plain least squares."""
     n_cams = len(rig)
     # -- which points take part
     n_seen = np.bincount(data.obs_point[use], minlength=len(xyz))
@@ -190,8 +217,10 @@ def build_graph(data: BundleData, uv: np.ndarray, use: np.ndarray, noise_px: flo
     rows = np.flatnonzero(use & active[data.obs_point])
 
     # -- noise models
-    pixel = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(
-        options.huber_k), gtsam.noiseModel.Isotropic.Sigma(2, noise_px))
+    pixel = gtsam.noiseModel.Isotropic.Sigma(2, noise_px)
+    if robust:
+        pixel = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(
+            options.huber_k), pixel)
     length = gtsam.noiseModel.Isotropic.Sigma(1, options.length_sigma_m)
     surveyed = gtsam.noiseModel.Isotropic.Sigma(3, options.known_sigma_m)
     # a tight gauge for marginals; a weak one when plane points fix part of the frame
@@ -251,6 +280,8 @@ def build_graph(data: BundleData, uv: np.ndarray, use: np.ndarray, noise_px: flo
             values.insert(K(c), cals[c])
     for i in np.flatnonzero(active).tolist():
         values.insert(P(i), xyz[i])
+    if target is not None and options.refine_intrinsics and len(target):
+        bundle_target.add_factors(graph, values, target, target_use, target_noise_px, K)
     return graph, values, active
 
 
@@ -292,38 +323,64 @@ def _read(result: gtsam.Values, rig: Rig, active: np.ndarray, n_points: int,
 def solve(data: BundleData, options: BundleOptions = BundleOptions(),
           progress=None) -> BundleResult:
     """Levenberg-Marquardt on the whole graph; then drop observations beyond
-    `outlier_sigmas` robust sigmas and solve again with the noise re-estimated.
-    progress(text), if given, hears of every iteration."""
-    start = time.perf_counter()
+    `outlier_sigmas` robust sigmas and solve again with the noise re-estimated (the wand's
+    over all its rows, the target views' per camera). progress(text), if given, hears of
+    every iteration."""
+    start, start_cpu = time.perf_counter(), time.process_time()
     uv = remove_k3(data.rig, data.obs_camera, data.obs_uv)
     k3_free = Rig(tuple(c.replace(dist=c.dist * [1, 1, 1, 1, 0]) for c in data.rig),
                   dict(data.rig.quality), dict(data.rig.meta))
-    corrected = BundleData(**{**data.__dict__, "rig": k3_free, "obs_uv": uv})
+    target = data.target if options.refine_intrinsics and data.target is not None and \
+        len(data.target) else None
+    if target is not None:
+        target = target.replace(obs_uv=remove_k3(data.rig, target.obs_camera, target.obs_uv))
+    corrected = BundleData(**{**data.__dict__, "rig": k3_free, "obs_uv": uv,
+                              "target": target})
     rig, xyz = k3_free, data.xyz.copy()
     use = np.ones(len(uv), dtype=bool)
     noise = options.noise_px
+    t_use = t_noise = t_res = None
+    if target is not None:
+        t_res = bundle_target.residuals(rig, target)
+        t_noise = per_camera_sigma(t_res, target.obs_camera, len(rig))
+        t_use = np.isfinite(t_res[:, 0])
     iterations, first_error = 0, None
     for round_ in range(max(1, options.rounds)):
         graph, values, active = build_graph(corrected, uv, use, noise, options, xyz, rig,
-                                            prior_rig=k3_free)
+                                            prior_rig=k3_free, target=target,
+                                            target_use=t_use, target_noise_px=t_noise,
+                                            robust=round_ < options.robust_rounds)
         report = None if progress is None else (
-            lambda i, e, r=round_: progress(f"round {r + 1}, iteration {i}, error {e:.4g}"))
+            lambda i, e, r=round_: progress(f"round {r + 1}, iteration {i}, error {e:.6g}"))
         result, its, e0, e1 = _optimise(graph, values, options, report)
         iterations += its
         first_error = e0 if first_error is None else first_error
         rig, xyz = _read(result, rig, active, len(xyz), options)
         r = residuals(rig, corrected, xyz)
         noise = robust_sigma(r[use])
+        if target is not None:
+            target = bundle_target.read_views(result, target)
+            t_res = bundle_target.residuals(rig, target)
+            t_noise = per_camera_sigma(np.where(t_use[:, None], t_res, np.nan),
+                                       target.obs_camera, len(rig))
         if round_ + 1 < options.rounds:
             norm = np.linalg.norm(r, axis=1)
             use = np.isfinite(norm) & (norm <= options.outlier_sigmas * noise)
+            if target is not None:
+                t_norm = np.linalg.norm(t_res, axis=1)
+                t_use = np.isfinite(t_norm) & (
+                    t_norm <= options.outlier_sigmas * t_noise[target.obs_camera])
     r = residuals(rig, corrected, xyz)
     final = Rig(tuple(c.replace(dist=np.r_[c.dist[:4], d.dist[4]])
                       for c, d in zip(rig, data.rig, strict=True)), dict(data.rig.quality),
                 dict(data.rig.meta))
-    return BundleResult(final, xyz, r, use & np.isfinite(r[:, 0]), noise, iterations,
-                        float(first_error), float(e1), time.perf_counter() - start, corrected,
-                        options, result, graph)
+    out = BundleResult(final, xyz, r, use & np.isfinite(r[:, 0]), noise, iterations,
+                       float(first_error), float(e1), time.perf_counter() - start, corrected,
+                       options, time.process_time() - start_cpu, result, graph)
+    if target is not None:
+        out.target, out.target_residual_px = target, t_res
+        out.target_inlier, out.target_noise_px = t_use & np.isfinite(t_res[:, 0]), t_noise
+    return out
 
 
 # ---- uncertainty ---------------------------------------------------------------------
@@ -335,7 +392,10 @@ def camera_covariances(result: BundleResult) -> dict:
     data, options = result.data, result.options
     k3_free = Rig(tuple(c.replace(dist=c.dist * [1, 1, 1, 1, 0]) for c in result.rig))
     graph, values, _ = build_graph(data, data.obs_uv, result.inlier, result.noise_px, options,
-                                   result.xyz, k3_free, tight_gauge=True, prior_rig=data.rig)
+                                   result.xyz, k3_free, tight_gauge=True, prior_rig=data.rig,
+                                   target=result.target, target_use=result.target_inlier,
+                                   target_noise_px=result.target_noise_px,
+                                   robust=options.rounds <= options.robust_rounds)
     marginals = gtsam.Marginals(graph, values)
     pos, rot = [], []
     for c, cam in enumerate(result.rig):

@@ -56,6 +56,9 @@ class IntrinsicResult:
     opencv_rms_px: float = float("nan")
     bias_corrected: bool = False
     extra: dict = field(default_factory=dict)
+    # the views as solved (perspective bias removed), in the order of rvecs: what the wand
+    # solve takes into its graph (calibkit.plane_views)
+    views: list = field(default_factory=list)
 
     def figures(self) -> dict:
         c = self.camera
@@ -340,7 +343,8 @@ def calibrate(views: list[PlaneView], size: tuple[int, int], name: str = "camera
     uv_all = np.concatenate([v.uv for v in views])
     return IntrinsicResult(cam, rv, tv, float(np.sqrt(err2[inl].mean())), view_rms,
                            len(uv_all), dict(zip(PARAMS, std.tolist(), strict=True)),
-                           coverage(uv_all, size), res, inl, cv_rms, corrected)
+                           coverage(uv_all, size), res, inl, cv_rms, corrected,
+                           views=list(views))
 
 
 def _camera(p: np.ndarray, size: tuple[int, int], name: str) -> Camera:

@@ -41,6 +41,12 @@ def _sigmas(cam: Camera, table: dict) -> np.ndarray:
                      table["radial"], table["tangential"], table["tangential"]])
 
 
+def default_sigmas(cam: Camera) -> np.ndarray:
+    """The loose prior (DEFAULT) in Cal3DS2 order: for a camera whose intrinsic step's
+    views are themselves in the graph, where a prior need only keep the solve well-posed."""
+    return _sigmas(cam, DEFAULT)
+
+
 def reported_std(rig: Rig, name: str) -> dict | None:
     """The intrinsic step's standard deviations for a camera (rig.toml's
     quality.intrinsic.<camera>.std, IntrinsicResult.std's keys), or None."""

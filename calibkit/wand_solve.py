@@ -12,10 +12,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibkit import bundle, floor, intrinsic_prior, wand_report
-from calibkit.camera import Rig
+from calibkit.camera import Rig, rotation_from_rvec
 from calibkit.errors import UserError
 from calibkit.geometry import RigArrays, triangulate
 from calibkit.observations import Observations
+from calibkit.plane_views import PlaneViews
 from calibkit.wand import WandObservations, WandSpec, identify, initial_poses, point_index
 
 MIN_WAND_FRAMES = 20  # a camera that sees the wand fewer times is left out, with a warning
@@ -73,13 +74,17 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
               refine_intrinsics: bool = True, holdout: float = 0.1, seed: int = 0,
               world: Callable[[Rig, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
               options: bundle.BundleOptions | None = None, progress=None,
-              extra: Callable[[Rig], bundle.BundleData] | None = None) -> WandCalibration:
+              extra: Callable[[Rig], bundle.BundleData] | None = None,
+              target_views: PlaneViews | None = None) -> WandCalibration:
     """Everything: see calibrate_wand. `extra(start_rig)` gives more points to solve with
     (the projector's floor and table dots: calibkit.extrinsic.bundle_data), joined to the
     wand's; their plane and position priors then hold the world frame, so it needs
     `initial` poses already in that frame (from calibkit extrinsic). `options` sets the
     bundle adjustment's other knobs; `refine_intrinsics` and the intrinsics' priors
-    (calibkit.intrinsic_prior, from the rig file's quality.intrinsic) are set here."""
+    (calibkit.intrinsic_prior, from the rig file's quality.intrinsic) are set here.
+    `target_views` (calibkit.plane_views, the intrinsic step's monitor views) join the
+    graph when the intrinsics are refined: a camera with views gets them in place of the
+    prior from its intrinsic step's standard deviations (a loose prior stays)."""
     if extra is not None and initial is None:
         raise UserError("points on known planes need initial poses in the world frame: give "
                         "--rig (e.g. from calibkit extrinsic)")
@@ -131,6 +136,11 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
     if refine_intrinsics and spec.n_markers < 2:
         refine_intrinsics = False
         warnings.append("intrinsics held: a 1-marker wand has no length to check them against")
+    target = _target_data(target_views, prior) if refine_intrinsics else None
+    if target is not None:
+        for k in np.unique(target.obs_camera).tolist():
+            sigmas[k] = intrinsic_prior.default_sigmas(prior[k])
+            prior_source[k] = "intrinsic step's views"
     raw = wand
     # a 2-marker wand started from midpoints is labelled again with the solved poses and
     # solved once more: the start's labels are wrong where its poses were a little off
@@ -149,6 +159,7 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
             from calibkit.extrinsic import join_bundle_data
 
             data = join_bundle_data(data, extra(start))
+        data.target = target
         opts = dataclasses.replace(
             options or bundle.BundleOptions(reference_camera=int(np.argmax(
                 np.bincount(cam, minlength=len(start))))),
@@ -193,7 +204,7 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
     report["held_out"]["random_frames"] = int(len(held_random))
     report["held_out"]["region_frames"] = int(len(held_region))
     report["intrinsics"] = _intrinsics_report(refine_intrinsics, prior, sigmas, prior_source,
-                                              intrinsics_moved, cov)
+                                              intrinsics_moved, cov, result)
     quality = {"reprojection_rms_px": report["solve"]["reprojection_rms_px"],
                "held_out_rms_px": report["held_out"]["reprojection_rms_px"],
                "wand_length_error_sd_mm": report["held_out"]["wand_length_error_sd_mm"],
@@ -209,6 +220,18 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
     rig = Rig(rig.cameras, quality, {**{k: v for k, v in intrinsics.meta.items()
                                         if k in ("volume_m",)}, **meta})
     return WandCalibration(rig, report, wand, solved, held, result, held_frames)
+
+
+def _target_data(views: PlaneViews | None, rig: Rig) -> bundle.TargetData | None:
+    """The intrinsic step's views of the cameras of `rig` as bundle input (None when it
+    has none)."""
+    if views is None:
+        return None
+    sub = views.cameras(rig.names)
+    if len(sub) == 0:
+        return None
+    R = np.stack([rotation_from_rvec(r) for r in sub.view_rvec]).reshape(-1, 3, 3)
+    return bundle.TargetData(sub.camera, sub.view, sub.xyz, sub.uv, R, sub.view_tvec.copy())
 
 
 def _frame_centres(wand: WandObservations, rig: Rig, camera_of: np.ndarray, spec: WandSpec,
@@ -228,9 +251,11 @@ def _frame_centres(wand: WandObservations, rig: Rig, camera_of: np.ndarray, spec
 
 
 def _intrinsics_report(refined: bool, prior: Rig, sigmas: np.ndarray, source: list[str],
-                       moved: list[dict], cov: dict | None) -> dict:
+                       moved: list[dict], cov: dict | None,
+                       result: bundle.BundleResult) -> dict:
     """Per camera: where the priors came from and their sigmas; when refined, how far the
-    wand moved each camera's intrinsics and how well it now knows them."""
+    wand moved each camera's intrinsics and how well it now knows them, and the intrinsic
+    step's views' residual RMS (per axis) in the joint solve where they took part."""
     rows = []
     for k, cam in enumerate(prior):
         row = {"name": cam.name, "prior_from": source[k],
@@ -238,6 +263,12 @@ def _intrinsics_report(refined: bool, prior: Rig, sigmas: np.ndarray, source: li
                                        strict=True))}
         if refined:
             row.update({key: v for key, v in moved[k].items() if key != "name"})
+            t = result.target
+            if t is not None and np.any(t.obs_camera == k):
+                sel = result.target_inlier & (t.obs_camera == k)
+                row["views_rms_px"] = float(np.sqrt(np.mean(
+                    result.target_residual_px[sel] ** 2))) if sel.any() else float("nan")
+                row["views_points"] = int(sel.sum())
             if cov is not None and "intrinsic_std" in cov:
                 row["std_after"] = dict(zip(intrinsic_prior.CAL3DS2,
                                             cov["intrinsic_std"][k].tolist(), strict=True))
@@ -358,6 +389,7 @@ def _report(rig, spec, result, solved, held, cov, found, grade, reason, warnings
         "cameras": cams,
         "solve": {**figures(solved), "noise_px": result.noise_px,
                   "iterations": result.iterations, "time_s": result.time_s,
+                  "cpu_s": result.cpu_s,
                   "outliers": n_out, "refine_intrinsics": result.options.refine_intrinsics},
         "held_out": figures(held),
         "uncertainty_reference_camera": None if cov is None else cov["reference_camera"],

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from calibkit.camera import Camera, Rig, rvec_from_rotation
+from calibkit.camera import Camera, Rig, rotation_from_rvec, rvec_from_rotation
 from calibkit.dotcapture import DotCapture
 from calibkit.errors import UserError
 from calibkit.intrinsic import (
@@ -272,6 +272,22 @@ def test_every_camera_of_a_simulated_rig(calibkit_cli, tmp_path):
         assert f["camera"] == cam.name and abs(f["error"]["fx_rel"]) < 5e-4
         assert 0.035 < f["rms_px"] < 0.06  # sqrt(2) x 0.035 px per axis
     assert Rig.load(tmp_path / "intr.truth.toml").names == true_rig.names
+    # the views themselves, for the wand solve's graph: named by the rig file, every camera's
+    # inlier dots with the solved view poses (each view's dots reproject with them)
+    from calibkit import plane_views
+
+    assert {e["views_file"] for e in est.quality["intrinsic"].values()} == {"intr.views.npz"}
+    kept = plane_views.load_for(est.quality, intr, est.names)
+    assert kept.camera_names == tuple(est.names) and len(kept.view_camera) == 3 * 4
+    for k, (cam, f) in enumerate(zip(est, figures, strict=True)):
+        rows = kept.camera == k
+        assert abs(rows.sum() - f["points"] * f["inlier_fraction"]) < 1
+        v = kept.view[rows]
+        pts = np.einsum("nij,nj->ni", np.stack([rotation_from_rvec(r)
+                                                for r in kept.view_rvec[v]]),
+                        kept.xyz[rows]) + kept.view_tvec[v]
+        uv = cam.replace(rvec=np.zeros(3), t=np.zeros(3)).project(pts)[0]
+        assert np.sqrt(np.mean((uv - kept.uv[rows]) ** 2)) < 0.06
 
 
 def test_projected_dots_agree_with_the_rendered_capture():

@@ -42,6 +42,12 @@ def test_wand_sim_end_to_end(calibkit_cli, tmp_path):
         assert (tmp_path / name).stat().st_size > 0, name
     report = json.loads((tmp_path / "w.json").read_text())
     assert report["solve"]["refine_intrinsics"] is True  # the default
+    # with the monitor's own views in the graph (the intrinsic step's NAME.views.npz, found
+    # from the rig file), fitted at the monitor's noise: 0.035 px per axis
+    assert "monitor dots in 16 views" in r.out
+    for row in report["intrinsics"]["cameras"]:
+        assert row["prior_from"] == "intrinsic step's views", row
+        assert 0.025 < row["views_rms_px"] < 0.045 and row["views_points"] > 100
     # the capture stopped by itself once every camera had 150 sightings
     captured, _ = load_observations(tmp_path / "rig.capture.mcrec")
     assert len(captured.frames()) < 400

@@ -11,6 +11,7 @@ import numpy as np
 import typer
 
 from calibkit import extrinsic as ex
+from calibkit import plane_views
 from calibkit.camera import Rig
 from calibkit.clitools import Progress, print_table, write_json
 from calibkit.commands.common import (
@@ -129,14 +130,17 @@ def _print(result: ex.ExtrinsicResult) -> None:
                "table dots (dots seen by two or more cameras)")
 
 
-def _keep_intrinsic_quality(result: ex.ExtrinsicResult, intr: Rig) -> None:
-    """The intrinsics are passed through unchanged, so their figures (and the per-parameter
-    std the wand solve's priors read) go on with them into the rig file."""
+def _keep_intrinsic_quality(result: ex.ExtrinsicResult, intr: Rig, intr_path: Path,
+                            out: Path) -> None:
+    """The intrinsics are passed through unchanged, so their figures (the per-parameter
+    std the wand solve's priors read, and where the monitor views are kept, now relative to
+    `out`) go on with them into the rig file."""
     per = intr.quality.get("intrinsic", {})
     kept = {n: per[n] for n in result.rig.names if n in per}
     if kept:
+        quality = plane_views.rebase({"intrinsic": kept}, intr_path, out)
         result.rig = dataclasses.replace(result.rig,
-                                         quality={**result.rig.quality, "intrinsic": kept})
+                                         quality={**result.rig.quality, **quality})
 
 
 def register(app: typer.Typer) -> None:
@@ -333,7 +337,7 @@ def register(app: typer.Typer) -> None:
         _print(result)
         typer.echo(f"capture: {frames} camera frames, {frames / 30.0:.1f} s at 30 fps"
                    + (" (estimated from the latencies)" if sim and not render else ""))
-        _keep_intrinsic_quality(result, intr)
+        _keep_intrinsic_quality(result, intr, intrinsics, out)
         result.rig.save(out)
         ex.save_dots(out.with_name(out.stem + ".dots.npz"), result.dots, result.inlier)
         rec = ex.floor_recording(result.rig, result.dots, result.inlier)

@@ -10,6 +10,7 @@ from typing import Annotated
 import numpy as np
 import typer
 
+from calibkit import plane_views
 from calibkit.camera import Camera, Rig
 from calibkit.clitools import Progress, print_table, write_json
 from calibkit.errors import UserError
@@ -92,10 +93,17 @@ def _write_rig(path: Path, camera: Camera, result: IntrinsicResult) -> None:
     quality = dict(rig.quality)
     intr = dict(quality.get("intrinsic", {}))
     # std: one standard deviation per parameter (intrinsic.PARAMS), the prior the wand
-    # solve gives these intrinsics when it refines them
+    # solve gives these intrinsics when it refines them; views_file: the views themselves,
+    # which the wand solve takes into its graph instead when it finds them
     intr[camera.name] = {"rms_px": result.rms_px, "views": len(result.rvecs),
                          "points": result.points, "coverage": result.coverage,
                          "std": {k: float(v) for k, v in result.std.items()}}
+    if result.views:
+        vpath = plane_views.views_path(path)
+        plane_views.save(vpath, plane_views.merge(
+            plane_views.load_existing(vpath),
+            plane_views.from_result(camera.name, result.views, result)))
+        intr[camera.name][plane_views.KEY] = vpath.name
     quality["intrinsic"] = intr
     rig = dataclasses.replace(rig, quality=quality)
     rig.save(path)
@@ -244,7 +252,7 @@ def register(app: typer.Typer) -> None:
             if missed:
                 print(f"board not found in {len(missed)} image(s): {', '.join(missed)}",
                       file=sys.stderr)
-            plane_views = found
+            target_views = found
         elif sim:
             _sim_command(sim_rig, cameras, volume, size, seed, camera, views, fill, render,
                          noise_px, latency_ms, noise, pixel_pitch, step, shifts, radius,
@@ -271,12 +279,12 @@ def register(app: typer.Typer) -> None:
                           "press Enter ")
 
                 try:
-                    plane_views = _capture(_LiveDevice(window, source), schedule, views,
+                    target_views = _capture(_LiveDevice(window, source), schedule, views,
                                            pitch, next_view, img_size, samples)
                 finally:
                     window.close()
             dot_radius_m = radius * pitch / 1000.0
-        result = calibrate(plane_views, img_size, camera, fix_skew=not estimate_skew,
+        result = calibrate(target_views, img_size, camera, fix_skew=not estimate_skew,
                            fix_k3=fix_k3, dot_radius_m=dot_radius_m)
         _report(result)
         figures = result.figures()
@@ -285,7 +293,7 @@ def register(app: typer.Typer) -> None:
             _write_rig(rig, result.camera, result)
             print(f"camera {camera} written to {rig}")
         if plot is not None:
-            uv = np.concatenate([v.uv for v in plane_views])
+            uv = np.concatenate([v.uv for v in target_views])
             write_bytes_atomic(plot, distortion_plot_png(result, uv))
         if json_path is not None:
             write_json(json_path, figures)
@@ -325,9 +333,9 @@ def _sim_command(sim_rig, cameras, volume, size, seed, camera, views, fill, rend
         truth = hardware[name]
         # each camera is held in front of the monitor its own way
         cfg = dataclasses.replace(cfg0, seed=seed + 1000 * hardware.index(name))
-        plane_views = _sim_views(truth, views, cfg, schedule, fill, render, noise_px,
+        target_views = _sim_views(truth, views, cfg, schedule, fill, render, noise_px,
                                  samples)
-        result = calibrate(plane_views, truth.size, name, fix_skew=not estimate_skew,
+        result = calibrate(target_views, truth.size, name, fix_skew=not estimate_skew,
                            fix_k3=fix_k3, dot_radius_m=radius * pitch / 1000.0)
         done.append((name, result, truth))
         if rig is not None:  # after every camera: an interruption keeps those done
@@ -347,7 +355,7 @@ def _sim_command(sim_rig, cameras, volume, size, seed, camera, views, fill, rend
         print(f"{'cameras' if len(names) > 1 else 'camera'} {', '.join(names)} written to "
               f"{rig} (true rig in {truth_rig_path(rig)})")
     if plot is not None:
-        uv = np.concatenate([v.uv for v in plane_views])
+        uv = np.concatenate([v.uv for v in target_views])
         write_bytes_atomic(plot, distortion_plot_png(done[0][1], uv))
     if json_path is not None:
         per = []

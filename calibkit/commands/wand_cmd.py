@@ -129,6 +129,11 @@ def register(app: typer.Typer) -> None:
             "--refine-intrinsics/--fix-intrinsics",
             help="Refine the intrinsics with the poses (held near the intrinsic step's "
                  "estimate by its uncertainty), or keep them as given.")] = True,
+        monitor_views: Annotated[bool, typer.Option(
+            "--monitor-views/--no-monitor-views",
+            help="When refining the intrinsics, solve with the intrinsic step's monitor "
+                 "views (the NAME.views.npz its rig file names), or with priors from its "
+                 "standard deviations only.")] = True,
         holdout: Annotated[float, typer.Option(
             "--holdout", help="Share of wand frames kept out of the solve to check it.")] = 0.1,
         floor_rec: Annotated[Path | None, typer.Option(
@@ -244,10 +249,18 @@ def register(app: typer.Typer) -> None:
                                                   spacing_m=spec.spacing_m)
         from calibkit.wand_solve import calibrate
 
+        views = None
+        if refine_intrinsics and monitor_views:
+            from calibkit import plane_views
+
+            views = plane_views.load_for(intr.quality, rig_path or intrinsics, intr.names)
+            if views is not None:
+                typer.echo(f"intrinsics refined with the intrinsic step's {len(views)} "
+                           f"monitor dots in {len(views.view_camera)} views")
         progress = Progress("wand solve, iterations")
         cal = calibrate(obs, intr, spec.spacing_m, initial, refine_intrinsics, holdout, seed,
                         world, progress=lambda text: progress.update(progress.done + 1, text),
-                        extra=extra)
+                        extra=extra, target_views=views)
         progress.finish(f"{cal.report['solve']['time_s']:.1f} s in the solver")
         cal.rig.save(out)
         if use_sim:
