@@ -156,7 +156,7 @@ class Compat:
         loose = (RIGID_REL * M + 0.02)[None, :, None, :]
         e2 = (Dz[:, None, :, None] - M[None, :, None, :]) / loose
         C = np.where(steady, np.maximum(C, RIGID_REWARD * np.exp(-0.5 * e2 * e2)), C)
-        C[~known] = 0.0
+        C *= known[:, None, :, None]
         ia, ib = np.arange(T), np.arange(n)
         C[ia, :, ia, :] = 0.0
         C[:, ib, :, ib] = 0.0
@@ -235,6 +235,7 @@ class BodyTerms:
         self.quads_of = [np.nonzero((self.quads == i).any(1))[0] for i in range(ms.n)]
         self.mods_of = [[k for k, m in enumerate(self.modules) if i in m] for i in range(ms.n)]
         self.mt = None
+        self._memo: dict[tuple, float] = {}
 
     def _votes(self, mt: np.ndarray, q: np.ndarray) -> np.ndarray:
         """Each quad's vote (+1 agrees with the set, -1 not, 0 unknown) among quads q."""
@@ -256,6 +257,13 @@ class BodyTerms:
         m = self.modules[k]
         if (mt[m] < 0).any():
             return 0.0
+        key = (k, *mt[m].tolist())
+        if key not in self._memo:
+            self._memo[key] = self._module_cost_of(mt, k)
+        return self._memo[key]
+
+    def _module_cost_of(self, mt: np.ndarray, k: int) -> float:
+        m = self.modules[k]
         x = np.swapaxes(self.X[mt[m]], 0, 1)                        # (f, k, 3)
         ok = np.isfinite(x).all((1, 2))
         if not ok.any():
@@ -359,21 +367,22 @@ def mirror_moves(ms: MarkerSet, twin: np.ndarray) -> list[np.ndarray]:
     return moves
 
 
-def _module_moves(ms: MarkerSet) -> list[np.ndarray]:
-    """Reorderings inside each rigid module of 3-5 markers (all its permutations)."""
+def _module_moves(terms: BodyTerms) -> list[tuple[np.ndarray, int]]:
+    """Reorderings inside each rigid module of 4-5 markers (all its permutations), with
+    the module's index in `terms`."""
     from itertools import permutations
     out = []
-    for m in rigid_modules(ms):
-        if 3 <= len(m) <= 5:
+    for k, m in enumerate(terms.modules):
+        if len(m) <= 5:
             for p in permutations(range(len(m))):
                 if p != tuple(range(len(m))):
-                    perm = np.arange(ms.n)
+                    perm = np.arange(terms.ms.n)
                     perm[m] = m[list(p)]
-                    out.append(perm)
+                    out.append((perm, k))
     return out
 
 
-def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[np.ndarray],
+def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
            rounds: int = 30, near: float = 2.0, max_swaps: int = 60
            ) -> tuple[np.ndarray, float]:
     """Local search on the whole-body score (compatibility, handedness and module
@@ -404,7 +413,9 @@ def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[np.ndarray],
             s = cur + d[x, y] + terms.change(m2)
             if s > best + 1e-6:
                 best, arg = s, m2
-        for perm in moves:
+        for perm, k in moves:
+            if k >= 0 and terms.cost[k] < len(terms.modules[k]):
+                continue                   # the module fits as it is: leave its order
             m2 = mt[perm]
             ch = np.nonzero(m2 != mt)[0]
             if not len(ch):
@@ -429,35 +440,53 @@ def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[np.ndarray],
     return P, cur
 
 
+def body_scale(D: np.ndarray, ms: MarkerSet) -> float:
+    """This body's size against the set's: the RMS distance between the window's tracks
+    over the RMS distance between the set's markers (posture moves it by a few per cent;
+    the compatibility allows for more)."""
+    iu = np.triu_indices(len(D), 1)
+    d = D[iu]
+    d = d[np.isfinite(d)]
+    m = ms.mean_m[np.triu_indices(ms.n, 1)]
+    if not len(d):
+        return 1.0
+    return float(np.clip(np.sqrt(np.mean(d ** 2) / np.mean(m ** 2)), 0.6, 1.6))
+
+
 def assign(X: np.ndarray, ms: MarkerSet, restarts: int = 6, seed: int = 0,
-           scales=(0.9, 1.0, 1.12), noise_m: float = 0.003, keep: int = 3
+           scales=(0.92, 1.0, 1.08), noise_m: float = 0.003, keep: int = 2
            ) -> tuple[np.ndarray, float]:
-    """The marker of each track (T,) (-1: none) for tracks X (T, W, 3), and its score."""
+    """The marker of each track (T,) (-1: none) for tracks X (T, W, 3), and its score.
+    Solutions are sought with the set scaled to this body's size and a little either
+    side of it, and all are scored (and polished) at this body's size."""
     T, n = X.shape[0], ms.n
     D, S = pair_stats(X)
+    size = body_scale(D, ms)
     twin = mirror_map(ms.labels)
-    moves = mirror_moves(ms, twin) + _module_moves(ms)
     terms = BodyTerms(X, ms, noise_m=noise_m)
+    moves = [(p, -1) for p in mirror_moves(ms, twin)] + _module_moves(terms)
     rng = np.random.default_rng(seed)
-    found: list[tuple[float, int, np.ndarray, Compat]] = []
+    judge = Compat(ms, D, S, size, noise_m)
+    found: list[tuple[float, int, np.ndarray]] = []
+    seen: set[bytes] = set()
     for scale in scales:
-        cp = Compat(ms, D, S, scale, noise_m)
+        cp = judge if scale == 1.0 else Compat(ms, D, S, size * scale, noise_m)
         starts = [np.full((T, n), 1.0 / n)]
         starts += [rng.random((T, n)) for _ in range(restarts - 1)]
-        seen: set[bytes] = set()
         for P0 in starts:
             P = refine(cp, _discrete(softassign(cp, P0)))
             for Q in (P, refine(cp, P[:, twin])):
+                Q = refine(judge, Q)
                 key = Q.tobytes()
                 if key in seen:
                     continue
                 seen.add(key)
-                total = cp.score(Q) + terms(_to_marker_track(Q))
-                found.append((total, len(found), Q, cp))
+                total = judge.score(Q) + terms(_to_marker_track(Q))
+                found.append((total, len(found), Q))
     found.sort(key=lambda f: -f[0])
     best = None
-    for _, _, Q, cp in found[:keep]:
-        Q, s = polish(cp, Q, terms, moves)
+    for _, _, Q in found[:keep]:
+        Q, s = polish(judge, Q, terms, moves)
         if best is None or s > best[0]:
             best = (s, Q)
     assert best is not None
