@@ -38,7 +38,7 @@ PLACEMENT_M = 0.012     # ... and by this much from markers stuck elsewhere (1 S
 RIGID_SD_M = 0.008      # pairs whose set spread is below this keep their distance
 RIGID_REL = 0.4        # ... and a rigid pair that stays rigid may differ by this fraction
 RIGID_REWARD = 0.7     # ... scoring at most this (a pair fitting the set's distance: 1)
-MODULE_WEIGHT = 1.0    # score per marker of a rigid module per unit chi-square of its shape
+MODULE_WEIGHT = 0.3    # score per marker of a rigid module per unit chi-square of its shape
 HAND_WEIGHT = 0.5       # score per handedness vote, in units of one well-fitting pair
 WINDOW = 60             # frames in the start window
 GATE_M = 0.05
@@ -253,23 +253,26 @@ class BodyTerms:
         return out
 
     def _module_cost(self, mt: np.ndarray, k: int) -> float:
-        """Markers x chi-square per marker (capped) of module k's shape, if labelled whole."""
-        m = self.modules[k]
-        if (mt[m] < 0).any():
-            return 0.0
-        key = (k, *mt[m].tolist())
+        """Markers x chi-square per marker (capped at 16) of module k's shape, fitted to
+        its labelled markers (3 or more); a member left unlabelled costs 1 (as much as
+        one that fits), so that leaving a marker out does not pay."""
+        key = (k, *mt[self.modules[k]].tolist())
         if key not in self._memo:
             self._memo[key] = self._module_cost_of(mt, k)
         return self._memo[key]
 
     def _module_cost_of(self, mt: np.ndarray, k: int) -> float:
         m = self.modules[k]
-        x = np.swapaxes(self.X[mt[m]], 0, 1)                        # (f, k, 3)
+        have = mt[m] >= 0
+        if have.sum() < 3:
+            return float(len(m))
+        x = np.swapaxes(self.X[mt[m[have]]], 0, 1)                  # (f, h, 3)
         ok = np.isfinite(x).all((1, 2))
         if not ok.any():
-            return 0.0
-        r2 = _scaled_proper_residual(self.shapes[k], x[ok])
-        return len(m) * min(float(np.median(r2)) / self.sigma[k] ** 2, 16.0)
+            return float(len(m))
+        r2 = _scaled_proper_residual(self.shapes[k][have], x[ok])
+        chi2 = min(float(np.median(r2)) / self.sigma[k] ** 2, 16.0)
+        return have.sum() * chi2 + (~have).sum()
 
     def __call__(self, mt: np.ndarray) -> float:
         """The terms' value for the labelling mt (marker -> track); remembered, so that
@@ -413,6 +416,19 @@ def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
             s = cur + d[x, y] + terms.change(m2)
             if s > best + 1e-6:
                 best, arg = s, m2
+        # a track taking a marker no track has (its own marker left free)
+        free = np.nonzero(mt < 0)[0]
+        if len(free):
+            d1 = G[a[:, None], free[None]] - G[a, i][:, None]
+            xs, ks = np.nonzero(np.isfinite(d1))
+            for x, k in zip(xs, ks, strict=True):
+                m2 = mt.copy()
+                m2[i[x]], m2[free[k]] = -1, a[x]
+                if cur + d1[x, k] + terms.gain_bound(m2) <= best + 1e-6:
+                    continue
+                s = cur + d1[x, k] + terms.change(m2)
+                if s > best + 1e-6:
+                    best, arg = s, m2
         for perm, k in moves:
             if k >= 0 and terms.cost[k] < len(terms.modules[k]):
                 continue                   # the module fits as it is: leave its order
@@ -433,7 +449,9 @@ def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
         Q = np.zeros_like(P)
         got = arg >= 0
         Q[arg[got], np.nonzero(got)[0]] = 1.0
-        P = refine(cp, Q)
+        R = refine(cp, Q)                 # the compatibility alone may undo the move:
+        r = cp.score(R) + terms(_to_marker_track(R))
+        P = R if r > best else Q          # keep its refinement only if the whole gains
         mt = _to_marker_track(P)
         base = cp.score(P)
         cur = base + terms(mt)
