@@ -37,10 +37,11 @@ SUBJECT_REL = 0.12      # another body: a distance may differ by this fraction (
 PLACEMENT_M = 0.012     # ... and by this much from markers stuck elsewhere (1 SD)
 RIGID_SD_M = 0.008      # pairs whose set spread is below this keep their distance
 RIGID_REL = 0.4        # ... and a rigid pair that stays rigid may differ by this fraction
-RIGID_REWARD = 0.7     # ... scoring at most this (a pair fitting the set's distance: 1)
+RIGID_REWARD = 0.7     # ... scoring at least this (a pair fitting the set's distance: 1)
+RIGID_BONUS = 0.5      # ... and this more: the window's rigidity is evidence of its own
 MODULE_WEIGHT = 0.3    # score per marker of a rigid module per unit chi-square of its shape
-HAND_WEIGHT = 0.5       # score per handedness vote, in units of one well-fitting pair
-WINDOW = 60             # frames in the start window
+HAND_WEIGHT = 1.0       # score per handedness vote, in units of one well-fitting pair
+WINDOW = 120             # frames in the start window
 GATE_M = 0.05
 
 
@@ -155,7 +156,8 @@ class Compat:
         steady = (Sz[:, None, :, None] <= allow[None, :, None, :]) & rigid[None, :, None, :]
         loose = (RIGID_REL * M + 0.02)[None, :, None, :]
         e2 = (Dz[:, None, :, None] - M[None, :, None, :]) / loose
-        C = np.where(steady, np.maximum(C, RIGID_REWARD * np.exp(-0.5 * e2 * e2)), C)
+        near = np.exp(-0.5 * e2 * e2)
+        C = np.where(steady, np.maximum(C, RIGID_REWARD * near) + RIGID_BONUS * near, C)
         C *= known[:, None, :, None]
         ia, ib = np.arange(T), np.arange(n)
         C[ia, :, ia, :] = 0.0
