@@ -200,7 +200,10 @@ class Labeller:
         seen = np.isfinite(xyz).all(2).any(0)
         self.known_frames[seen] = 10 ** 6
         self._tol_frames = -1
-        self.adapt_tol = 3.0 * np.sqrt(self.ms.sd_m ** 2 + 2 * self.noise_m ** 2) + 0.004
+        # pairs seen in the seed frames: this body's distances, known; pairs not seen
+        # (a marker hidden throughout): the set's, as loose as another subject's
+        self.adapt_tol = np.where(np.isfinite(med), 3.0 * np.sqrt(
+            self.ms.sd_m ** 2 + 2 * self.noise_m ** 2) + 0.004, _tolerance(self.ms, self.noise_m))
         self.nb_mean = self.mean_all[np.arange(self.n)[:, None], self.nb]
         self.adapted = True
         for k, (idx, _, perms) in enumerate(self.seg_checks):

@@ -48,7 +48,7 @@ GATE_M = 0.05
 # ---------------------------------------------------------------------- the window
 
 
-def link_window(frames: list[np.ndarray], gate_m: float = GATE_M, min_seen: float = 0.6
+def link_window(frames: list[np.ndarray], gate_m: float = GATE_M, min_seen: float = 0.3
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Points of consecutive frames linked into tracks: (T, W, 3) positions (NaN where a
     track has no point) and (T, W) the point's row in its frame (-1). A track follows the
