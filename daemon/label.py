@@ -1227,11 +1227,17 @@ def label_take(points: Points, ms: MarkerSet, rate_hz: float = 120.0,
         # tracked forward from the window's end and backward from its start
         w0, wl, wx = window_start(per_frame, ms, noise_m=lab.noise_m,
                                   merge_m=lab.merge_m)
-        W = len(wl)
-        for w in range(W):
-            out[w0 + w] = (wl[w], np.where(wl[w] >= 0, 0.5, 0.0))
+        # the tracker learns this body's distances and shapes from the whole window,
+        # then labels the window itself from its first two frames (markers the start
+        # left out, e.g. hidden for most of the window, are found on the way)
         lab.seed_take(wx)
-        order = list(range(w0 + W, len(frames)))
+        S = min(2, len(wl))
+        lab.seed(wx[0])
+        if S > 1:
+            lab.update_labelled(wx[1])
+        for w in range(S):
+            out[w0 + w] = (wl[w], np.where(wl[w] >= 0, 0.5, 0.0))
+        order = list(range(w0 + S, len(frames)))
         if w0 > 0:
             back = Labeller(ms, rate_hz, **(options or {}))
             back.seed_take(wx[::-1])

@@ -98,6 +98,40 @@ def link_window(frames: list[np.ndarray], gate_m: float = GATE_M, min_seen: floa
     return X, idx
 
 
+def join_fragments(X: np.ndarray, idx: np.ndarray, within_m: float = 0.015,
+                   near_m: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Tracks that are one marker lost for a while and found again, joined: two tracks
+    never seen in the same frame whose distances to the tracks near them (within
+    `near_m`) agree within `within_m` (median), closest first."""
+    while True:
+        T = len(X)
+        if T < 3:
+            return X, idx
+        seen = idx >= 0
+        D, _ = pair_stats(X)
+        together = (seen[:, None] & seen[None]).any(2)
+        best = None
+        for a in range(T):
+            for b in range(a + 1, T):
+                if together[a, b]:
+                    continue
+                c = np.isfinite(D[a]) & np.isfinite(D[b]) & (np.minimum(D[a], D[b]) < near_m)
+                c[[a, b]] = False
+                if c.sum() < 3:
+                    continue
+                e = float(np.median(np.abs(D[a, c] - D[b, c])))
+                if e < within_m and (best is None or e < best[0]):
+                    best = (e, a, b)
+        if best is None:
+            return X, idx
+        _, a, b = best
+        take = seen[b]
+        X[a, take] = X[b, take]
+        idx[a, take] = idx[b, take]
+        X = np.delete(X, b, axis=0)
+        idx = np.delete(idx, b, axis=0)
+
+
 def pair_stats(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mean distance and its SD (T, T) between tracks (T, W, 3) over the frames both are
     seen in (NaN for pairs never seen together)."""
@@ -538,7 +572,9 @@ def window_start(per_frame: list[np.ndarray], ms: MarkerSet, width: int = WINDOW
     counts = np.array([len(p) for p in per_frame])
     w0 = choose_window(counts, ms.n, width)
     frames = per_frame[w0:w0 + width]
-    X, idx = link_window(frames)
+    X, idx = join_fragments(*link_window(frames, min_seen=0.1))
+    keep = (idx >= 0).sum(1) >= 0.3 * len(frames)     # ghosts (and scraps) fall out
+    X, idx = X[keep], idx[keep]
     lab, _ = assign(X, ms, noise_m=noise_m) if len(X) >= 3 else (np.full(len(X), -1), 0.0)
     W = len(frames)
     labels = [np.full(len(p), -1) for p in frames]
