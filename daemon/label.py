@@ -5,8 +5,9 @@ Here a whole take (`label_take`) starts from one global assignment on a window o
 (daemon/label_start.py), and the live per-frame API from that matching on one frame
 (`initial_labels`); after that every marker is tracked: predicted from its velocity,
 assigned to the nearest point by one global assignment, checked against its steadiest
-neighbours' distances (which rejects ghosts and swaps), and a marker that was lost is predicted from its neighbours' rigid motion since it
-was last seen (the shape carried along), so it is re-identified when it reappears.
+neighbours' distances (which rejects ghosts and swaps), and a marker that was lost is
+predicted from its neighbours' rigid motion since it was last seen (the shape carried
+along), so it is re-identified when it reappears.
 
 Live use (one frame at a time, e.g. in the daemon's pipeline):
 
