@@ -1,11 +1,13 @@
 """Labelling unlabelled 3D points with a marker set: tracking, structure checks, ghosts.
 
 The third seed labelled each frame from scratch by matching modules by their distances.
-Here that matching only starts a take (`initial_labels`); after that every marker is
-tracked: predicted from its velocity, assigned to the nearest point by one global
-assignment, checked against its steadiest neighbours' distances (which rejects ghosts and
-swaps), and a marker that was lost is predicted from its neighbours' rigid motion since it
-was last seen (the shape carried along), so it is re-identified when it reappears.
+Here a whole take (`label_take`) starts from one global assignment on a window of frames
+(daemon/label_start.py), and the live per-frame API from that matching on one frame
+(`initial_labels`); after that every marker is tracked: predicted from its velocity,
+assigned to the nearest point by one global assignment, checked against its steadiest
+neighbours' distances (which rejects ghosts and swaps), and a marker that was lost is
+predicted from its neighbours' rigid motion since it was last seen (the shape carried
+along), so it is re-identified when it reappears.
 
 Live use (one frame at a time, e.g. in the daemon's pipeline):
 
@@ -34,6 +36,7 @@ from daemon.label_modules import (
     rigid_residuals,
     template_sigma,
 )
+from daemon.label_start import window_start
 from daemon.markerset import MarkerSet, signed_volume
 
 K_NEIGHBOURS = 6
@@ -199,7 +202,10 @@ class Labeller:
         seen = np.isfinite(xyz).all(2).any(0)
         self.known_frames[seen] = 10 ** 6
         self._tol_frames = -1
-        self.adapt_tol = 3.0 * np.sqrt(self.ms.sd_m ** 2 + 2 * self.noise_m ** 2) + 0.004
+        # pairs seen in the seed frames: this body's distances, known; pairs not seen
+        # (a marker hidden throughout): the set's, as loose as another subject's
+        self.adapt_tol = np.where(np.isfinite(med), 3.0 * np.sqrt(
+            self.ms.sd_m ** 2 + 2 * self.noise_m ** 2) + 0.004, _tolerance(self.ms, self.noise_m))
         self.nb_mean = self.mean_all[np.arange(self.n)[:, None], self.nb]
         self.adapted = True
         for k, (idx, _, perms) in enumerate(self.seg_checks):
@@ -1216,34 +1222,33 @@ def label_take(points: Points, ms: MarkerSet, rate_hz: float = 120.0,
         for f in range(start):
             labels_out.append(np.full(len(per_frame[f]), -2))
     order = list(range(start, len(frames)))
-    backward: list[int] = []
-    started: tuple[int, np.ndarray] | None = None
-    if start == 0 and len(frames) and start_frames > 1:
-        # from the template alone: start at the frame among the first few that the
-        # marker set explains best, track forward from it and backward to the start
-        tries = list(range(0, min(len(frames), start_frames * 10), 10))
-        results = [_initial_as_one(per_frame[i], ms, lab.merge_m) for i in tries]
-        best = int(np.argmin([r[1] for r in results]))
-        f0 = tries[best]
-        lab.start(per_frame[f0], results[best][0])
-        started = (f0, results[best][0])
-        order = list(range(f0, len(frames)))
-        backward = list(range(f0 - 1, -1, -1))
     out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    if start == 0 and len(frames) and start_frames > 1:
+        # from the marker set alone: one global assignment on a window of frames
+        # (daemon/label_start.py), handed to the tracker as labelled start frames, then
+        # tracked forward from the window's end and backward from its start
+        w0, wl, wx = window_start(per_frame, ms, noise_m=lab.noise_m,
+                                  merge_m=lab.merge_m)
+        # the tracker learns this body's distances and shapes from the whole window,
+        # then labels the window itself from its first two frames (markers the start
+        # left out, e.g. hidden for most of the window, are found on the way)
+        lab.seed_take(wx)
+        S = min(2, len(wl))
+        lab.seed(wx[0])
+        if S > 1:
+            lab.update_labelled(wx[1])
+        for w in range(S):
+            out[w0 + w] = (wl[w], np.where(wl[w] >= 0, 0.5, 0.0))
+        order = list(range(w0 + S, len(frames)))
+        if w0 > 0:
+            back = Labeller(ms, rate_hz, **(options or {}))
+            back.seed_take(wx[::-1])
+            for i in range(w0 - 1, -1, -1):
+                out[i] = back.update(per_frame[i])
     for n_done, i in enumerate(order):
-        if started is not None and i == started[0]:
-            m = started[1]
-            c = np.where(m >= 0, 0.5, 0.0)
-        else:
-            m, c = lab.update(per_frame[i])
-        out[i] = (m, c)
+        out[i] = lab.update(per_frame[i])
         if progress is not None and n_done % 200 == 0:
             progress.update(n_done)
-    if backward:
-        back = Labeller(ms, rate_hz, **(options or {}))
-        back.start(per_frame[order[0]], out[order[0]][0])
-        for i in backward:
-            out[i] = back.update(per_frame[i])
     for i in range(start, len(frames)):
         P = per_frame[i]
         m, c = out[i]

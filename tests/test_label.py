@@ -276,14 +276,15 @@ def test_module_order_from_the_marker_sets_shape(cmu41, acro):
 
 
 def test_start_from_the_marker_set_alone_with_occlusions(cmu41):
-    """85_02 from the marker set alone (no labelled frame), 20 % hidden and 3 ghosts per
-    frame, pattern 0: the start's feet came out turned around their tetrahedra and
-    stayed so (85.1 %); with the start's module order checked, 99 %."""
+    """85_02 from the marker set alone (no labelled frame), 10 % hidden in 0.1-1 s spans
+    and 2 ghosts per frame, pattern 0 (the issue's target from the set alone: 95 %)."""
     full = read_c3d(DATA / "85_02.c3d").select(cmu41.labels)
-    hidden = hide_spans(full, 0.2, seed=0)
-    pts, truth = points_with_ghosts(hidden, 3, seed=0)
+    hidden = hide_spans(full, 0.1, seed=0)
+    pts, truth = points_with_ghosts(hidden, 2, seed=0)
     _, _, labels = label_take(pts, cmu41, full.rate_hz)
-    assert score(pts, truth, labels)["correct"] >= 0.98
+    s = score(pts, truth, labels)
+    assert s["correct"] >= 0.98, s
+    assert 1 - s["correct"] - s["unlabelled"] <= 0.005, s
 
 
 def test_skipped_frames_are_predicted_over(cmu41, acro):
