@@ -790,6 +790,7 @@ class Daemon:
             out["multiplexer"] = self.mux_stats()
         if self.evaluator is not None:
             out["truth"] = self.evaluator.figures()
+            out["truth"]["tracking_rig"] = self.tracking_rig_note()
         if self._learned is not None:
             out["bodies_defined_live"] = {
                 "file": None if self.learned_path is None else str(self.learned_path),
@@ -803,6 +804,19 @@ class Daemon:
             out["labelling"] = {k: st[k] for k in ("markerset", "frames", "starts", "failures",
                                                    "time_ms_median", "time_ms_p99")}
         return out
+
+    def tracking_rig_note(self) -> str:
+        """Which cameras a simulated run tracked with, said beside its figures: a
+        calibrated rig file, or (no rig given) the simulator's own cameras, whose figures
+        are those of a perfect calibration."""
+        cfg = self.config
+        if self._truth_rig is not None:
+            return f"calibrated: {cfg.rig or 'the rig given'} (blobs from the --truth-rig)"
+        if cfg.rig is not None:
+            return (f"{cfg.rig}, which also made the blobs (a perfect calibration; give "
+                    "--truth-rig for the true cameras, or run `calibkit demo`)")
+        return ("the simulator's own cameras (a perfect calibration; give a calibrated --rig "
+                "and the --truth-rig, or run `calibkit demo`)")
 
     def mux_stats(self) -> dict | None:
         mux = getattr(self, "mux", None)

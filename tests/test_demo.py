@@ -38,6 +38,7 @@ def test_demo_calibrates_reconstructs_and_tracks(tmp_path, calibkit_cli) -> None
     assert track["frames"] == 60
     assert track["truth"]["position_error_mm_rms"] < 5.0
     assert track["truth"]["body_swaps"] == 0
+    assert track["truth"]["tracking_rig"].startswith("calibrated:")  # the wand's rig
     # the bodies were defined live from the blobs, as a user would (not the simulator's)
     assert len(track["bodies_defined_live"]["bodies"]) == 3
     assert (out / "rt" / "sim-bodies.toml").exists()

@@ -256,7 +256,7 @@ def _report(fig: dict) -> None:
                    + (f"; written to {live['file']}" if live["file"] else ""))
     truth = fig.get("truth")
     if truth and truth["bodies"]:
-        typer.echo("")
+        typer.echo(f"\ntracked with {truth['tracking_rig']}")
         print_table([[name, b.get("defined_as") or "-", round(100 * b["valid_fraction"], 1),
                       b["position_error_mm_rms"] if b["position_error_mm_rms"] is not None
                       else float("nan"),
