@@ -594,6 +594,10 @@ class Daemon:
                 self.pipeline.process(fs)
             elif idle:  # no set waiting: the scorers' turn, one frame at a time
                 self.pipeline.run_idle(1)
+                # let the capture threads in: this loop holds the interpreter lock while
+                # it works through a backlog, and a thread waiting for it would otherwise
+                # wait out the 5 ms switch interval with its camera's frame in hand
+                time.sleep(0)
                 continue
             elif not any(c.thread.is_alive() for c in self.captures):
                 log.info("every source has ended")
