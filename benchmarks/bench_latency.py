@@ -40,6 +40,22 @@ ROOT = Path(__file__).resolve().parents[1]
 FPS, N_CAMERAS, N_BODIES, PER_BODY, NOISE_PX = 240.0, 8, 10, 5, 0.2
 
 
+def receive_latencies(proc, rx) -> tuple[list[int], list[int]]:
+    """Until the daemon `proc` ends: per packet on `rx`, capture to our receipt (ns; one
+    monotonic clock on this machine) and the daemon's own latency field."""
+    lat, daemon_lat = [], []
+    while proc.poll() is None:
+        try:
+            data = rx.recv(65536)
+        except TimeoutError:
+            continue
+        now = time.monotonic_ns()
+        p = decode(data)
+        lat.append(now - p.t_ns)
+        daemon_lat.append(p.latency_ns)
+    return lat, daemon_lat
+
+
 def one_run(seconds: float, env: dict, extra: list[str]) -> dict:
     rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     rx.bind(("127.0.0.1", 0))
@@ -55,17 +71,8 @@ def one_run(seconds: float, env: dict, extra: list[str]) -> dict:
     root = env.get("ROOT", str(ROOT))  # another checkout's daemon (its own imports)
     proc = subprocess.Popen(cmd, cwd=root, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                             env={**os.environ, "PYTHONPATH": root, **env})
-    lat, daemon_lat = [], []
     try:
-        while proc.poll() is None:
-            try:
-                data = rx.recv(65536)
-            except TimeoutError:
-                continue
-            now = time.monotonic_ns()
-            p = decode(data)
-            lat.append(now - p.t_ns)
-            daemon_lat.append(p.latency_ns)
+        lat, daemon_lat = receive_latencies(proc, rx)
     finally:
         err = proc.communicate()[1]
         cfg.unlink(missing_ok=True)

@@ -51,7 +51,6 @@ from calibkit.correspondence import match_frame
 from calibkit.synthetic import sim
 from daemon.config import SimConfig
 from daemon.pipeline import FrameSet, Pipeline
-from daemon.publish.packet import decode
 from daemon.rigid import BodyDef, RigidConfig
 from daemon.rigid_define import body_from_snapshots
 from daemon.sources import CameraSample
@@ -276,17 +275,11 @@ def latency(seconds: float, size: str, nice: int = 0) -> dict:
     cfg.write_text(f"[sim]\nmarkers_per_body = {PER_BODY}\nsize = [{w}, {h}]\n")
     proc = subprocess.Popen(cmd + ["--config", str(cfg)], cwd=ROOT, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE)
-    lat, daemon_lat = [], []
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bench_latency import receive_latencies
+
     try:
-        while proc.poll() is None:
-            try:
-                data = rx.recv(65536)
-            except TimeoutError:
-                continue
-            now = time.monotonic_ns()
-            p = decode(data)
-            lat.append(now - p.t_ns)
-            daemon_lat.append(p.latency_ns)
+        lat, daemon_lat = receive_latencies(proc, rx)
     finally:
         proc.wait()
         cfg.unlink(missing_ok=True)
