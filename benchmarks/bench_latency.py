@@ -62,7 +62,9 @@ def one_run(seconds: float, env: dict, extra: list[str]) -> dict:
     rx.settimeout(0.5)
     port = rx.getsockname()[1]
     cfg = ROOT / "benchmarks" / f".bench_latency_{port}.toml"
-    cfg.write_text(f"[sim]\nmarkers_per_body = {PER_BODY}\n")
+    # SCORE=0 (a variant): no truth scoring, the daemon's own cost alone
+    score = "false" if env.get("SCORE") == "0" else "true"
+    cfg.write_text(f"[sim]\nmarkers_per_body = {PER_BODY}\nscore = {score}\n")
     cmd = [sys.executable, "-m", "daemon.cli", "start", "--sim", "--config", str(cfg),
            "--sim-cameras", str(N_CAMERAS), "--sim-bodies", str(N_BODIES),
            "--sim-fps", str(FPS), "--noise-px", str(NOISE_PX),

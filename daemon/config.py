@@ -14,7 +14,7 @@ opens. docs/daemon.md documents every key.
     [rigid]     distance_tol_m, max_error_m
     [sim]       cameras, bodies, markers_per_body, extra_markers, fps, noise_px, dropout,
                 ghosts, volume_m, size, seed, realtime, drop_camera, drop_from_s, drop_for_s,
-                define_bodies, person, person_radius_m, unsync_ms, open_spread_s,
+                define_bodies, score, person, person_radius_m, unsync_ms, open_spread_s,
                 clock_drift_ppm
     [[rigid_body]] name, id, markers = [[x, y, z], ...], pivot, min_markers_start,
                    min_markers_keep, smoothing
@@ -67,6 +67,7 @@ class SimConfig:
     drop_from_s: float = 0.5
     drop_for_s: float = 0.5
     define_bodies: bool = True  # none configured: define the scene's bodies live at the start
+    score: bool = True  # score each frame against the truth (off: the daemon's own cost alone)
     person: bool = False  # a person wearing the 41-marker set walks a circle (sim_person)
     person_radius_m: float = 1.0  # radius of that circle, about the volume's centre
     unsync_ms: float = 0.0  # cameras' clocks offset by up to this: unsynchronised cameras

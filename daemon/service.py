@@ -310,7 +310,7 @@ class Daemon:
         self.tracker_config = self._tracker_config(cfg)
         bodies = self._bodies(cfg)
         self._warn_alike(bodies)
-        if cfg.sim is not None:  # scored against the scene's bodies, matched by geometry
+        if cfg.sim is not None and cfg.sim.score:  # against the scene's bodies, by shape
             # greedy sets mix instants by design (moved to one time): not checked
             self.evaluator = Evaluator(self.scene, bodies=bodies,
                                        check_instants=cfg.mode == "triggered"

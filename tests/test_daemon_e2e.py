@@ -476,3 +476,16 @@ def _check_live_mcap(path, bodies) -> None:
     held = [s["color"]["g"] > 0.7 for _, _, m in topics["/mocap/markers"]
             for s in m["entities"][0]["spheres"]]
     assert any(held)
+
+
+def test_sim_without_scoring_runs_the_daemon_alone(tmp_path, mocapd_cli):
+    """`[sim] score = false`: the simulator feeds the daemon, nothing compares with the
+    truth (what a latency measurement of the daemon's own cost wants)."""
+    cfg = tmp_path / "mocapd.toml"
+    cfg.write_text("[sim]\ncameras = 4\nbodies = 2\nscore = false\n")
+    r = mocapd_cli("start", "--config", cfg, "--fast", "--frames", 60, "--json",
+                   tmp_path / "f.json", "--runtime-dir", tmp_path / "rt")
+    assert r.code == 0, r.err
+    fig = json.loads((tmp_path / "f.json").read_text())
+    assert fig["frames"] == 60 and "truth" not in fig
+    assert all(v > 0.5 for v in fig["bodies_valid_fraction"].values())
