@@ -7,7 +7,6 @@ import os
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -121,26 +120,34 @@ def _free_udp_port() -> int:
         return s.getsockname()[1]
 
 
-def test_head_tracking_against_the_simulated_daemon(tmp_path):
+EXAMPLES_ENV = dict(os.environ, PYTHONPATH=f"{ROOT}{os.pathsep}{ROOT / 'examples'}")
+
+
+def run_against_sim_daemon(tmp_path, example: str, *args) -> subprocess.CompletedProcess:
+    """`mocapd start` on a simulated 4-camera rig sending UDP to a free loopback port, and
+    the example run against it (`--port` given); the daemon stopped after."""
     port = _free_udp_port()
     cfg = tmp_path / "mocapd.toml"
     cfg.write_text(f'[sim]\ncameras = 4\nbodies = 2\nfps = 100\n'
                    f'[[udp]]\naddress = "127.0.0.1:{port}"\n')
-    env = dict(os.environ, PYTHONPATH=f"{ROOT}{os.pathsep}{ROOT / 'examples'}")
     daemon = subprocess.Popen([sys.executable, "-m", "daemon.cli", "start", "--config", cfg,
                                "--duration", "60", "--runtime-dir", tmp_path],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                              env=EXAMPLES_ENV)
     try:
-        time.sleep(0.5)
-        screen = " ".join(",".join(f"{v:g}" for v in p) for p in (LL, LR, UL))
-        run = subprocess.run([sys.executable, str(ROOT / "examples" / "head_tracking.py"),
-                              "--port", str(port), "--body", "1", "--screen", screen,
-                              "--frames", "5", "--width", "160", "--timeout", "30",
-                              "--out", tmp_path / "views"],
-                             capture_output=True, text=True, env=env, timeout=120)
+        return subprocess.run([sys.executable, str(ROOT / "examples" / example),
+                               "--port", str(port), *map(str, args)],
+                              capture_output=True, text=True, env=EXAMPLES_ENV, timeout=120)
     finally:
         daemon.terminate()
         daemon.communicate(timeout=30)
+
+
+def test_head_tracking_against_the_simulated_daemon(tmp_path):
+    screen = " ".join(",".join(f"{v:g}" for v in p) for p in (LL, LR, UL))
+    run = run_against_sim_daemon(tmp_path, "head_tracking.py", "--body", 1, "--screen",
+                                 screen, "--frames", 5, "--width", 160, "--timeout", 30,
+                                 "--out", tmp_path / "views")
     assert run.returncode == 0, run.stderr
     eyes = np.array([[float(v) for v in line.split("eye")[1].split()]
                      for line in run.stdout.splitlines() if " eye " in line])
@@ -206,23 +213,9 @@ def test_ply_round_trip(tmp_path):
 
 
 def test_paint3d_against_the_simulated_daemon(tmp_path):
-    port = _free_udp_port()
-    cfg = tmp_path / "mocapd.toml"
-    cfg.write_text(f'[sim]\ncameras = 4\nbodies = 2\nfps = 100\n'
-                   f'[[udp]]\naddress = "127.0.0.1:{port}"\n')
-    env = dict(os.environ, PYTHONPATH=f"{ROOT}{os.pathsep}{ROOT / 'examples'}")
-    daemon = subprocess.Popen([sys.executable, "-m", "daemon.cli", "start", "--config", cfg,
-                               "--duration", "60", "--runtime-dir", tmp_path],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
-    try:
-        run = subprocess.run([sys.executable, str(ROOT / "examples" / "paint3d.py"),
-                              "--port", str(port), "--body", "1", "--tip", "0,0,0.1",
-                              "--seconds", "3", "--timeout", "30",
-                              "--out", tmp_path / "painting.ply"],
-                             capture_output=True, text=True, env=env, timeout=120)
-    finally:
-        daemon.terminate()
-        daemon.communicate(timeout=30)
+    run = run_against_sim_daemon(tmp_path, "paint3d.py", "--body", 1, "--tip", "0,0,0.1",
+                                 "--seconds", 3, "--timeout", 30,
+                                 "--out", tmp_path / "painting.ply")
     assert run.returncode == 0, run.stderr
     v, e = paint3d.read_ply(tmp_path / "painting.ply")
     assert len(v) > 20 and len(e) >= len(v) // 2
