@@ -52,6 +52,11 @@ class FrameResult:
     samples: list | None = None
     labelled: object | None = None  # what the labelling stage made of the tracks, if any
 
+    def held_by_bodies(self) -> np.ndarray:
+        """(T,) whether a rigid body holds each track this frame."""
+        taken = self.poses.tracks
+        return np.isin(self.tracks.ids, taken[taken >= 0])
+
 
 # ---- capture ---------------------------------------------------------------------------------
 

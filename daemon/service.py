@@ -729,8 +729,7 @@ class Daemon:
         res = self.pipeline.last_result
         if res is None:
             return {"markers": []}
-        tr, poses = res.tracks, res.poses
-        taken = np.isin(tr.ids, poses.tracks[poses.tracks >= 0])
+        tr, taken = res.tracks, res.held_by_bodies()
         sel = tr.seen
         return {"markers": [{"id": int(i), "xyz": [float(v) for v in p], "body": bool(t)}
                             for i, p, t in zip(tr.ids[sel], tr.xyz[sel], taken[sel],

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
-
 from daemon.mcap_poses import McapPoseWriter
 from daemon.publish.base import Publisher
 
@@ -27,7 +25,7 @@ class McapRecorderPublisher(Publisher):
 
     def send(self, result) -> None:
         poses, tracks = result.poses, result.tracks
-        held = np.isin(tracks.ids, poses.tracks[poses.tracks >= 0])
+        held = result.held_by_bodies()
         self.writer.write(int(result.t_ns) + self._wall_offset_ns, poses.valid,
                           poses.position, poses.quaternion, tracks.xyz[tracks.seen],
                           held[tracks.seen])
