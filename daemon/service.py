@@ -714,6 +714,9 @@ class Daemon:
         if self.recorder is not None:
             raise UserError(f"already recording to {self.recorder.path}; "
                             "`mocapd record --stop` first")
+        if Path(path).suffix.lower() not in (".mcrec", ".mcap"):
+            raise UserError(f"{path}: record to a .mcrec (the blobs, for replay) or a .mcap "
+                            "(poses and markers, for Foxglove)")
         if Path(path).suffix.lower() == ".mcap":
             rec = McapRecorderPublisher(Path(path), [b.name for b in self.pipeline.rigid.bodies])
         else:

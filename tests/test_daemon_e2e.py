@@ -115,6 +115,9 @@ def test_live_daemon_outputs_control_reload_and_stop(tmp_path, mocapd_cli):
         time.sleep(0.3)
         r = mocapd_cli("record", "--stop", "--runtime-dir", rt)
         assert r.code == 0 and "recorded" in r.out
+        # another kind of file is refused in one line, and nothing is recorded
+        r = mocapd_cli("record", tmp_path / "rec.txt", "--runtime-dir", rt)
+        assert r.code == 2 and ".mcrec" in r.err and not (tmp_path / "rec.txt").exists()
         # poses and markers as MCAP (Foxglove's schemas) while the stream goes on
         assert mocapd_cli("record", tmp_path / "live.mcap", "--runtime-dir", rt).code == 0
         time.sleep(0.5)
