@@ -26,15 +26,15 @@ import cv2
 import numpy as np
 
 from calibkit.clitools import print_table, write_json
-from calibkit.detect import (
+from calibkit.synthetic.spots import render_spots, render_spots_float
+from calibkit.synthetic.truthcheck import match_to_truth
+from calibkit.vision.detect import (
     DetectorConfig,
     auto_threshold,
     detect,
     detect_reference,
 )
-from calibkit.masks import build_mask
-from calibkit.synthetic.spots import render_spots, render_spots_float
-from calibkit.synthetic.truthcheck import match_to_truth
+from calibkit.vision.masks import build_mask
 
 SIZE = (640, 480)
 N_MARKERS = 40

@@ -1,17 +1,17 @@
 """Projector extrinsics: camera pose errors, ray distances and capture time on the simulator.
 
-Scene (issue 5's target): 6 cameras round a 4 x 4 m floor, a ceiling projector
-(1280 x 800, 60 degrees, k1 = 0.02), a 1.6 x 0.9 m table at 0.75 m; 0.2 px centroid noise,
-5 mm (per axis) error in the tape-measured reference points (16 on the floor, 5 on the
-table). Each variant runs on `--seeds` scenes (different rigs, projector placements and
-tape errors); the table gives the median and the worst camera of each run, the median
+Scene (the one docs/extrinsic.md sets its targets on): 6 cameras round a 4 x 4 m floor, a
+ceiling projector (1280 x 800, 60 degrees, k1 = 0.02), a 1.6 x 0.9 m table at 0.75 m; 0.2 px
+centroid noise, 5 mm (per axis) error in the tape-measured reference points (16 on the
+floor, 5 on the table). Each variant runs on `--seeds` scenes (different rigs, projector
+placements and tape errors); the table gives the median and the worst camera of each run, the median
 over runs of the mean ray distance at the floor and at 1.7 m (points seen exactly by the
 true cameras, cast back by the calibrated ones), and the median solve time. Ratios are
 against the baseline run in the same process: floor dots only, each camera on its own
 (PnP), as the original work did before it added the table.
 
 The estimate starts from estimated intrinsics, as a user's does: each camera calibrated by
-the intrinsic step on its own simulated monitor views (calibkit.intrinsic.calibrate on the
+the intrinsic step on its own simulated monitor views (calibkit.calibrate.intrinsic.calibrate on the
 captured dots, as `calibkit intrinsic --sim --no-render` with its defaults: 6 views, dots
 every 80 screen px shifted twice, 0.035 px centroid noise), poses unknown. One row,
 labelled as such, repeats the default variant from the simulator's true intrinsics: the
@@ -33,9 +33,11 @@ import time
 
 import numpy as np
 
-from calibkit import extrinsic as ex
+from calibkit.calibrate import extrinsic_capture as exc
+from calibkit.calibrate import extrinsic_reference as exr
+from calibkit.calibrate import extrinsic_solve as exs
+from calibkit.calibrate.compare import compare_rigs
 from calibkit.clitools import print_table, write_json
-from calibkit.compare import compare_rigs
 from calibkit.synthetic import projector as sp
 from projector.patterns import coded_schedule
 
@@ -75,8 +77,8 @@ def monitor_intrinsics(rig, seed: int):
     """Every camera's intrinsics as the monitor step estimates them (no poses), and the
     worst focal (%) and principal point (px) error against the truth; cached per seed."""
     if seed not in _INTRINSICS:
-        from calibkit.camera import Rig
-        from calibkit.intrinsic import calibrate, monitor_plane_view
+        from calibkit.calibrate.intrinsic import calibrate, monitor_plane_view
+        from calibkit.core.camera import Rig
         from calibkit.synthetic.monitor import MonitorSimConfig, make_monitor_sim, projected_dots
 
         cams, focal, centre = [], 0.0, 0.0
@@ -101,26 +103,26 @@ def monitor_intrinsics(rig, seed: int):
 
 def run(v: Variant, seed: int, noise_px: float = 0.2) -> dict:
     scene = sp.make_scene(6, VOLUME, 0.75, seed=seed)
-    m = sp.measured_references(scene, ex.reference_layout_px(PROJ, v.n_refs),
+    m = sp.measured_references(scene, exr.reference_layout_px(PROJ, v.n_refs),
                                sp.table_reference_px(scene), v.ref_error_m, v.height_error_m,
                                seed=seed)
-    refs = ex.References(m["floor_px"], m["floor_xy_m"],
+    refs = exr.References(m["floor_px"], m["floor_xy_m"],
                          m["table_px"] if v.table else np.zeros((0, 2)),
                          m["table_xy_m"] if v.table else np.zeros((0, 2)),
                          m["table_height_m"] if v.table else None)
-    floor, table = ex.plane_maps(refs)
+    floor, table = exr.plane_maps(refs)
     sch = coded_schedule(PROJ, 64, 2, 8)
     fd = sp.simulated_dots(scene, sch.points_xy, False, noise_px, seed=seed)
     td = None
     if table is not None:
-        tsch = ex.table_schedule(sch, table)
+        tsch = exr.table_schedule(sch, table)
         td = sp.simulated_dots(scene, sch.points_xy, True, noise_px, seed=seed + 1,
                                shown=np.concatenate(tsch.layers))
-    dots = ex.assemble(scene.rig.names, fd, td, sch, floor, table)
+    dots = exc.assemble(scene.rig.names, fd, td, sch, floor, table)
     intrinsics = scene.rig if isinstance(v, TrueIntrinsics) else \
         monitor_intrinsics(scene.rig, seed)[0]
     t0 = time.perf_counter()
-    res = ex.calibrate(intrinsics, dots, floor, table, ex.SolveOptions(joint=v.joint))
+    res = exs.calibrate(intrinsics, dots, floor, table, exs.SolveOptions(joint=v.joint))
     dt = time.perf_counter() - t0
     cmp = compare_rigs(scene.rig, res.rig, align=False)
     pos = [c["position_mm"] for c in cmp["cameras"]]
@@ -134,30 +136,30 @@ def run(v: Variant, seed: int, noise_px: float = 0.2) -> dict:
 def with_wand(seed: int, n_frames: int) -> dict:
     """The default calibration, then a wand dance (true labels, 0.2 px) solved together
     with the plane dots (extrinsic.bundle_data + join_bundle_data), no world transform."""
-    from calibkit import bundle
+    from calibkit.calibrate import bundle
+    from calibkit.calibrate.wand_solve import labelled_wand_data
     from calibkit.synthetic import sim
-    from calibkit.wand_solve import labelled_wand_data
 
     v = Variant("default")
     scene = sp.make_scene(6, VOLUME, 0.75, seed=seed)
-    m = sp.measured_references(scene, ex.reference_layout_px(PROJ), sp.table_reference_px(scene),
+    m = sp.measured_references(scene, exr.reference_layout_px(PROJ), sp.table_reference_px(scene),
                                v.ref_error_m, seed=seed)
-    refs = ex.References(m["floor_px"], m["floor_xy_m"], m["table_px"], m["table_xy_m"],
+    refs = exr.References(m["floor_px"], m["floor_xy_m"], m["table_px"], m["table_xy_m"],
                          m["table_height_m"])
-    floor, table = ex.plane_maps(refs)
+    floor, table = exr.plane_maps(refs)
     sch = coded_schedule(PROJ, 64, 2, 8)
-    tsch = ex.table_schedule(sch, table)
+    tsch = exr.table_schedule(sch, table)
     fd = sp.simulated_dots(scene, sch.points_xy, False, 0.2, seed=seed)
     td = sp.simulated_dots(scene, sch.points_xy, True, 0.2, seed=seed + 1,
                            shown=np.concatenate(tsch.layers))
-    res = ex.calibrate(monitor_intrinsics(scene.rig, seed)[0],
-                       ex.assemble(scene.rig.names, fd, td, sch, floor, table), floor, table)
+    res = exs.calibrate(monitor_intrinsics(scene.rig, seed)[0],
+                       exc.assemble(scene.rig.names, fd, td, sch, floor, table), floor, table)
     spacing = (0.0, 0.2, 0.5)
     obs = sim.observe(scene.rig, sim.wand_motion(n_frames, 100.0, VOLUME, spacing, seed=seed),
                       noise_px=0.2, seed=seed)
     wand = labelled_wand_data(res.rig, obs, spacing)
     t0 = time.perf_counter()
-    out = bundle.solve(ex.join_bundle_data(wand, ex.bundle_data(
+    out = bundle.solve(exs.join_bundle_data(wand, exs.bundle_data(
         res.rig, res.dots.select(res.inlier))), bundle.BundleOptions(
         known_sigma_m=0.005, plane_sigma_m=0.002, noise_px=0.3))
     dt = time.perf_counter() - t0
@@ -174,21 +176,21 @@ def with_wand(seed: int, n_frames: int) -> dict:
 def rendered(seed: int) -> dict:
     """One full capture through rendered images: frames per session and wall time."""
     scene = sp.make_scene(6, VOLUME, 0.75, seed=seed)
-    m = sp.measured_references(scene, ex.reference_layout_px(PROJ), sp.table_reference_px(scene),
+    m = sp.measured_references(scene, exr.reference_layout_px(PROJ), sp.table_reference_px(scene),
                                0.005, seed=seed)
-    refs = ex.References(m["floor_px"], m["floor_xy_m"], m["table_px"], m["table_xy_m"],
+    refs = exr.References(m["floor_px"], m["floor_xy_m"], m["table_px"], m["table_xy_m"],
                          m["table_height_m"])
-    floor, table = ex.plane_maps(refs)
+    floor, table = exr.plane_maps(refs)
     sch = coded_schedule(PROJ, 64, 2, 8)
-    tsch = ex.table_schedule(sch, table)
+    tsch = exr.table_schedule(sch, table)
     t0 = time.perf_counter()
     with sp.ProjectorRigSim(scene, sp.ProjectorSimConfig(seed=seed)) as dev:
-        fcap = ex.capture_session(dev, sch, 6)
+        fcap = exc.capture_session(dev, sch, 6)
         dev.set_table(True)
-        tcap = ex.capture_session(dev, tsch, 6, latency_frames=fcap.latency_frames)
+        tcap = exc.capture_session(dev, tsch, 6, latency_frames=fcap.latency_frames)
     wall = time.perf_counter() - t0
-    dots = ex.assemble(scene.rig.names, fcap.cameras, tcap.cameras, sch, floor, table)
-    res = ex.calibrate(monitor_intrinsics(scene.rig, seed)[0], dots, floor, table)
+    dots = exc.assemble(scene.rig.names, fcap.cameras, tcap.cameras, sch, floor, table)
+    res = exs.calibrate(monitor_intrinsics(scene.rig, seed)[0], dots, floor, table)
     cmp = compare_rigs(scene.rig, res.rig, align=False)
     return {"floor_frames": fcap.frames, "table_frames": tcap.frames,
             "capture_s_at_30fps": (fcap.frames + tcap.frames) / 30.0,
@@ -249,12 +251,12 @@ def main(argv=None) -> int:
     cfg = sp.ProjectorSimConfig()
     lat = sp.latency_frames(cfg, 6)
     scene = sp.make_scene(6, VOLUME, 0.75, seed=0)
-    m = sp.measured_references(scene, ex.reference_layout_px(PROJ), sp.table_reference_px(scene),
+    m = sp.measured_references(scene, exr.reference_layout_px(PROJ), sp.table_reference_px(scene),
                                0.0)
-    _, table = ex.plane_maps(ex.References(m["floor_px"], m["floor_xy_m"], m["table_px"],
+    _, table = exr.plane_maps(exr.References(m["floor_px"], m["floor_xy_m"], m["table_px"],
                                            m["table_xy_m"], m["table_height_m"]))
-    tsch = ex.table_schedule(sch, table)
-    est = ex.capture_frames_estimate(sch, lat) + ex.capture_frames_estimate(tsch, lat)
+    tsch = exr.table_schedule(sch, table)
+    est = exc.capture_frames_estimate(sch, lat) + exc.capture_frames_estimate(tsch, lat)
     results["capture_estimate"] = {"latency_frames": lat, "frames": est,
                                    "seconds_at_30fps": est / 30.0,
                                    "patterns": [len(sch.frames), len(tsch.frames)]}

@@ -2,7 +2,7 @@
 
 Each run simulates one 640x480 camera (its own lens and principal point, from the seed)
 watching a 1920x1080 monitor in 6 tilted views (calibkit.synthetic.monitor): the coded dot
-schedule is captured and solved (calibkit.intrinsic), and in the same views the monitor
+schedule is captured and solved (calibkit.calibrate.intrinsic), and in the same views the monitor
 shows a chessboard filling the screen, which OpenCV's findChessboardCorners/cornerSubPix/
 calibrateCamera calibrate from (the same camera, noise, blur and averaging of 3 frames).
 Prints per-run figures and the medians, and the ratio of the baseline's errors to ours.
@@ -18,8 +18,8 @@ import time
 import cv2
 import numpy as np
 
-from calibkit.dotcapture import DotCapture
-from calibkit.intrinsic import calibrate, monitor_plane_view
+from calibkit.calibrate.dotcapture import DotCapture
+from calibkit.calibrate.intrinsic import calibrate, monitor_plane_view
 from calibkit.synthetic.monitor import MonitorSimConfig, make_monitor_sim
 from projector.patterns import coded_schedule, raster_schedule
 

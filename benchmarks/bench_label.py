@@ -17,7 +17,7 @@ per take (seeds 0..N-1): median, worst and how many fall below 97 %, since five 
 say little about the worst. fps_cpu in the tables is the whole labelling (label_take,
 the start from the set alone included), per CPU second.
 
-Speed: Labeller.update alone, compiled kernels (daemon/label_kernels.py) against their
+Speed: Labeller.update alone, compiled kernels (daemon/markers/label_kernels.py) against their
 numpy twins (Labeller(compiled=False)) in the same process.
 """
 
@@ -35,8 +35,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from calibkit.clitools import print_table  # noqa: E402
-from daemon.c3dio import read_c3d  # noqa: E402
-from daemon.label import (  # noqa: E402
+from daemon.markers.c3dio import read_c3d  # noqa: E402
+from daemon.markers.label import (  # noqa: E402
     Labeller,
     hide_spans,
     initial_labels,
@@ -44,7 +44,7 @@ from daemon.label import (  # noqa: E402
     points_with_ghosts,
     score,
 )
-from daemon.markerset import MarkerSet, learn  # noqa: E402
+from daemon.markers.markerset import MarkerSet, learn  # noqa: E402
 
 DATA = ROOT / "fixtures" / "cmu_c3d"
 
@@ -103,7 +103,7 @@ def main() -> None:
     ap.add_argument("--seed-frames", type=int, default=10)
     args = ap.parse_args()
     warnings.simplefilter("ignore")
-    shipped = MarkerSet.load(ROOT / "daemon" / "markersets" / "cmu41.toml")
+    shipped = MarkerSet.load(ROOT / "daemon" / "markers" / "sets" / "cmu41.toml")
     takes = {n: read_c3d(DATA / f"{n}.c3d").select(shipped.labels) for n in ("85_02", "01_01")}
     if args.speed_only:
         return speed_table(takes, shipped, args.repeats)

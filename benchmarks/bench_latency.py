@@ -16,7 +16,8 @@ be shared: each configuration runs `--repeats` times, alternating, and the table
 the median of the runs' medians and p99s, and their worst. `--variant NAME=VAR=VALUE,...` adds
 a configuration run with extra environment variables; ROOT=PATH runs the daemon of
 another checkout (e.g. a `git worktree` of the commit before a change), so a before/after
-comparison is made back to back on the same machine.
+comparison is made back to back on the same machine. VIEW=1 turns the live web view on
+(`--view`), VIEW=browser also keeps a headless Chromium showing it.
 
     python benchmarks/bench_latency.py [--seconds 10] [--repeats 3] [--json out.json]
 """
@@ -56,6 +57,28 @@ def receive_latencies(proc, rx) -> tuple[list[int], list[int]]:
     return lat, daemon_lat
 
 
+def open_browser(url: str):
+    """Headless Chromium showing the page (its own process group), once the page serves."""
+    import shutil
+    import tempfile
+    import urllib.request
+
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        try:
+            urllib.request.urlopen(url, timeout=1).close()
+            break
+        except OSError:
+            time.sleep(0.2)
+    profile = tempfile.mkdtemp(prefix="chromium-bench-")
+    return subprocess.Popen([shutil.which("chromium"), "--headless", "--no-sandbox",
+                             "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+                             f"--user-data-dir={profile}", "--remote-debugging-port=0",
+                             "--window-size=1400,900", url],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+
+
 def one_run(seconds: float, env: dict, extra: list[str]) -> dict:
     rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     rx.bind(("127.0.0.1", 0))
@@ -70,12 +93,24 @@ def one_run(seconds: float, env: dict, extra: list[str]) -> dict:
            "--sim-fps", str(FPS), "--noise-px", str(NOISE_PX),
            "--udp", f"127.0.0.1:{port}", "--duration", str(seconds),
            "--runtime-dir", f"/tmp/mocapd-bench-latency-{port}", *extra]
+    view = env.get("VIEW")  # VIEW=1: the live web view on; VIEW=browser: and a page open
+    browser = None
+    if view:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            view_port = s.getsockname()[1]
+        cmd += ["--view", f"127.0.0.1:{view_port}"]
     root = env.get("ROOT", str(ROOT))  # another checkout's daemon (its own imports)
     proc = subprocess.Popen(cmd, cwd=root, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                             env={**os.environ, "PYTHONPATH": root, **env})
+    if view == "browser":
+        browser = open_browser(f"http://127.0.0.1:{view_port}")
     try:
         lat, daemon_lat = receive_latencies(proc, rx)
     finally:
+        if browser is not None:
+            os.killpg(browser.pid, 15)
+            browser.wait(5)
         err = proc.communicate()[1]
         cfg.unlink(missing_ok=True)
         rx.close()

@@ -1,11 +1,11 @@
-"""Speed of `mocapd track` (daemon.offline_track) on a long take of anonymous 3D markers.
+"""Speed of `mocapd track` (daemon.markers.offline_track) on a long take of anonymous 3D markers.
 
 Scene (calibkit.synthetic.sim.rigid_body_motion): 10 rigid bodies of 4 or 5 markers moving
 through a 4 m room for --minutes at 120 Hz; 0.5 mm noise per axis, 5 % of marker-frames
 hidden in spans of 0.1-1 s, 2 stray points a frame, points shuffled within each frame.
 Rows, each timed as wall clock and as this process's CPU time (the machine may be shared:
 CPU time is what the work costs), median and worst over --repeats:
-  - identities: daemon.point_tracks.associate alone;
+  - identities: daemon.markers.point_tracks.associate alone;
   - track: identities + the rigid tracker, steady runs fitted at once (what the command
     runs);
   - baseline, per frame: identities + RigidTracker.update() on every frame, the live
@@ -30,15 +30,15 @@ import numpy as np
 import tomli_w
 
 from calibkit.synthetic import sim
-from daemon.c3dio import Points, Take, write_points_csv
-from daemon.label import hide_spans
-from daemon.offline_track import (
+from daemon.markers.c3dio import Points, Take, write_points_csv
+from daemon.markers.label import hide_spans
+from daemon.markers.offline_track import (
     MarkerCloud,
     cloud_from_points,
     rotation_difference_deg,
     track_cloud,
 )
-from daemon.point_tracks import associate
+from daemon.markers.point_tracks import associate
 from daemon.rigid import BodyDef, quaternion_xyzw
 
 RATE = 120.0

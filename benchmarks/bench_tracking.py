@@ -18,7 +18,7 @@ Speed, one core: Pipeline.process per frame set (tracker, rigid bodies, no outpu
 frame sets prepared beforehand, median of `--repeats` runs; in the same process: the
 tracker fed the blobs' areas directly (as the pipeline now does too: the two rows should
 agree), and the baseline of matching every frame from scratch with the epipolar
-correspondence (calibkit.correspondence.match_frame), no bodies.
+correspondence (calibkit.vision.correspondence.match_frame), no bodies.
 
 Long run: `--minutes` of motion in 30 s scenes (daemon.synthetic.scene.SimScene), each with
 its own 10 bodies defined live first, through the Pipeline as fast as it goes (no pacing).
@@ -45,10 +45,10 @@ from pathlib import Path
 
 import numpy as np
 
-from calibkit.camera import Rig
 from calibkit.clitools import Progress, print_table, write_json
-from calibkit.correspondence import match_frame
+from calibkit.core.camera import Rig
 from calibkit.synthetic import sim
+from calibkit.vision.correspondence import match_frame
 from daemon.config import SimConfig
 from daemon.pipeline import FrameSet, Pipeline
 from daemon.rigid import BodyDef, RigidConfig
@@ -91,9 +91,9 @@ def calibrated_rig(true_rig, seed, wand_frames=WAND_FRAMES):
     """The rig as `calibkit wand --sim` makes it: a wand dance seen by the true cameras
     (merged blobs and all), solved from monitor-grade intrinsics with the intrinsics
     refined, the world frame from an L-frame on the floor. -> (rig, solve seconds)."""
-    from calibkit import floor
-    from calibkit.observations import Truth
-    from calibkit.wand_solve import calibrate
+    from calibkit.calibrate import floor
+    from calibkit.calibrate.wand_solve import calibrate
+    from calibkit.core.observations import Truth
 
     spacing = (0.0, 0.2, 0.5)
     truth = sim.wand_motion(wand_frames, 100.0, VOLUME_M, spacing, seed=seed)
@@ -134,7 +134,7 @@ def learn_body(true_rig, rig, layout, name, body_id, seed, n_frames=LEARN_FRAMES
     alone, at its reference orientation in the middle of the volume, its markers seen by
     the true cameras (merged blobs, dropouts, strays), tracked with the calibrated rig for
     n_frames and clustered (daemon.rigid_define). Only the blobs reach the daemon."""
-    from calibkit.observations import Truth
+    from calibkit.core.observations import Truth
 
     xyz = layout + [0.0, 0.0, 0.25 * VOLUME_M]
     k = len(layout)

@@ -2,7 +2,7 @@
 
 Part 1, speed (`--part speed`):
 
-Scene (issue 3's target): 8 cameras round a 4 m volume, 50 markers placed at random in
+Scene of the triangulation target: 8 cameras round a 4 m volume, 50 markers placed at random in
 every frame (no temporal help), 0.3 px centroid noise, each marker hidden in 20 % of the
 cameras, 2 stray blobs per camera per frame. Scored against the simulator's truth
 (calibkit.synthetic.truthcheck): recall over the markers that >= 3 cameras saw, ghost points
@@ -23,7 +23,7 @@ with the true rig (50 markers, 20 % hidden per camera, 2 stray blobs per camera 
 the estimate gets the rig perturbed (poses, focal lengths, principal points, k1) until its
 residual on a separate calibration-like scene is 1 px (with 0.3 px centroid noise) or
 0.1 px (0.05 px noise). Rows, for 4 and 8 cameras, `--seeds` seeds (rig, scene and
-perturbation change): `calibkit triangulate`'s path (calibkit.gates.gated_config +
+perturbation change): `calibkit triangulate`'s path (calibkit.vision.gates.gated_config +
 match_frames) with
 - fixed gates (the old defaults, 2 px and 1.5 px);
 - a rig file recording its residual (quality.reprojection_rms_px);
@@ -45,15 +45,15 @@ from itertools import combinations
 import cv2
 import numpy as np
 
-from calibkit.camera import Rig
 from calibkit.clitools import print_table, write_json
-from calibkit.correspondence import CorrespondenceConfig, match_frame, match_frames
-from calibkit.gates import gated_config
-from calibkit.geometry import RigArrays, triangulate
-from calibkit.observations import Truth
+from calibkit.core.camera import Rig
+from calibkit.core.geometry import RigArrays, triangulate
+from calibkit.core.observations import Truth
 from calibkit.synthetic import sim
 from calibkit.synthetic.miscalibrate import labelled_residual_px, miscalibrated
 from calibkit.synthetic.truthcheck import score_points
+from calibkit.vision.correspondence import CorrespondenceConfig, match_frame, match_frames
+from calibkit.vision.gates import gated_config
 
 
 def scene(n_frames: int, seed: int = 0, n_cameras: int = 8, noise_px: float = 0.3):
@@ -258,7 +258,7 @@ def gates_part(args) -> dict:
         for name in METHODS[1:]:
             recall = min(c[name]["recall_3"] for c in cases)
             ghost = max(c[name]["ghost_fraction"] for c in cases)
-            if key.endswith(" 1 px"):  # the issue's target
+            if key.endswith(" 1 px"):  # the target
                 targets[f"{key}, {name}: recall >= 95 %, ghosts <= 0.5 % (worst seed)"] = \
                     bool(recall >= 0.95 and ghost <= 0.005)
             elif key.endswith(" 0.1 px"):  # no loss where the fixed gates were right

@@ -26,7 +26,8 @@ Figures, each the median over `--repeats` runs with different seeds:
   marker_mm     held-out markers triangulated with the solved rig (mapped into the true frame
                 by the aligning similarity) vs their true positions, RMS; marker/true: over
                 the same with the true rig (the design asks <= 1.2)
-  grid_mm       calibkit.compare.compare_rigs(true, solved)["grid_rms_mm"] (similarity-aligned)
+  grid_mm       calibkit.calibrate.compare.compare_rigs(true, solved)["grid_rms_mm"]
+                (similarity-aligned)
   scale_ppm     the aligning similarity's scale error
 
 Scenes A-C hold the intrinsics at the simulator's (refine_intrinsics=False): they measure
@@ -42,7 +43,7 @@ the truth: every camera's focal lengths off by the given share (random sign), it
 point by the given pixels (random direction), k1 by 0.005 (random sign); the truth goes to
 the scorer only. Each perturbation is solved with the intrinsics held and refined (the
 default; the rig carries no standard deviations, so the priors are the defaults of
-calibkit.intrinsic_prior), beside the true intrinsics as the baseline, all in one process.
+calibkit.calibrate.intrinsic_prior), beside the true intrinsics as the baseline, all in one process.
 Figures, median and worst over `--repeats` seeds:
   pos_mm     the largest camera position error after the similarity alignment
   grid_mm    compare_rigs grid RMS vs the truth
@@ -67,15 +68,15 @@ from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 from scipy.spatial.transform import Rotation
 
-from calibkit import bundle
-from calibkit.camera import Rig
+from calibkit.calibrate import bundle
+from calibkit.calibrate.compare import compare_rigs
+from calibkit.calibrate.wand_report import evaluate
+from calibkit.calibrate.wand_solve import calibrate
 from calibkit.clitools import print_table, write_json
-from calibkit.compare import compare_rigs
-from calibkit.geometry import RigArrays
+from calibkit.core.camera import Rig
+from calibkit.core.geometry import RigArrays
 from calibkit.synthetic import sim
 from calibkit.synthetic.miscalibrate import off_intrinsics
-from calibkit.wand_report import evaluate
-from calibkit.wand_solve import calibrate
 
 SPACING = (0.0, 0.2, 0.5)
 SCENES = {
@@ -135,9 +136,9 @@ def _marker_errors(rig: Rig, cal, truth, frames: np.ndarray, camera_of: np.ndarr
     """Held-out markers triangulated with the solved rig (mapped into the true frame by the
     similarity of compare_rigs) and with the true rig, against the true positions: RMS mm
     and their ratio (the design's "within 1.2x of the error with the true cameras")."""
-    from calibkit.compare import similarity_from_rigs
-    from calibkit.geometry import triangulate
-    from calibkit.wand import point_index
+    from calibkit.calibrate.compare import similarity_from_rigs
+    from calibkit.calibrate.wand import point_index
+    from calibkit.core.geometry import triangulate
 
     w = cal.wand.select(np.isin(cal.wand.frame, frames))
     pidx, pinfo = point_index(w, 3)
@@ -161,7 +162,7 @@ def _marker_errors(rig: Rig, cal, truth, frames: np.ndarray, camera_of: np.ndarr
 
 
 def _spec():
-    from calibkit.wand import WandSpec
+    from calibkit.calibrate.wand import WandSpec
 
     return WandSpec(SPACING)
 
@@ -169,7 +170,7 @@ def _spec():
 def _true_rms(rig: Rig, res) -> float:
     """Per-axis RMS of the same inlier observations, points re-triangulated with the true rig
     (k3-free measurements, as the solve saw them)."""
-    from calibkit.geometry import triangulate
+    from calibkit.core.geometry import triangulate
 
     data = res.data
     names = [c.name for c in res.rig]
@@ -319,7 +320,7 @@ def scipy_baseline(data: bundle.BundleData, options: bundle.BundleOptions,
 def _sse(rig: Rig, data: bundle.BundleData) -> float:
     """Sum of squared reprojection errors with every point re-triangulated by `rig`: the
     same yardstick for both solvers (lower is a better optimum of the same model)."""
-    from calibkit.geometry import triangulate
+    from calibkit.core.geometry import triangulate
 
     tri = triangulate(rig, data.obs_point, data.obs_camera, data.obs_uv,
                       n_points=len(data.xyz), ray_distance=False)
@@ -389,7 +390,7 @@ def main() -> None:
 def _baseline(rig: Rig, cal, n_frames: int) -> dict:
     """The same problem (same start, same inlier rows of the first `n_frames` frames, one
     round) solved by GTSAM and by scipy."""
-    from calibkit.wand import point_index
+    from calibkit.calibrate.wand import point_index
 
     data = cal.bundle.data
     opts = bundle.BundleOptions(noise_px=cal.bundle.noise_px, rounds=1,

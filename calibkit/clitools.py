@@ -1,4 +1,5 @@
-"""What every command line shares: the user-error exit, JSON output, progress on stderr."""
+"""What every command line shares: the user-error exit, option parsing, JSON output, progress
+on stderr. Used by calibkit's and mocapd's commands alike."""
 
 from __future__ import annotations
 
@@ -11,8 +12,9 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from calibkit.errors import UserError
-from calibkit.fileio import write_text_atomic
+from calibkit.core.camera import Rig
+from calibkit.core.errors import UserError
+from calibkit.core.fileio import write_text_atomic
 
 EXIT_USER_ERROR = 2
 
@@ -149,3 +151,29 @@ class Progress:
             print("\r\033[K" + text, end=end, file=self.stream, flush=True)
         else:
             print(text, file=self.stream, flush=True)
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """'640x480' -> (640, 480)."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise UserError(f"--size takes WIDTHxHEIGHT in pixels, like 640x480; got {text!r}") \
+            from None
+    if w < 16 or h < 16:
+        raise UserError(f"--size must be at least 16x16 pixels, got {text!r}")
+    return w, h
+
+
+def parse_floats(text: str, option: str) -> list[float]:
+    """'0,0.2,0.5' -> [0.0, 0.2, 0.5]."""
+    try:
+        return [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise UserError(f"{option} takes numbers separated by commas, got {text!r}") from None
+
+
+def load_rig_option(path: Path | None, option: str = "--rig") -> Rig:
+    if path is None:
+        raise UserError(f"{option} RIG.toml is required")
+    return Rig.load(path)

@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 import tomllib
 
-from calibkit.errors import UserError
+from calibkit.core.errors import UserError
 from daemon.publish.mavlink import MESSAGES, WORLD_TO_NED
 from daemon.rigid import BodyDef, RigidConfig
 from daemon.tracker import TrackerConfig
@@ -159,7 +159,7 @@ class Config:
     pair_tolerance: float = 0.5  # a set gathers samples within this many frame periods
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     # the [tracker] keys the file sets: the pixel gates it leaves out follow the rig's
-    # residual (calibkit.gates), the ones it sets stay as set
+    # residual (calibkit.vision.gates), the ones it sets stay as set
     tracker_keys: frozenset[str] = frozenset()
     rigid: RigidConfig = field(default_factory=RigidConfig)
     sim: SimConfig | None = None

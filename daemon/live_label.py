@@ -1,6 +1,6 @@
 """The daemon's labelling stage: names the frame's tracked markers with a marker set.
 
-Why a stage of its own: the labeller (daemon.label) works on bare 3D points, one frame at a
+Why a stage of its own: the labeller (daemon.markers.label) works on bare 3D points, one frame at a
 time; the pipeline has tracks, bodies and publishers. This module sits between them
 (`Pipeline(labeller=...)`): it hands the frame's seen track positions to the labeller and
 returns, per labelled marker, its index in the set, position, confidence and the track it
@@ -38,9 +38,9 @@ from pathlib import Path
 
 import numpy as np
 
-from daemon.label import Labeller
-from daemon.markerset import MarkerSet, open_set, shipped_sets
-from daemon.markerset import resolve as _resolve
+from daemon.markers.label import Labeller
+from daemon.markers.markerset import MarkerSet, open_set, shipped_sets
+from daemon.markers.markerset import resolve as _resolve
 
 log = logging.getLogger("mocapd.label")
 

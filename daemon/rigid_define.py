@@ -14,7 +14,7 @@ from collections.abc import Callable, Iterable, Sequence
 
 import numpy as np
 
-from calibkit.errors import UserError
+from calibkit.core.errors import UserError
 from daemon.rigid import kabsch_batch
 
 

@@ -25,10 +25,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 import tomllib
 
-from calibkit.camera import Rig
-from calibkit.errors import UserError
-from calibkit.fileio import write_text_atomic
-from calibkit.gates import correspondence_config, rig_residual, tracker_gates
+from calibkit.core.camera import Rig
+from calibkit.core.errors import UserError
+from calibkit.core.fileio import write_text_atomic
+from calibkit.vision.gates import correspondence_config, rig_residual, tracker_gates
 from daemon.config import Config, default_runtime_dir, load_config, parse_config
 from daemon.pipeline import CaptureThread, FrameSet, Multiplexer, Pipeline, latency_figures
 from daemon.publish.line import fit_mavlink, fit_serial
@@ -276,6 +276,7 @@ class Daemon:
         self.rig = self._rig(config)
         self._truth_rig = truth_rig
         self.control: ControlServer | None = None
+        self.view = None  # the live web view (daemon.view.link.ViewLink), when asked for
 
     @staticmethod
     def _rig(config: Config) -> Rig | None:
@@ -333,10 +334,12 @@ class Daemon:
             self._write_learned(runtime)
         for p in self.pipeline.publishers:
             p.start()
+        if self.view is not None:  # its own process, fed the newest result per hook call
+            self.view.attach(self)
 
     def _tracker_config(self, cfg: Config):
         """The tracker's configuration with its pixel gates (and its correspondence's, for
-        new markers) following the rig's recorded residual, calibkit.gates' rule, except
+        new markers) following the rig's recorded residual, calibkit.vision.gates' rule, except
         the gates the configuration file sets; unchanged when the rig records none."""
         try:
             residual = rig_residual(self.rig)
@@ -357,7 +360,7 @@ class Daemon:
     def _cameras(self, cfg: Config) -> list:
         """Capture sources for the configured cameras; a camera whose plugin library is
         missing is reported and skipped, the rest run."""
-        from calibkit.detect import DetectorConfig
+        from calibkit.vision.detect import DetectorConfig
 
         names = self.rig.names
         out = []
@@ -380,7 +383,7 @@ class Daemon:
     def _warm_up(self) -> None:
         """Run the correspondence once on a frame's blobs before READY: its compiled kernels
         load on first use (about a second), which would otherwise stall the first frames."""
-        from calibkit.correspondence import match_frame
+        from calibkit.vision.correspondence import match_frame
         from daemon.tracker import Tracker
 
         # the tracker's kernel: one track in front of the rig, one blob per camera
@@ -394,7 +397,7 @@ class Daemon:
                     np.full((1, 3, len(self.rig)), -1, dtype=np.int64), np.zeros((1, 2)),
                     a.R, a.t, a.fx, a.fy, a.cx, a.cy, a.skew, a.dist, np.ones(1, dtype=bool))
         if self.scene is None:  # live cameras: detection has compiled kernels too
-            from calibkit.detect import detect
+            from calibkit.vision.detect import detect
 
             image = np.full((64, 64), 10, np.uint8)
             image[30:34, 30:34] = 200
@@ -680,6 +683,8 @@ class Daemon:
             self.labelling.close()
         if self.control is not None:
             self.control.close()
+        if self.view is not None:
+            self.view.close()
         if threading.current_thread() is threading.main_thread():
             self.restore_signals()
 
@@ -759,14 +764,17 @@ class Daemon:
                 cam.update(mux.camera_status(i))
             cams.append(cam)
         poses = getattr(self.pipeline, "last_result", None)
+        bodies = self.pipeline.rigid.bodies
+        valid = poses.poses.valid if poses is not None else ()
+        if len(valid) != len(bodies):  # a reload changed the bodies; no frame has them yet
+            valid = np.zeros(len(bodies), dtype=bool)
         return {
             "uptime_s": (time.monotonic_ns() - self.started_ns) * 1e-9,
             "frames": st.frames, "rate_hz": st.rate_hz(),
             "latency": latency_figures(st.latency),
             "cameras": cams,
-            "bodies": [] if poses is None else [
-                {"id": int(b.id), "name": b.name, "valid": bool(v)}
-                for b, v in zip(self.pipeline.rigid.bodies, poses.poses.valid, strict=True)],
+            "bodies": [{"id": int(b.id), "name": b.name, "valid": bool(v)}
+                       for b, v in zip(bodies, valid, strict=True)],
             "bodies_tracked": st.valid_bodies,
             "outputs": [p.status() for p in self.pipeline.publishers],
             "recording": str(self.recorder.path) if self.recorder else None,

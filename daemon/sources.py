@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibkit.camera import Rig
-from calibkit.errors import UserError
+from calibkit.core.camera import Rig
+from calibkit.core.errors import UserError
 
 log = logging.getLogger("mocapd.sources")
 
@@ -59,7 +59,7 @@ class ReplayScene:
     at the recording's frame rate (or as fast as the tracker goes)."""
 
     def __init__(self, path, rig: Rig) -> None:
-        from calibkit.recording import load_observations
+        from calibkit.core.recording import load_observations
 
         obs, _ = load_observations(path)
         index = {n: i for i, n in enumerate(rig.names)}
@@ -135,7 +135,7 @@ class DetectCamera:
         self.device_stamps = device_stamps  # False: pair by arrival (stamps not trusted)
 
     def open(self) -> Iterator[CameraSample]:
-        from calibkit.detect import DetectorConfig, detect
+        from calibkit.vision.detect import DetectorConfig, detect
 
         source = open_camera(self.spec, self.fps)
         cfg = self.detector or DetectorConfig()

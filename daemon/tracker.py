@@ -29,9 +29,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calibkit.camera import Rig
-from calibkit.correspondence import CorrespondenceConfig, match_frame
-from calibkit.geometry import RigArrays
+from calibkit.core.camera import Rig
+from calibkit.core.geometry import RigArrays
+from calibkit.vision.correspondence import CorrespondenceConfig, match_frame
 from daemon.tracker_kernel import gate_and_solve
 
 

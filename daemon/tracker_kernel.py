@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibkit.jit import jit
+from calibkit.core.jit import jit
 
 
 @jit

@@ -65,7 +65,7 @@ def stroke_colours(n: int) -> np.ndarray:
 def write_ply(path: Path, strokes: list[np.ndarray]) -> None:
     """ASCII PLY: vertices (x y z, metres; red green blue) and the edges of each stroke;
     written whole or not at all."""
-    from calibkit.fileio import write_text_atomic
+    from calibkit.core.fileio import write_text_atomic
 
     colours = stroke_colours(len(strokes))
     vertices, edges, start = [], [], 0

@@ -11,11 +11,10 @@ row 0 at the top, as in images.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-from calibkit.errors import UserError
+from calibkit.core.errors import UserError
+from projector.dots import Dots
 
 _VERTEX = """
 #version 330
@@ -61,23 +60,6 @@ void main() {
     colour = vec4(vec3(cover * bright), 1.0);
 }
 """
-
-
-@dataclass(frozen=True)
-class Dots:
-    """What one frame shows: dot centres (N, 2) in screen pixels, radii (N,) and levels (N,)."""
-
-    xy: np.ndarray
-    radius_px: np.ndarray
-    level: np.ndarray
-
-    @classmethod
-    def make(cls, xy, radius_px: float | np.ndarray = 4.0, level: float | np.ndarray = 1.0
-             ) -> Dots:
-        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        n = len(xy)
-        return cls(xy, np.broadcast_to(np.asarray(radius_px, np.float64), (n,)).copy(),
-                   np.broadcast_to(np.asarray(level, np.float64), (n,)).copy())
 
 
 class _Renderer:
@@ -218,13 +200,4 @@ class WindowDisplay:
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-
-def egl_available() -> bool:
-    """Whether headless rendering works here (used by tests and `--sim`)."""
-    try:
-        with OffscreenDisplay((8, 8)):
-            return True
-    except Exception:
-        return False
 

@@ -16,8 +16,8 @@ parity; codes with more erasures, a failed parity check or an index outside the 
 rejected, never guessed.
 
 Nothing here assumes a monitor: a projector casting dots on a floor uses the same schedule
-and the same decoding (issue 5). Positions are screen pixels (x right, y down, pixel
-centres at integer coordinates).
+and the same decoding (calibkit.calibrate.extrinsic_capture). Positions are screen pixels
+(x right, y down, pixel centres at integer coordinates).
 """
 
 from __future__ import annotations

@@ -14,7 +14,7 @@ import shutil
 import subprocess
 from dataclasses import dataclass
 
-from calibkit.errors import UserError
+from calibkit.core.errors import UserError
 
 
 @dataclass(frozen=True)

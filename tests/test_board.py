@@ -11,8 +11,8 @@ import cv2
 import numpy as np
 import pytest
 
-from calibkit.board import Board, find_board, parse_board
-from calibkit.errors import UserError
+from calibkit.calibrate.board import Board, find_board, parse_board
+from calibkit.core.errors import UserError
 
 DATA = Path(__file__).resolve().parent.parent / "fixtures" / "pose2sim_chessboard_4cam"
 

@@ -61,8 +61,9 @@ def _hits(path: Path, prefixes) -> list[str]:
 def test_the_estimating_modules_are_many():
     # A guard against the scan silently covering nothing (a moved folder, a bad glob).
     names = {_module(f) for f in _estimating_files()}
-    assert {"calibkit.detect", "calibkit.wand_solve", "calibkit.correspondence",
-            "daemon.tracker", "daemon.label", "daemon.pipeline"} <= names
+    assert {"calibkit.vision.detect", "calibkit.calibrate.wand_solve",
+            "calibkit.vision.correspondence",
+            "daemon.tracker", "daemon.markers.label", "daemon.pipeline"} <= names
     assert not any(n.startswith(SYNTHETIC) for n in names)
 
 

@@ -10,12 +10,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibkit import bundle
-from calibkit.camera import Rig
-from calibkit.geometry import rigid_fit
-from calibkit.observations import Truth
+from calibkit.calibrate import bundle
+from calibkit.calibrate.wand import WandSpec
+from calibkit.core.camera import Rig
+from calibkit.core.geometry import rigid_fit
+from calibkit.core.observations import Truth
 from calibkit.synthetic import sim
-from calibkit.wand import WandSpec
 
 SPACING = (0.0, 0.2, 0.5)
 NOISE = 0.2
@@ -179,8 +179,8 @@ def test_floor_and_table_dots_fix_the_world_frame():
     dots, plane, table = _projector_points(rig, 9)
     p, c, uv = _labelled(rig, dots, NOISE, 9, point_offset=len(data.xyz))
     # start in a wrong frame: tilted by 1 degree and 5 cm too high
-    from calibkit.camera import rotation_from_rvec
-    from calibkit.floor import transform_points, transform_rig
+    from calibkit.calibrate.floor import transform_points, transform_rig
+    from calibkit.core.camera import rotation_from_rvec
 
     A, b = rotation_from_rvec([0.015, -0.01, 0.0]), np.array([0.0, 0.0, 0.05])
     start = transform_rig(rig, A, b)

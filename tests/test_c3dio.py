@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibkit.errors import UserError
-from daemon.c3dio import (
+from calibkit.core.errors import UserError
+from daemon.markers.c3dio import (
     Points,
     Take,
     euler_zxy_matrix,

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from calibkit.camera import (
+from calibkit.core.camera import (
     BASLER_658x492_DIST,
     Camera,
     Rig,

@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from calibkit.camera import Rig
-from calibkit.compare import compare_rigs, transform_camera
-from calibkit.recording import load_observations, load_truth_csv
+from calibkit.calibrate.compare import compare_rigs, transform_camera
+from calibkit.core.camera import Rig
+from calibkit.core.recording import load_observations, load_truth_csv
 from calibkit.synthetic import sim
 
 

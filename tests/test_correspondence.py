@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibkit.camera import Camera, Rig, look_at, rvec_from_rotation
-from calibkit.correspondence import match_frame, match_frames
-from calibkit.observations import Truth
+from calibkit.core.camera import Camera, Rig, look_at, rvec_from_rotation
+from calibkit.core.observations import Truth
 from calibkit.synthetic import sim
 from calibkit.synthetic.truthcheck import score_points
+from calibkit.vision.correspondence import match_frame, match_frames
 
 
 @pytest.fixture(scope="module")
@@ -137,8 +137,8 @@ def test_too_few_blobs_give_nothing(rig8) -> None:
 
 
 def test_compiled_pair_search_finds_exactly_the_numpy_candidates(rig8) -> None:
-    from calibkit.correspondence import _pairs
-    from calibkit.geometry import RigArrays
+    from calibkit.core.geometry import RigArrays
+    from calibkit.vision.correspondence import _pairs
 
     truth = _random_scene(8, 50, seed=6)
     obs = sim.observe(rig8, truth, noise_px=0.3, dropout=0.2, ghosts_per_camera=2, seed=7)
@@ -159,7 +159,7 @@ def test_the_score_counts_gross_errors_beside_the_rms_and_ghosts_apart() -> None
     """A point stands for the marker its blobs belong to: one exact, one made of marker 1's
     blobs but 20 mm off (a gross error, in the RMS and counted), one made of stray blobs
     (a ghost, whatever its distance to a marker), one of two markers' blobs (a ghost)."""
-    from calibkit.observations import Observations
+    from calibkit.core.observations import Observations
 
     xyz = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]])
     truth = Truth(np.zeros(3), np.arange(3), xyz)

@@ -183,7 +183,7 @@ def test_live_daemon_outputs_control_reload_and_stop(tmp_path, mocapd_cli):
     assert any(m.get_type() == "HEARTBEAT" for m in msgs)
     assert all(m.z < 0 for m in poses)  # bodies are above the floor: up is -z in NED
 
-    from calibkit.recording import load_observations
+    from calibkit.core.recording import load_observations
 
     obs, _ = load_observations(tmp_path / "rec.mcrec")
     assert len(obs.frames()) > 10 and set(np.unique(obs.camera)) == set(range(6))
@@ -314,7 +314,7 @@ def test_install_unit(tmp_path, mocapd_cli):
 def test_replay_a_recording(tmp_path, mocapd_cli):
     """A recording (as `mocapd record` writes) played back as fast as possible, with the
     bodies defined in the configuration."""
-    from calibkit.recording import save_observations
+    from calibkit.core.recording import save_observations
     from calibkit.synthetic import sim
 
     rig = sim.make_rig(6, 4.0, seed=8)

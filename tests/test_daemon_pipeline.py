@@ -152,8 +152,12 @@ def test_rigid_body_from_live_markers(tmp_path, mocapd_cli):
         while time.monotonic() < deadline and not (
                 daemon.pipeline.last_result is not None
                 and daemon.pipeline.last_result.poses.valid.tolist() == [True]):
-            time.sleep(0.05)
+            # status is asked while the reload swaps the bodies: it never fails
+            bodies = daemon.status()["bodies"]
+            assert [b["name"] for b in bodies] in ([], ["probe"])
+            time.sleep(0.01)
         assert daemon.pipeline.last_result.poses.valid.tolist() == [True]
+        assert daemon.status()["bodies"] == [{"id": 1, "name": "probe", "valid": True}]
         r = mocapd_cli("rigid-body", "list", "--config", cfg_path)
         assert r.code == 0 and "probe" in r.out
         r = mocapd_cli("rigid-body", "add", "probe", "--config", cfg_path, "--from-live",

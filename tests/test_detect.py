@@ -6,7 +6,10 @@ import cv2
 import numpy as np
 import pytest
 
-from calibkit.detect import (
+from calibkit.core.errors import UserError
+from calibkit.synthetic.spots import render_spots, render_spots_float
+from calibkit.synthetic.truthcheck import match_to_truth
+from calibkit.vision.detect import (
     Blobs,
     DetectorConfig,
     _background_level,
@@ -16,10 +19,7 @@ from calibkit.detect import (
     detect_reference,
     label_pixels,
 )
-from calibkit.errors import UserError
-from calibkit.masks import build_mask, load_mask, save_mask
-from calibkit.synthetic.spots import render_spots, render_spots_float
-from calibkit.synthetic.truthcheck import match_to_truth
+from calibkit.vision.masks import build_mask, load_mask, save_mask
 
 SIZE = (640, 480)
 

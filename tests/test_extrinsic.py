@@ -1,14 +1,18 @@
-"""calibkit.extrinsic against the simulated projector's truth (calibkit.synthetic.projector)."""
+"""calibkit.calibrate.extrinsic_* against the simulated projector's truth
+(calibkit.synthetic.projector)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from calibkit import extrinsic as ex
-from calibkit.camera import Rig, look_at, rvec_from_rotation
-from calibkit.compare import compare_rigs
-from calibkit.errors import UserError
+from calibkit.calibrate import extrinsic_capture as exc
+from calibkit.calibrate import extrinsic_reference as exr
+from calibkit.calibrate import extrinsic_report as exp
+from calibkit.calibrate import extrinsic_solve as exs
+from calibkit.calibrate.compare import compare_rigs
+from calibkit.core.camera import Rig, look_at, rvec_from_rotation
+from calibkit.core.errors import UserError
 from calibkit.synthetic import projector as sp
 from projector.patterns import coded_schedule
 
@@ -16,20 +20,20 @@ PROJ = (1280, 800)
 
 
 def _refs(scene, error_m=0.005, seed=0, n=4):
-    m = sp.measured_references(scene, ex.reference_layout_px(PROJ, n),
+    m = sp.measured_references(scene, exr.reference_layout_px(PROJ, n),
                                sp.table_reference_px(scene) if scene.table else np.zeros((0, 2)),
                                error_m, seed=seed)
-    return ex.References(m["floor_px"], m["floor_xy_m"], m.get("table_px", np.zeros((0, 2))),
+    return exr.References(m["floor_px"], m["floor_xy_m"], m.get("table_px", np.zeros((0, 2))),
                          m.get("table_xy_m", np.zeros((0, 2))), m.get("table_height_m"))
 
 
 def _dots(scene, refs, noise_px=0.2, seed=0, wrong_ids=0.0, step=64.0):
     sch = coded_schedule(PROJ, step, 2, 8)
-    floor, table = ex.plane_maps(refs)
+    floor, table = exr.plane_maps(refs)
     fd = sp.simulated_dots(scene, sch.points_xy, False, noise_px, wrong_ids, seed=seed)
     td = None
     if table is not None:
-        tsch = ex.table_schedule(sch, table)
+        tsch = exr.table_schedule(sch, table)
         td = sp.simulated_dots(scene, sch.points_xy, True, noise_px, wrong_ids, seed=seed + 1,
                                shown=np.concatenate(tsch.layers))
     return sch, floor, table, fd, td
@@ -48,7 +52,7 @@ def test_homography_is_exact_for_a_distortion_free_projector():
     proj = scene.projector.replace(dist=np.zeros(5))
     scene = sp.ProjectorScene(scene.rig, proj, scene.table)
     refs = _refs(scene, error_m=0.0)
-    floor, _ = ex.plane_maps(refs)
+    floor, _ = exr.plane_maps(refs)
     px = coded_schedule(PROJ, 64, 1, 8).points_xy
     truth, plane = scene.land(px, table_present=False)
     got = floor.apply(px)
@@ -62,11 +66,11 @@ def test_homography_residual_matches_the_tape_error():
     of sigma * sqrt(2 (2N - 8) / 2N) = 6.1 mm; 24 degrees of freedom spread it by ~15 %."""
     scene = sp.make_scene(2, seed=1)
     sigma = 0.005
-    rms = [ex.plane_maps(_refs(scene, sigma, seed=s))[0].residual_rms_mm for s in range(6)]
+    rms = [exr.plane_maps(_refs(scene, sigma, seed=s))[0].residual_rms_mm for s in range(6)]
     expected = 1000 * sigma * np.sqrt(2 * 24 / 32)
     assert 0.75 * expected < np.mean(rms) < 1.25 * expected
     # the map puts dots within a few tape errors of where they land (plus the lens's bend)
-    floor, _ = ex.plane_maps(_refs(scene, sigma, seed=0))
+    floor, _ = exr.plane_maps(_refs(scene, sigma, seed=0))
     px = coded_schedule(PROJ, 64, 1, 8).points_xy
     truth, _ = scene.land(px, table_present=False)
     assert np.sqrt(np.mean(np.sum((floor.apply(px) - truth) ** 2, axis=1))) < 3 * sigma
@@ -75,22 +79,22 @@ def test_homography_residual_matches_the_tape_error():
 def test_reference_points_on_a_line_or_too_few_are_refused():
     px = np.array([[0, 0], [100, 100], [200, 200], [300, 300.0]])
     with pytest.raises(UserError, match="on a line"):
-        ex.fit_homography(px, px / 100.0)
+        exr.fit_homography(px, px / 100.0)
     with pytest.raises(UserError, match="at least 4"):
-        ex.fit_homography(px[:3], px[:3] / 100.0)
+        exr.fit_homography(px[:3], px[:3] / 100.0)
 
 
 def test_table_dots_land_on_the_table():
     scene = sp.make_scene(2, seed=0)
     refs = _refs(scene, 0.005)
-    floor, table = ex.plane_maps(refs)
-    sch = ex.table_schedule(coded_schedule(PROJ, 64, 2, 8), table)
+    floor, table = exr.plane_maps(refs)
+    sch = exr.table_schedule(coded_schedule(PROJ, 64, 2, 8), table)
     ids = np.concatenate(sch.layers)
     truth, plane = scene.land(sch.points_xy[ids], table_present=True)
     assert len(ids) > 50
-    assert np.all(plane == ex.TABLE)  # none falls off the edge
-    got, got_plane = ex.dot_world_points(sch.points_xy[ids], floor, table, True)
-    assert np.all(got_plane == ex.TABLE)
+    assert np.all(plane == exr.TABLE)  # none falls off the edge
+    got, got_plane = exr.dot_world_points(sch.points_xy[ids], floor, table, True)
+    assert np.all(got_plane == exr.TABLE)
     assert np.max(np.abs(got[:, 2] - scene.table.height_m)) < 1e-12
     assert np.max(np.linalg.norm(got - truth, axis=1)) < 0.02
 
@@ -101,8 +105,8 @@ def test_reference_file_round_trip(tmp_path):
     scene = sp.make_scene(2, seed=0)
     refs = _refs(scene)
     path = tmp_path / "refs.toml"
-    path.write_text(ex.references_toml(refs, "test"))
-    back = ex.load_references(path)
+    path.write_text(exr.references_toml(refs, "test"))
+    back = exr.load_references(path)
     assert np.allclose(back.floor_px, refs.floor_px, atol=0.05)
     assert np.allclose(back.floor_xy_m, refs.floor_xy_m, atol=1e-4)
     assert np.allclose(back.table_xy_m, refs.table_xy_m, atol=1e-4)
@@ -124,7 +128,7 @@ def test_bad_reference_files_say_what_to_fix(tmp_path, text, message):
     path = tmp_path / "refs.toml"
     path.write_text(text)
     with pytest.raises(UserError, match=message):
-        ex.load_references(path)
+        exr.load_references(path)
 
 
 # ---- poses --------------------------------------------------------------------------------------
@@ -134,7 +138,7 @@ def test_poses_meet_the_targets_with_tape_error_and_centroid_noise():
     scene = sp.make_scene(6, seed=2)
     refs = _refs(scene, 0.005, seed=2)
     sch, floor, table, fd, td = _dots(scene, refs, 0.2, seed=2)
-    res = ex.calibrate(scene.rig, ex.assemble(scene.rig.names, fd, td, sch, floor, table),
+    res = exs.calibrate(scene.rig, exc.assemble(scene.rig.names, fd, td, sch, floor, table),
                        floor, table)
     pos, rot = _errors(scene.rig, res.rig)
     assert max(pos.values()) < 10.0 and max(rot.values()) < 0.1
@@ -149,9 +153,9 @@ def test_joint_refinement_makes_cameras_agree_at_head_height():
     scene = sp.make_scene(4, seed=4)
     refs = _refs(scene, 0.005, seed=4)
     sch, floor, table, fd, td = _dots(scene, refs, 0.2, seed=4)
-    dots = ex.assemble(scene.rig.names, fd, td, sch, floor, table)
-    alone = ex.calibrate(scene.rig, dots, floor, table, ex.SolveOptions(joint=False))
-    joint = ex.calibrate(scene.rig, dots, floor, table)
+    dots = exc.assemble(scene.rig.names, fd, td, sch, floor, table)
+    alone = exs.calibrate(scene.rig, dots, floor, table, exs.SolveOptions(joint=False))
+    joint = exs.calibrate(scene.rig, dots, floor, table)
     ray_alone = sp.ray_distance_at_height(alone.rig, scene.rig, 1.7, 4.0)
     ray_joint = sp.ray_distance_at_height(joint.rig, scene.rig, 1.7, 4.0)
     assert ray_joint < 0.5 * ray_alone
@@ -162,8 +166,8 @@ def test_misnamed_dots_are_rejected_by_ransac():
     scene = sp.make_scene(3, seed=5)
     refs = _refs(scene, 0.0, seed=5)
     sch, floor, table, fd, td = _dots(scene, refs, 0.2, seed=5, wrong_ids=0.05)
-    dots = ex.assemble(scene.rig.names, fd, td, sch, floor, table)
-    res = ex.calibrate(scene.rig, dots, floor, table)
+    dots = exc.assemble(scene.rig.names, fd, td, sch, floor, table)
+    res = exs.calibrate(scene.rig, dots, floor, table)
     pos, rot = _errors(scene.rig, res.rig)
     assert max(pos.values()) < 10.0 and max(rot.values()) < 0.1
     # rows whose id is wrong reproject far from their dot under the true camera
@@ -174,7 +178,7 @@ def test_misnamed_dots_are_rejected_by_ransac():
             scene.land(sch.points_xy[dots.point[rows] % len(sch.points_xy)],
                        False)[0])
         wrong[rows] = np.linalg.norm(proj - dots.uv[rows], axis=1) > 5.0
-    wrong &= dots.plane[dots.point] == ex.FLOOR
+    wrong &= dots.plane[dots.point] == exr.FLOOR
     assert wrong.sum() > 50
     assert np.mean(res.inlier[wrong]) < 0.02
 
@@ -189,7 +193,7 @@ def test_a_camera_that_sees_nothing_is_named_and_the_others_are_calibrated():
     refs = _refs(scene, 0.005, seed=6)
     sch, floor, table, fd, td = _dots(scene, refs, 0.2, seed=6)
     assert len(fd[1]) == 0 and len(td[1]) == 0
-    res = ex.calibrate(rig, ex.assemble(rig.names, fd, td, sch, floor, table), floor, table)
+    res = exs.calibrate(rig, exc.assemble(rig.names, fd, td, sch, floor, table), floor, table)
     assert res.rig.names == ["cam0", "cam2", "cam3"]
     assert res.report["not_calibrated"] == ["cam1"]
     assert len(res.warnings) == 1 and "camera cam1 saw no projected dot" in res.warnings[0]
@@ -202,10 +206,10 @@ def test_too_few_dots_and_one_plane_only_are_named():
     refs = _refs(scene, 0.005, seed=7)
     sch, floor, table, fd, td = _dots(scene, refs, 0.2, seed=7)
     few = fd[0]
-    fd[0] = ex.CameraDots(few.ids[:5], few.uv[:5], few.scatter_px[:5])
-    td[0] = ex.CameraDots(td[0].ids[:0], td[0].uv[:0], td[0].scatter_px[:0])
-    td[2] = ex.CameraDots(td[2].ids[:0], td[2].uv[:0], td[2].scatter_px[:0])
-    res = ex.calibrate(scene.rig, ex.assemble(scene.rig.names, fd, td, sch, floor, table),
+    fd[0] = exc.CameraDots(few.ids[:5], few.uv[:5], few.scatter_px[:5])
+    td[0] = exc.CameraDots(td[0].ids[:0], td[0].uv[:0], td[0].scatter_px[:0])
+    td[2] = exc.CameraDots(td[2].ids[:0], td[2].uv[:0], td[2].scatter_px[:0])
+    res = exs.calibrate(scene.rig, exc.assemble(scene.rig.names, fd, td, sch, floor, table),
                        floor, table)
     assert res.report["not_calibrated"] == ["cam0"]
     text = " | ".join(res.warnings)
@@ -219,10 +223,10 @@ def test_no_camera_calibrated_is_an_error():
     scene = sp.make_scene(2, seed=0)
     refs = _refs(scene)
     sch, floor, table, fd, td = _dots(scene, refs)
-    empty = [ex.CameraDots(d.ids[:3], d.uv[:3], d.scatter_px[:3]) for d in fd]
-    dots = ex.assemble(scene.rig.names, empty, None, sch, floor, None)
+    empty = [exc.CameraDots(d.ids[:3], d.uv[:3], d.scatter_px[:3]) for d in fd]
+    dots = exc.assemble(scene.rig.names, empty, None, sch, floor, None)
     with pytest.raises(UserError) as err:
-        ex.calibrate(scene.rig, dots, floor, None)
+        exs.calibrate(scene.rig, dots, floor, None)
     assert str(err.value).startswith("no camera could be calibrated (cam0 saw only 3 "
                                      "projected dots, cam1 saw only 3 projected dots): "
                                      "each needs 12")
@@ -234,7 +238,7 @@ def test_floor_only_calibrates_with_one_warning():
     assert not refs.has_table
     sch, floor, table, fd, td = _dots(scene, refs, 0.2, seed=8)
     assert table is None and td is None
-    res = ex.calibrate(scene.rig, ex.assemble(scene.rig.names, fd, None, sch, floor, None),
+    res = exs.calibrate(scene.rig, exc.assemble(scene.rig.names, fd, None, sch, floor, None),
                        floor, None)
     assert len(res.warnings) == 1 and res.warnings[0].startswith("no table")
     pos, rot = _errors(scene.rig, res.rig)
@@ -244,32 +248,32 @@ def test_floor_only_calibrates_with_one_warning():
 # ---- what the wand bundle takes -----------------------------------------------------------------
 
 def test_plane_observations_for_the_bundle_and_the_floor(tmp_path):
-    from calibkit import floor as floor_mod
+    from calibkit.calibrate import floor as floor_mod
 
     scene = sp.make_scene(4, seed=9)
     refs = _refs(scene, 0.005, seed=9)
     sch, floor, table, fd, td = _dots(scene, refs, 0.2, seed=9)
-    dots = ex.assemble(scene.rig.names, fd, td, sch, floor, table)
-    res = ex.calibrate(scene.rig, dots, floor, table)
+    dots = exc.assemble(scene.rig.names, fd, td, sch, floor, table)
+    res = exs.calibrate(scene.rig, dots, floor, table)
     path = tmp_path / "d.npz"
-    ex.save_dots(path, res.dots, res.inlier)
-    back = ex.load_dots(path)
+    exc.save_dots(path, res.dots, res.inlier)
+    back = exc.load_dots(path)
     assert len(back) == int(res.inlier.sum())
-    data = ex.bundle_data(res.rig, back)
+    data = exs.bundle_data(res.rig, back)
     heights = data.plane_offset_m
     on_table = np.isclose(heights, table.height_m)
     assert on_table.any() and np.all(on_table | (heights == 0.0))
     assert np.allclose(data.plane_normal, [0, 0, 1])
     assert len(data.obs_uv) == len(back) and data.xyz.shape == (len(heights), 3)
     # the sparse floor recording gives `calibkit wand --floor-kind plane` the true floor
-    rec = ex.floor_recording(res.rig, res.dots, res.inlier)
+    rec = exp.floor_recording(res.rig, res.dots, res.inlier)
     A, b = floor_mod.world_from_recording(scene.rig, rec, "plane")
     truth_floor, _ = scene.land(sch.points_xy[::7], table_present=False)
     z = floor_mod.transform_points(truth_floor, A, b)[:, 2]
     assert np.max(np.abs(z)) < 0.005
     with pytest.raises(UserError, match="not a dots file"):
         (tmp_path / "x.npz").write_text("nope")
-        ex.load_dots(tmp_path / "x.npz")
+        exc.load_dots(tmp_path / "x.npz")
 
 
 # ---- rendered images, end to end ----------------------------------------------------------------
@@ -280,15 +284,15 @@ def test_rendered_capture_identifies_dots_and_places_cameras():
     four = sp.make_scene(4, size=(320, 240), seed=1)
     scene = sp.ProjectorScene(Rig((four.rig[0], four.rig[2])), four.projector, four.table)
     refs = _refs(scene, 0.005, seed=1)
-    floor, table = ex.plane_maps(refs)
+    floor, table = exr.plane_maps(refs)
     sch = coded_schedule(PROJ, 96, 2, 10)
-    tsch = ex.table_schedule(sch, table)
+    tsch = exr.table_schedule(sch, table)
     # the slow camera lags the fast one by more than a pattern's sampling takes
     cfg = sp.ProjectorSimConfig(camera_latency_s=(0.02, 0.25), seed=1)
     with sp.ProjectorRigSim(scene, cfg) as dev:
-        fcap = ex.capture_session(dev, sch, 2)
+        fcap = exc.capture_session(dev, sch, 2)
         dev.set_table(True)
-        tcap = ex.capture_session(dev, tsch, 2, latency_frames=fcap.latency_frames)
+        tcap = exc.capture_session(dev, tsch, 2, latency_frames=fcap.latency_frames)
     expected = sp.latency_frames(cfg, 2)
     assert expected[0] < expected[1]
     for c in range(2):
@@ -305,8 +309,8 @@ def test_rendered_capture_identifies_dots_and_places_cameras():
             err = np.linalg.norm(uv - d.uv, axis=1)
             assert np.median(err) < 0.12
             assert np.mean(err > 1.0) < 0.01  # misnamed or damaged dots: rare
-    dots = ex.assemble(scene.rig.names, fcap.cameras, tcap.cameras, sch, floor, table)
-    res = ex.calibrate(scene.rig, dots, floor, table)
+    dots = exc.assemble(scene.rig.names, fcap.cameras, tcap.cameras, sch, floor, table)
+    res = exs.calibrate(scene.rig, dots, floor, table)
     pos, rot = _errors(scene.rig, res.rig)
     assert max(pos.values()) < 15.0 and max(rot.values()) < 0.15
 
@@ -315,33 +319,33 @@ def test_example_reference_file_matches_the_simulator():
     """fixtures/extrinsic_refs.toml holds the simulator's (seed 0) tape measurements."""
     from pathlib import Path
 
-    refs = ex.load_references(Path(__file__).parent.parent / "fixtures" / "extrinsic_refs.toml")
+    refs = exr.load_references(Path(__file__).parent.parent / "fixtures" / "extrinsic_refs.toml")
     scene = sp.make_scene(6, seed=0)
     truth, plane = scene.land(refs.floor_px, table_present=False)
     assert np.all(plane == 0)
     err = refs.floor_xy_m - truth[:, :2]
     assert np.sqrt(np.mean(err**2)) < 0.008  # 5 mm per axis, written to the millimetre
-    floor, table = ex.plane_maps(refs)
+    floor, table = exr.plane_maps(refs)
     assert table is not None and table.height_m == scene.table.height_m
 
 
 def test_plane_dots_hold_the_world_frame_in_a_wand_bundle():
     """The dots joined to a wand solve (bundle_data + join_bundle_data): no world transform
     afterwards, yet the cameras stay in the tape's frame, and agree better at head height."""
-    from calibkit import bundle
+    from calibkit.calibrate import bundle
+    from calibkit.calibrate.wand_solve import labelled_wand_data
     from calibkit.synthetic import sim
-    from calibkit.wand_solve import labelled_wand_data
 
     scene = sp.make_scene(4, seed=3)
     refs = _refs(scene, 0.005, seed=3)
     sch, floor, table, fd, td = _dots(scene, refs, 0.2, seed=3)
-    res = ex.calibrate(scene.rig, ex.assemble(scene.rig.names, fd, td, sch, floor, table),
+    res = exs.calibrate(scene.rig, exc.assemble(scene.rig.names, fd, td, sch, floor, table),
                        floor, table)
     spacing = (0.0, 0.2, 0.5)
     obs = sim.observe(scene.rig, sim.wand_motion(200, 100.0, 4.0, spacing, seed=3),
                       noise_px=0.2, seed=3)
     wand = labelled_wand_data(res.rig, obs, spacing)
-    joined = ex.join_bundle_data(wand, ex.bundle_data(res.rig, res.dots.select(res.inlier)))
+    joined = exs.join_bundle_data(wand, exs.bundle_data(res.rig, res.dots.select(res.inlier)))
     assert len(joined.xyz) == len(wand.xyz) + len(np.unique(res.dots.point[res.inlier]))
     out = bundle.solve(joined, bundle.BundleOptions(known_sigma_m=0.005, plane_sigma_m=0.002,
                                                     noise_px=0.3))
@@ -357,13 +361,13 @@ def test_table_left_in_for_the_floor_session_is_rejected_as_outliers():
     scene = sp.make_scene(4, seed=10)
     refs = _refs(scene, 0.005, seed=10)
     sch = coded_schedule(PROJ, 64, 2, 8)
-    floor, table = ex.plane_maps(refs)
-    tsch = ex.table_schedule(sch, table)
+    floor, table = exr.plane_maps(refs)
+    tsch = exr.table_schedule(sch, table)
     fd = sp.simulated_dots(scene, sch.points_xy, True, 0.2, seed=10)  # table in the light
     td = sp.simulated_dots(scene, sch.points_xy, True, 0.2, seed=11,
                            shown=np.concatenate(tsch.layers))
-    dots = ex.assemble(scene.rig.names, fd, td, sch, floor, table)
-    res = ex.calibrate(scene.rig, dots, floor, table)
+    dots = exc.assemble(scene.rig.names, fd, td, sch, floor, table)
+    res = exs.calibrate(scene.rig, dots, floor, table)
     n = len(sch.points_xy)
     floor_rows = dots.point < n
     _, landed = scene.land(sch.points_xy[dots.point[floor_rows] % n], table_present=True)

@@ -6,10 +6,11 @@ import json
 
 import numpy as np
 
-from calibkit.camera import Rig
-from calibkit.compare import compare_rigs
-from calibkit.extrinsic import load_dots, load_references
-from calibkit.recording import load_observations
+from calibkit.calibrate.compare import compare_rigs
+from calibkit.calibrate.extrinsic_capture import load_dots
+from calibkit.calibrate.extrinsic_reference import load_references
+from calibkit.core.camera import Rig
+from calibkit.core.recording import load_observations
 
 
 def _one_line_error(res, code=2):
@@ -206,16 +207,16 @@ def test_live_path_with_a_stand_in_projector_and_cameras(calibkit_cli, tmp_path,
     import calibkit.sources
     import projector.display
     import projector.screens
-    from calibkit import extrinsic as ex
+    from calibkit.calibrate import extrinsic_reference as exr
     from calibkit.sources import Frame
     from calibkit.synthetic import projector as sp
 
     four = sp.make_scene(4, size=(320, 240), table_height_m=None, seed=2)
     scene = sp.ProjectorScene(Rig((four.rig[0], four.rig[2])), four.projector, None)
-    m = sp.measured_references(scene, ex.reference_layout_px((1280, 800)), np.zeros((0, 2)),
+    m = sp.measured_references(scene, exr.reference_layout_px((1280, 800)), np.zeros((0, 2)),
                                0.005, seed=2)
-    (tmp_path / "refs.toml").write_text(ex.references_toml(
-        ex.References(m["floor_px"], m["floor_xy_m"])))
+    (tmp_path / "refs.toml").write_text(exr.references_toml(
+        exr.References(m["floor_px"], m["floor_xy_m"])))
     scene.rig.save(tmp_path / "intr.toml")
     rig_sim = sp.ProjectorRigSim(scene, sp.ProjectorSimConfig(camera_latency_s=(0.03, 0.1)))
     latest: dict[int, np.ndarray] = {}

@@ -7,8 +7,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.c3dio import Take, read_c3d, read_take, write_take
-from daemon.gapfill import Gap, _newton, fill, fill_cubic, fill_linear, fill_rigid, find_gaps
+from daemon.markers.c3dio import Take, read_c3d, read_take, write_take
+from daemon.markers.gapfill import (
+    Gap,
+    _newton,
+    fill,
+    fill_cubic,
+    fill_linear,
+    fill_rigid,
+    find_gaps,
+)
 
 DATA = Path(__file__).resolve().parent.parent / "fixtures" / "cmu_c3d"
 

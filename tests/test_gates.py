@@ -9,10 +9,15 @@ import numpy as np
 import pytest
 from scipy.stats import chi2, norm
 
-from calibkit.camera import Rig
-from calibkit.correspondence import CorrespondenceConfig, match_frames
-from calibkit.errors import UserError
-from calibkit.gates import (
+from calibkit.core.camera import Rig
+from calibkit.core.errors import UserError
+from calibkit.core.observations import Truth
+from calibkit.core.recording import save_observations
+from calibkit.synthetic import sim
+from calibkit.synthetic.miscalibrate import labelled_residual_px, miscalibrated
+from calibkit.synthetic.truthcheck import score_points
+from calibkit.vision.correspondence import CorrespondenceConfig, match_frames
+from calibkit.vision.gates import (
     K_EPIPOLAR,
     K_REPROJ,
     correspondence_config,
@@ -22,11 +27,6 @@ from calibkit.gates import (
     rig_residual,
     rig_residual_px,
 )
-from calibkit.observations import Truth
-from calibkit.recording import save_observations
-from calibkit.synthetic import sim
-from calibkit.synthetic.miscalibrate import labelled_residual_px, miscalibrated
-from calibkit.synthetic.truthcheck import score_points
 
 NOISE_PX = 0.3  # centroid noise; the rest of the 1 px residual is the calibration's error
 
@@ -86,7 +86,7 @@ def test_the_reprojection_gate_keeps_all_but_a_tenth_of_a_percent(webcams) -> No
 
 def _true_points(rig, obs):
     """Every marker seen by >= 3 cameras, triangulated from its true blobs: (rows, xyz)."""
-    from calibkit.geometry import triangulate
+    from calibkit.core.geometry import triangulate
 
     real = np.flatnonzero(obs.marker >= 0)
     key = obs.frame[real] * 1000 + obs.marker[real]

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from calibkit.camera import Camera, Rig, look_at, rvec_from_rotation
-from calibkit.geometry import RigArrays, _solve3, rigid_fit, triangulate
+from calibkit.core.camera import Camera, Rig, look_at, rvec_from_rotation
+from calibkit.core.geometry import RigArrays, _solve3, rigid_fit, triangulate
 from calibkit.synthetic import sim
 
 

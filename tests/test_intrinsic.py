@@ -8,20 +8,20 @@ import json
 import numpy as np
 import pytest
 
-from calibkit.camera import Camera, Rig, rotation_from_rvec, rvec_from_rotation
-from calibkit.dotcapture import DotCapture
-from calibkit.errors import UserError
-from calibkit.intrinsic import (
+from calibkit.calibrate.dotcapture import DotCapture
+from calibkit.calibrate.intrinsic import (
     PlaneView,
     calibrate,
     disc_bias_px,
     guidance,
     monitor_plane_view,
 )
-from calibkit.settle import SettleDetector, signature_noise
+from calibkit.calibrate.settle import SettleDetector, signature_noise
+from calibkit.core.camera import Camera, Rig, rotation_from_rvec, rvec_from_rotation
+from calibkit.core.errors import UserError
 from calibkit.synthetic.monitor import MonitorSimConfig, default_sim_camera, make_monitor_sim
 from calibkit.synthetic.sim import MonitorView, monitor_points, monitor_views
-from projector.display import Dots
+from projector.dots import Dots
 from projector.patterns import coded_schedule, grid_positions
 
 SMALL = dict(screen_px=(960, 540), pixel_pitch_mm=0.543)  # a 52 cm monitor, fewer pixels
@@ -274,7 +274,7 @@ def test_every_camera_of_a_simulated_rig(calibkit_cli, tmp_path):
     assert Rig.load(tmp_path / "intr.truth.toml").names == true_rig.names
     # the views themselves, for the wand solve's graph: named by the rig file, every camera's
     # inlier dots with the solved view poses (each view's dots reproject with them)
-    from calibkit import plane_views
+    from calibkit.calibrate import plane_views
 
     assert {e["views_file"] for e in est.quality["intrinsic"].values()} == {"intr.views.npz"}
     kept = plane_views.load_for(est.quality, intr, est.names)

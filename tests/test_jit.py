@@ -5,7 +5,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from calibkit import jit as jit_module
+from calibkit.core import jit as jit_module
 
 
 def test_jit_falls_back_to_memory_when_no_cache_can_be_written(monkeypatch) -> None:

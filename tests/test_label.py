@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.c3dio import (
+from daemon.markers.c3dio import (
     Points,
     Take,
     read_c3d,
@@ -16,7 +16,7 @@ from daemon.c3dio import (
     write_points_csv,
     write_take,
 )
-from daemon.label import (
+from daemon.markers.label import (
     Labeller,
     _chirality,
     hide_spans,
@@ -25,7 +25,7 @@ from daemon.label import (
     points_with_ghosts,
     score,
 )
-from daemon.markerset import MarkerSet, learn
+from daemon.markers.markerset import MarkerSet, learn
 
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT / "fixtures" / "cmu_c3d"
@@ -34,7 +34,7 @@ FRAMES = 360          # 3 s of each take keeps the tests fast
 
 @pytest.fixture(scope="module")
 def cmu41():
-    return MarkerSet.load(ROOT / "daemon" / "markersets" / "cmu41.toml")
+    return MarkerSet.load(ROOT / "daemon" / "markers" / "sets" / "cmu41.toml")
 
 
 def _excerpt(name, labels, start=0):
@@ -141,7 +141,7 @@ def test_cli_label_csv(tmp_path, mocapd_cli, walk, cmu41):
     short = Take(walk.labels, walk.xyz_m[:120], walk.rate_hz, 0)
     write_points_csv(tmp_path / "pts.csv", Points.from_take(short, seed=6))
     r = mocapd_cli("label", tmp_path / "pts.csv", "--markerset",
-                   ROOT / "daemon" / "markersets" / "cmu41.toml", "--out",
+                   ROOT / "daemon" / "markers" / "sets" / "cmu41.toml", "--out",
                    tmp_path / "lab.csv", "--json", tmp_path / "lab.json", "--rate", "120")
     assert r.code == 0, r.err
     back = read_labelled_csv(tmp_path / "lab.csv")
@@ -151,7 +151,7 @@ def test_cli_label_csv(tmp_path, mocapd_cli, walk, cmu41):
                    "--out", tmp_path / "x.csv")
     assert r.code == 2 and "does not exist" in r.err
     r = mocapd_cli("label", tmp_path / "pts.csv", "--markerset",
-                   ROOT / "daemon" / "markersets" / "cmu41.toml", "--out", tmp_path / "x.csv",
+                   ROOT / "daemon" / "markers" / "sets" / "cmu41.toml", "--out", tmp_path / "x.csv",
                    "--seed-frames", "5")
     assert r.code == 2 and "--seed" in r.err
 
@@ -163,8 +163,8 @@ def test_rigid_fit_tells_a_module_from_its_mirror_image(cmu41, acro):
     """The left foot's tetrahedron (ankle, heel, 5th metatarsal, toe): the labels of the
     two forefoot markers swapped keep the heel and ankle distances nearly (equal on this
     subject) but turn the tetrahedron inside out; the proper rigid fit sees it."""
-    from daemon.label_modules import rigid_modules
-    from daemon.label_modules import rigid_residuals as _rigid_residuals
+    from daemon.markers.label_modules import rigid_modules
+    from daemon.markers.label_modules import rigid_residuals as _rigid_residuals
     foot = next(m for m in rigid_modules(cmu41) if cmu41.labels.index("LTOE") in m)
     assert sorted(cmu41.labels[i] for i in foot) == ["LANK", "LHEE", "LMT5", "LTOE"]
     x = acro.xyz_m[:, foot]
@@ -256,9 +256,9 @@ def test_module_order_from_the_marker_sets_shape(cmu41, acro):
     """A foot's labels turned around its tetrahedron are put back by the marker set's
     shape of the foot (with its handedness); the flat pelvis with left and right swapped
     is left alone: turned over, its swapped labels fit as well (a mirror twin)."""
-    from daemon.label_modules import better_order as _better_order
-    from daemon.label_modules import module_template as _module_template
-    from daemon.label_modules import rigid_modules
+    from daemon.markers.label_modules import better_order as _better_order
+    from daemon.markers.label_modules import module_template as _module_template
+    from daemon.markers.label_modules import rigid_modules
     frame = acro.xyz_m[0]
     for names, order, expect in ((["LANK", "LHEE", "LMT5", "LTOE"], [2, 3, 1, 0], True),
                                  (["LFWT", "RFWT", "LBWT", "RBWT"], [1, 0, 3, 2], False)):
@@ -310,11 +310,11 @@ def test_skipped_frames_are_predicted_over(cmu41, acro):
 
 
 def test_kernels_match_their_numpy_twins(cmu41, acro):
-    """Each compiled kernel (daemon/label_kernels.py) against the numpy code it replaces,
+    """Each compiled kernel (daemon/markers/label_kernels.py) against the numpy code it replaces,
     on a labeller's state in the middle of an occluded take with ghosts."""
-    from daemon import label_kernels as kern
-    from daemon.label import _module_candidates, _swap_scores
-    from daemon.label_modules import rigid_residuals as _rigid_residuals
+    from daemon.markers import label_kernels as kern
+    from daemon.markers.label import _module_candidates, _swap_scores
+    from daemon.markers.label_modules import rigid_residuals as _rigid_residuals
     hidden = hide_spans(acro, 0.2, seed=11)
     pts, _ = points_with_ghosts(hidden, 3, seed=11)
     _, per = pts.split()

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from label_people import BODIES, walk
 
-from daemon.c3dio import Take, read_c3d
-from daemon.label import hide_spans, label_take, points_with_ghosts, score
-from daemon.label_start import link_window, mirror_map, window_start
-from daemon.markerset import MarkerSet, learn
+from daemon.markers.c3dio import Take, read_c3d
+from daemon.markers.label import hide_spans, label_take, points_with_ghosts, score
+from daemon.markers.label_start import link_window, mirror_map, window_start
+from daemon.markers.markerset import MarkerSet, learn
 
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT / "fixtures" / "cmu_c3d"
@@ -21,7 +21,7 @@ DATA = ROOT / "fixtures" / "cmu_c3d"
 
 @pytest.fixture(scope="module")
 def cmu41():
-    return MarkerSet.load(ROOT / "daemon" / "markersets" / "cmu41.toml")
+    return MarkerSet.load(ROOT / "daemon" / "markers" / "sets" / "cmu41.toml")
 
 
 def _person(name: str, labels: list[str], frames: int = 240) -> Take:

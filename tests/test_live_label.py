@@ -18,14 +18,14 @@ import pytest
 from calibkit.synthetic import person as sim_person
 from daemon.config import SimConfig, parse_config
 from daemon.live_label import LiveLabeller, load, resolve, shipped_sets
-from daemon.markerset import MarkerSet
+from daemon.markers.markerset import MarkerSet
 from daemon.publish import natnet as nn
 from daemon.publish import packet
 from daemon.synthetic.scene import SimScene
 from daemon.tracker import TrackFrame
 
 ROOT = Path(__file__).resolve().parents[1]
-SET = ROOT / "daemon" / "markersets" / "sim_person.toml"
+SET = ROOT / "daemon" / "markers" / "sets" / "sim_person.toml"
 NOISE_M = 0.0005  # what the stage tests add to the true marker positions
 
 
@@ -162,7 +162,7 @@ def test_the_shipped_person_set_is_what_sim_person_set_learns():
 
 def test_markerset_key_shipped_name_or_path_relative_to_the_file(tmp_path):
     assert parse_config({"markerset": "cmu41"}, tmp_path / "m.toml", tmp_path).markerset == \
-        ROOT / "daemon" / "markersets" / "cmu41.toml"
+        ROOT / "daemon" / "markers" / "sets" / "cmu41.toml"
     (tmp_path / "sets").mkdir()
     (tmp_path / "sets" / "mine.toml").write_bytes(SET.read_bytes())
     cfg = parse_config({"markerset": "sets/mine.toml"}, tmp_path / "m.toml", tmp_path)

@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibkit.errors import UserError
-from daemon.c3dio import read_c3d
-from daemon.markerset import MarkerSet, learn, signed_volume
+from calibkit.core.errors import UserError
+from daemon.markers.c3dio import read_c3d
+from daemon.markers.markerset import MarkerSet, learn, signed_volume
 
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT / "fixtures" / "cmu_c3d"
@@ -84,7 +84,7 @@ def test_toml_round_trip(tmp_path, ms_85):
 
 
 def test_shipped_cmu41_loads_and_covers_both_subjects():
-    ms = MarkerSet.load(ROOT / "daemon" / "markersets" / "cmu41.toml")
+    ms = MarkerSet.load(ROOT / "daemon" / "markers" / "sets" / "cmu41.toml")
     assert ms.n == 41 and ms.name == "cmu41"
     # learned from two subjects: between-take spread is known and non-zero somewhere
     assert ms.subject_sd_m.max() > 0.005

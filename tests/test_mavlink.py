@@ -262,7 +262,7 @@ def test_mavlink_tables_and_their_errors():
     assert (a.device, a.origin, a.rate_hz) == ("udpout:127.0.0.1:14550", (47.0, 8.0, 400.0),
                                                None)
     assert (b.device, b.rate_hz, b.origin) == ("/dev/ttyACM0", 30.0, None)
-    from calibkit.errors import UserError
+    from calibkit.core.errors import UserError
 
     for bad, words in (({"device": "udpout:nowhere", "body": 1}, "mavlink[0].device"),
                        ({"device": "tcpin:0.0.0.0:5760", "body": 1}, "not supported"),

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibkit.errors import UserError
-from daemon.motive_csv import read_motive_csv, write_motive_csv
+from calibkit.core.errors import UserError
+from daemon.markers.motive_csv import read_motive_csv, write_motive_csv
 from daemon.rigid import matrix_from_quaternion
 
 DATA = Path(__file__).resolve().parent.parent / "fixtures" / "optitrack_rigidbody_csv"

@@ -563,7 +563,7 @@ def test_a_port_held_elsewhere_is_retried():
 
 
 def test_configuration_tables_and_their_errors():
-    from calibkit.errors import UserError
+    from calibkit.core.errors import UserError
     from daemon.config import parse_config
     from daemon.service import make_publishers
 

@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibkit.errors import UserError
-from projector.display import Dots, OffscreenDisplay
+from calibkit.core.errors import UserError
+from projector.display import OffscreenDisplay
+from projector.dots import Dots
 from projector.screens import Screen, list_screens, parse_pixel_pitch, parse_xrandr
 
 

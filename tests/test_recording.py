@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibkit.camera import Camera, Rig
-from calibkit.errors import UserError
-from calibkit.observations import Observations, Truth
-from calibkit.recording import (
+from calibkit.core.camera import Camera, Rig
+from calibkit.core.errors import UserError
+from calibkit.core.observations import Observations, Truth
+from calibkit.core.recording import (
     RecordingWriter,
     load_observations,
     load_truth_csv,

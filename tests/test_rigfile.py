@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from calibkit.camera import BASLER_658x492_DIST, Rig
-from calibkit.errors import UserError
+from calibkit.core.camera import BASLER_658x492_DIST, Rig
+from calibkit.core.errors import UserError
 from calibkit.synthetic import sim
 
 

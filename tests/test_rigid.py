@@ -141,7 +141,7 @@ def test_bodies_posed_within_the_noise(tracked):
 
 def test_refinement_on_pixels_agrees_with_the_truth():
     """refine_poses from a perturbed pose converges to the true one on noise-free blobs."""
-    from calibkit.geometry import RigArrays
+    from calibkit.core.geometry import RigArrays
     from daemon.rigid import refine_poses
     from daemon.tracker import AllCameras
 
@@ -289,7 +289,7 @@ def test_a_body_is_defined_from_frames_of_tracked_points(moving):
 
 
 def test_a_body_that_does_not_hold_still_is_refused():
-    from calibkit.errors import UserError
+    from calibkit.core.errors import UserError
     from daemon.rigid_define import body_from_snapshots
 
     rng = np.random.default_rng(4)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibkit.errors import UserError
-from calibkit.observations import Truth
+from calibkit.core.errors import UserError
+from calibkit.core.observations import Truth
 from calibkit.synthetic import blobs, sim
 
 
@@ -132,7 +132,7 @@ def test_projector_dots_land_on_the_floor_and_the_table() -> None:
 
 
 def test_motion_blur_smears_the_spot_along_its_path() -> None:
-    from calibkit.detect import DetectorConfig, detect
+    from calibkit.vision.detect import DetectorConfig, detect
 
     cam = sim.make_rig(4, 4.0, seed=0)[0]
     start = np.array([[0.0, 0.0, 1.0]])
@@ -168,7 +168,7 @@ def test_nearer_markers_and_bodies_hide_markers_behind_them() -> None:
 
 
 def test_sim_unsync_option_offsets_each_camera(tmp_path, calibkit_cli) -> None:
-    from calibkit.recording import load_observations
+    from calibkit.core.recording import load_observations
 
     res = calibkit_cli("sim", "static", "--cameras", "4", "--frames", "3", "--unsync-ms",
                        "8", "--out", tmp_path / "u.mcrec")

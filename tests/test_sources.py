@@ -6,9 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from calibkit.camera import Camera
-from calibkit.detect import detect
-from calibkit.errors import UserError
+from calibkit.core.camera import Camera
+from calibkit.core.errors import UserError
 from calibkit.sources import (
     DeviceSource,
     FolderSource,
@@ -20,6 +19,7 @@ from calibkit.synthetic import frames as frames_module
 from calibkit.synthetic.frames import SimSource
 from calibkit.synthetic.spots import render_spots
 from calibkit.synthetic.truthcheck import match_to_truth
+from calibkit.vision.detect import detect
 
 
 def _frame(seed: int, size=(160, 120)):

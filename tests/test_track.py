@@ -10,17 +10,17 @@ import pytest
 import tomli_w
 
 from calibkit.synthetic import sim
-from daemon.c3dio import Points, Take, read_points_csv, write_points_csv
-from daemon.label import hide_spans
-from daemon.motive_csv import read_motive_csv
-from daemon.offline_track import (
+from daemon.markers.c3dio import Points, Take, read_points_csv, write_points_csv
+from daemon.markers.label import hide_spans
+from daemon.markers.motive_csv import read_motive_csv
+from daemon.markers.offline_track import (
     cloud_from_points,
     rotation_difference_deg,
     track_cloud,
 )
-from daemon.point_tracks import PointTrackConfig, associate
+from daemon.markers.point_tracks import PointTrackConfig, associate
+from daemon.markers.trajectory_io import read_poses_csv, read_trajectory
 from daemon.rigid import BodyDef, RigidConfig, RigidTracker, quaternion_xyzw
-from daemon.trajectory_io import read_poses_csv, read_trajectory
 
 DATA = Path(__file__).resolve().parent.parent / "fixtures" / "optitrack_rigidbody_csv"
 RATE = 120.0

@@ -139,7 +139,7 @@ def test_compiled_kernel_matches_the_numpy_reference(scene, area):
 
 def _crossing(rig, n=41):
     """Marker 0 still, marker 1 passing in front of it across camera 0's line of sight."""
-    from calibkit.observations import Truth
+    from calibkit.core.observations import Truth
 
     cam = rig[0]
     back = np.array([0.3, -0.2, 1.0])
@@ -213,7 +213,7 @@ def test_the_daemon_tracks_with_a_calibrated_rig_and_bodies_defined_live():
     from dataclasses import replace
     from pathlib import Path
 
-    from calibkit.camera import Rig
+    from calibkit.core.camera import Rig
     from daemon.pipeline import FrameSet, Pipeline
     from daemon.rigid import RigidConfig
     from daemon.synthetic.evaluator import Evaluator

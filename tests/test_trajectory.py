@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from calibkit.errors import UserError
+from calibkit.core.errors import UserError
+from daemon.markers.trajectory_eval import evaluate, figures, umeyama
+from daemon.markers.trajectory_io import Trajectory, read_trajectory, write_tum
 from daemon.synthetic.trajectory import flight
-from daemon.trajectory_eval import evaluate, figures, umeyama
-from daemon.trajectory_io import Trajectory, read_trajectory, write_tum
 
 
 def _alignment_error(ev, truth, xyz):

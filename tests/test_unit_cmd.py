@@ -8,7 +8,7 @@ import subprocess
 
 import pytest
 
-from calibkit.errors import UserError
+from calibkit.core.errors import UserError
 from daemon.commands.unit_cmd import exec_line, systemd_quote
 
 

@@ -6,15 +6,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibkit import floor, wand_report
-from calibkit.camera import Rig, rotation_from_rvec
-from calibkit.errors import UserError
-from calibkit.geometry import rigid_fit
-from calibkit.observations import Observations, Truth
+from calibkit.calibrate import floor, wand_report
+from calibkit.calibrate.wand import CaptureMonitor, WandSpec, identify, initial_poses
+from calibkit.calibrate.wand_solve import calibrate
+from calibkit.core.camera import Rig, rotation_from_rvec
+from calibkit.core.errors import UserError
+from calibkit.core.geometry import rigid_fit
+from calibkit.core.observations import Observations, Truth
 from calibkit.synthetic import sim
 from calibkit.synthetic.miscalibrate import off_intrinsics
-from calibkit.wand import CaptureMonitor, WandSpec, identify, initial_poses
-from calibkit.wand_solve import calibrate
 
 SPACING = (0.0, 0.2, 0.5)
 
@@ -101,7 +101,7 @@ def test_capture_monitor_stops_when_every_camera_has_enough(scene):
     m = CaptureMonitor(["a"], [(640, 480)], grid=8)
     assert m.gy == 6
     u, v = np.meshgrid(np.arange(8) * 80 + 5, np.arange(6) * 80 + 5)
-    from calibkit.wand import WandObservations
+    from calibkit.calibrate.wand import WandObservations
 
     pts = np.stack([u.ravel(), v.ravel()], axis=1).astype(float)
     m.add(WandObservations(("a",), ((640, 480),), np.arange(len(pts)), np.zeros(len(pts),
@@ -271,8 +271,8 @@ def test_one_marker_wand_needs_initial_poses_for_its_scale():
 
 
 def test_capture_keeps_what_it_has_on_ctrl_c(scene):
+    from calibkit.calibrate.wand_pipeline import capture
     from calibkit.clitools import Progress
-    from calibkit.commands.wand_cmd import capture
 
     rig, _truth, obs = scene
 
@@ -289,7 +289,7 @@ def test_capture_keeps_what_it_has_on_ctrl_c(scene):
 
 
 def test_projector_dots_join_the_wand_solve_and_hold_the_world_frame():
-    from calibkit import bundle
+    from calibkit.calibrate import bundle
 
     rig = sim.make_rig(4, 4.0, seed=14)
     truth = sim.wand_motion(300, 100.0, 4.0, SPACING, seed=14)
@@ -334,7 +334,7 @@ def six_cameras():
 
 
 def test_grade_sees_wrong_intrinsics_that_the_pixels_hide(six_cameras):
-    from calibkit.compare import compare_rigs
+    from calibkit.calibrate.compare import compare_rigs
 
     rig, obs = six_cameras
     good = calibrate(obs, rig, SPACING, refine_intrinsics=False, seed=0)
@@ -377,7 +377,7 @@ def test_held_out_frames_come_at_random_and_in_whole_regions():
 
 
 def test_intrinsic_priors_from_the_rig_file():
-    from calibkit import intrinsic_prior as ip
+    from calibkit.calibrate import intrinsic_prior as ip
 
     rig = sim.make_rig(2, 4.0, seed=1)
     std = {"fx": 0.02, "fy": 0.02, "cx": 0.03, "cy": 0.03, "skew": 0.0, "k1": 0.0001,

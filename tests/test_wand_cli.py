@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from calibkit.camera import Rig
-from calibkit.recording import load_observations, save_observations
+from calibkit.core.camera import Rig
+from calibkit.core.recording import load_observations, save_observations
 from calibkit.synthetic import sim
 
 
@@ -93,7 +93,7 @@ def test_wand_sim_starts_from_the_intrinsics_file(calibkit_cli, tmp_path):
     # and the monitor's 0.01 % / 0.04 px leave ~1-2 mm, a few from the L-frame's tilt
     err = np.linalg.norm(runs["good"].centres() - truth.centres(), axis=1)
     assert err.max() < 6e-3
-    from calibkit.compare import compare_rigs
+    from calibkit.calibrate.compare import compare_rigs
 
     grid_bad = compare_rigs(truth, runs["bad"])["grid_rms_mm"]
     grid_good = compare_rigs(truth, runs["good"])["grid_rms_mm"]
@@ -122,7 +122,7 @@ def test_wand_from_csv_with_intrinsics(calibkit_cli, tmp_path):
     assert report["world_frame"].startswith("cameras")  # no floor given: provisional
     assert report["held_out"]["reprojection_rms_px"] < 0.3
     est, true = Rig.load(tmp_path / "out.toml"), Rig.load(rig_file)
-    from calibkit.geometry import rigid_fit
+    from calibkit.core.geometry import rigid_fit
 
     R, t, s = rigid_fit(est.centres(), true.centres(), scale=True)
     assert abs(s - 1) < 2e-3  # the wand's length sets the scale
@@ -240,8 +240,8 @@ def test_live_capture_from_camera_image_folders(calibkit_cli, tmp_path):
 
 
 def test_wand_with_an_lframe_recording_sets_the_floor(calibkit_cli, tmp_path):
-    from calibkit import floor
-    from calibkit.observations import Truth
+    from calibkit.calibrate import floor
+    from calibkit.core.observations import Truth
 
     rig = sim.make_rig(4, 4.0, seed=8)
     rig.save(tmp_path / "rig.toml")

@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from calibkit.camera import Rig
-from calibkit.compare import compare_rigs
+from calibkit.calibrate.compare import compare_rigs
+from calibkit.core.camera import Rig
 
 
 @pytest.fixture(scope="module")

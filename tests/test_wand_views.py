@@ -1,18 +1,18 @@
-"""The intrinsic step's monitor views in the wand's graph (calibkit.plane_views and
-calibkit.bundle.TargetData), against the simulator's truth."""
+"""The intrinsic step's monitor views in the wand's graph (calibkit.calibrate.plane_views and
+calibkit.calibrate.bundle.TargetData), against the simulator's truth."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from calibkit import plane_views
-from calibkit.camera import Rig
-from calibkit.intrinsic import PlaneView, calibrate, monitor_plane_view
+from calibkit.calibrate import plane_views
+from calibkit.calibrate.intrinsic import PlaneView, calibrate, monitor_plane_view
+from calibkit.calibrate.wand_solve import calibrate as calibrate_wand
+from calibkit.core.camera import Rig
 from calibkit.synthetic import sim
 from calibkit.synthetic.miscalibrate import off_intrinsics
 from calibkit.synthetic.monitor import MonitorSimConfig, make_monitor_sim, projected_dots
-from calibkit.wand_solve import calibrate as calibrate_wand
 from projector.patterns import coded_schedule
 
 SPACING = (0.0, 0.2, 0.5)
@@ -115,7 +115,7 @@ def test_view_factor_jacobians_match_finite_differences():
     """The per-view factor's analytic Jacobians (pose on the right, Cal3DS2 additive)."""
     import gtsam
 
-    from calibkit.bundle_target import _project
+    from calibkit.calibrate.bundle_target import _project
 
     rng = np.random.default_rng(0)
     pose = gtsam.Pose3(gtsam.Rot3.Rodrigues(0.3, -0.2, 0.1), np.array([0.1, -0.05, -0.6]))

@@ -7,9 +7,9 @@ from typing import Annotated
 
 import typer
 
-from calibkit.camera import Rig
+from calibkit.calibrate.compare import GROSS_MM, compare_rigs
 from calibkit.clitools import print_table, write_json
-from calibkit.compare import GROSS_MM, compare_rigs
+from calibkit.core.camera import Rig
 
 
 def register(app: typer.Typer) -> None:

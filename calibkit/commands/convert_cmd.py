@@ -7,9 +7,9 @@ from typing import Annotated
 
 import typer
 
-from calibkit.camera import Rig
-from calibkit.errors import UserError
-from calibkit.recording import load_observations, save_observations, truth_path_for
+from calibkit.core.camera import Rig
+from calibkit.core.errors import UserError
+from calibkit.core.recording import load_observations, save_observations, truth_path_for
 
 
 def register(app: typer.Typer) -> None:

@@ -19,7 +19,7 @@ from typing import Annotated
 import typer
 
 from calibkit.clitools import print_table
-from calibkit.errors import UserError
+from calibkit.core.errors import UserError
 
 CALIBKIT = [sys.executable, "-m", "calibkit.cli"]
 MOCAPD = [sys.executable, "-m", "daemon.cli"]

@@ -11,13 +11,13 @@ import numpy as np
 import typer
 
 from calibkit.clitools import Progress, print_table, write_json
-from calibkit.detect import Blobs, DetectorConfig, detect
-from calibkit.errors import UserError
-from calibkit.fileio import write_bytes_atomic
-from calibkit.masks import build_mask, load_mask, save_mask
+from calibkit.core.errors import UserError
+from calibkit.core.fileio import write_bytes_atomic
 from calibkit.sources import Frame, FrameSource, open_source
 from calibkit.synthetic.frames import sim_source
 from calibkit.synthetic.truthcheck import match_to_truth
+from calibkit.vision.detect import Blobs, DetectorConfig, detect
+from calibkit.vision.masks import build_mask, load_mask, save_mask
 
 
 def parse_threshold(text: str) -> float | str:

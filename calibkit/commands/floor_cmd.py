@@ -9,14 +9,14 @@ from typing import Annotated
 import numpy as np
 import typer
 
-from calibkit import floor
-from calibkit.camera import Rig, rotation_from_rvec, rvec_from_rotation
-from calibkit.clitools import print_table, write_json
-from calibkit.commands.common import parse_floats, truth_rig_path
-from calibkit.errors import UserError
-from calibkit.observations import Truth
-from calibkit.recording import load_observations
+from calibkit.calibrate import floor
+from calibkit.clitools import parse_floats, print_table, write_json
+from calibkit.core.camera import Rig, rotation_from_rvec, rvec_from_rotation
+from calibkit.core.errors import UserError
+from calibkit.core.observations import Truth
+from calibkit.core.recording import load_observations
 from calibkit.synthetic import sim
+from calibkit.synthetic.runs import truth_rig_path
 
 
 def register(app: typer.Typer) -> None:

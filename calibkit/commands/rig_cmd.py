@@ -8,10 +8,10 @@ from typing import Annotated
 import numpy as np
 import typer
 
-from calibkit.camera import Rig
 from calibkit.clitools import print_table, write_json
-from calibkit.errors import UserError
-from calibkit.rigfile import export_opencv_yaml
+from calibkit.core.camera import Rig
+from calibkit.core.errors import UserError
+from calibkit.core.rigfile import export_opencv_yaml
 
 rig_app = typer.Typer(help="Show rig files; export to and import from OpenCV YAML.",
                       no_args_is_help=True)

@@ -8,10 +8,10 @@ from typing import Annotated
 import numpy as np
 import typer
 
-from calibkit.camera import WEBCAM_DIST, BASLER_658x492_DIST
-from calibkit.commands.common import load_rig_option, parse_floats, parse_size
-from calibkit.errors import UserError
-from calibkit.recording import save_observations, save_truth_csv, truth_path_for
+from calibkit.clitools import load_rig_option, parse_floats, parse_size
+from calibkit.core.camera import WEBCAM_DIST, BASLER_658x492_DIST
+from calibkit.core.errors import UserError
+from calibkit.core.recording import save_observations, save_truth_csv, truth_path_for
 from calibkit.synthetic import sim
 
 DISTORTIONS = {"none": (0.0, 0.0, 0.0, 0.0, 0.0), "webcam": WEBCAM_DIST,

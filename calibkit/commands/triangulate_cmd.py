@@ -9,14 +9,14 @@ from typing import Annotated
 import numpy as np
 import typer
 
-from calibkit.camera import Rig
 from calibkit.clitools import Progress, print_table, write_json
-from calibkit.correspondence import CorrespondenceConfig, FramePoints, match_frames
-from calibkit.errors import UserError
-from calibkit.fileio import atomic_write
-from calibkit.gates import gated_config
-from calibkit.recording import load_observations
+from calibkit.core.camera import Rig
+from calibkit.core.errors import UserError
+from calibkit.core.fileio import atomic_write
+from calibkit.core.recording import load_observations
 from calibkit.synthetic.truthcheck import score_points, stands_for
+from calibkit.vision.correspondence import CorrespondenceConfig, FramePoints, match_frames
+from calibkit.vision.gates import gated_config
 
 COLUMNS = ("frame", "x", "y", "z", "reproj_px", "ray_mm", "n_cameras", "cameras")
 

@@ -4,97 +4,38 @@ the whole rig with it."""
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated
 
-import numpy as np
 import typer
 
-from calibkit import floor
-from calibkit.camera import Rig
-from calibkit.clitools import Progress, print_table, write_json
-from calibkit.commands.common import (
-    check_estimate,
-    need_intrinsics_for_sim,
-    parse_floats,
-    sim_hardware,
-    truth_rig_path,
-)
-from calibkit.errors import UserError
-from calibkit.observations import Observations, Truth
-from calibkit.recording import RecordingWriter, load_observations
-from calibkit.synthetic import sim
-from calibkit.wand import CaptureMonitor, WandSpec, identify
-
-CHUNK_FRAMES = 50  # simulated frames handed to the capture loop at a time
+from calibkit.calibrate import wand_pipeline as pipeline
+from calibkit.calibrate.wand import WandSpec
+from calibkit.clitools import Progress, parse_floats, print_table, write_json
+from calibkit.core.camera import Rig
+from calibkit.core.errors import UserError
+from calibkit.core.recording import load_observations
+from calibkit.synthetic.runs import truth_rig_path
 
 
-def capture(batches: Iterator[Observations], spec: WandSpec, intrinsics: Rig,
-            monitor: CaptureMonitor, writer: RecordingWriter | None,
-            progress: Progress) -> Observations | None:
-    """Feed batches of frames through identification until every camera has enough (or
-    Ctrl-C); every batch is appended to the recording as it comes. Returns what it got."""
-    parts: list[Observations] = []
-    frames = 0
-    try:
-        for batch in batches:
-            if len(batch):
-                parts.append(batch)
-                monitor.add(identify(batch, spec, intrinsics))
-                if writer is not None:
-                    writer.append_observations(batch)
-            frames += len(np.unique(batch.frame)) if len(batch) else 1
-            progress.update(frames, monitor.summary())
-            if monitor.done():
-                break
-    except KeyboardInterrupt:
-        progress.finish("interrupted: using what was captured")
-        return Observations.concatenate(parts) if parts else None
-    progress.finish(monitor.summary())
-    return Observations.concatenate(parts) if parts else None
+def _check_sources(source: Path | None, use_sim: bool, camera: list[str] | None,
+                   intrinsics: Path | None, rig_path: Path | None, dots: Path | None,
+                   floor_rec: Path | None) -> None:
+    if sum([source is not None, use_sim, bool(camera)]) != 1:
+        raise UserError("give exactly one of --from REC, --sim or --camera (live)")
+    if intrinsics is not None and rig_path is not None:
+        raise UserError("give --intrinsics or --rig, not both")
+    if dots is not None and rig_path is None:
+        raise UserError("--dots needs --rig: the poses from the calibkit extrinsic run that "
+                        "wrote the dots (they are in the same world frame)")
+    if dots is not None and floor_rec is not None:
+        raise UserError("give --dots or --floor, not both: each sets the world frame")
 
 
-def _sim_batches(obs: Observations) -> Iterator[Observations]:
-    frames = obs.frames()
-    for i in range(0, len(frames), CHUNK_FRAMES):
-        lo, hi = frames[i], frames[min(i + CHUNK_FRAMES, len(frames)) - 1]
-        yield obs.select((obs.frame >= lo) & (obs.frame <= hi))
-
-
-def _live_batches(specs: list[str], rig: Rig) -> Iterator[Observations]:
-    """One frame from every camera at a time, detected: cameras named as in the rig, in the
-    order given."""
-    from calibkit.detect import DetectorConfig, detect
-    from calibkit.sources import open_source
-
-    if len(specs) != len(rig):
-        raise UserError(f"give one --camera per camera of the intrinsics file ({len(rig)}), "
-                        f"got {len(specs)}")
-    sources = [open_source(s) for s in specs]
-    config = DetectorConfig()
-    try:
-        for index, frames in enumerate(zip(*sources, strict=False)):
-            rows = []
-            for c, frame in enumerate(frames):
-                blobs = detect(frame.image, config)
-                n = len(blobs.uv)
-                rows.append(Observations(rig.names, [cam.size for cam in rig],
-                                         np.full(n, index), np.full(n, c),
-                                         np.full(n, frame.t_ns), blobs.uv, blobs.area,
-                                         blobs.peak))
-            yield Observations.concatenate(rows)
-    finally:
-        for s in sources:
-            s.close()
-
-
-def _lframe_obs(rig: Rig, lframe: floor.LFrame, seed: int, noise_px: float) -> Observations:
-    """A simulated L-frame lying on the true floor at the origin, 30 frames."""
-    pts = lframe.points((0.0, 0.0), 0.0)
-    n = 30
-    truth = Truth(np.repeat(np.arange(n), 3), np.tile(np.arange(3), n), np.tile(pts, (n, 1)))
-    return sim.observe(rig, truth, noise_px=noise_px, seed=seed + 17)
+def _print_capture(monitor, capture_path: Path) -> None:
+    print_table(monitor.rows(), ["camera", "wand samples", "coverage %", "enough"])
+    typer.echo("\nimage cells the wand reached (#):\n" + monitor.grid_text() + "\n")
+    typer.echo(f"capture saved to {capture_path}")
 
 
 def register(app: typer.Typer) -> None:
@@ -168,115 +109,57 @@ def register(app: typer.Typer) -> None:
         spec = WandSpec(tuple(parse_floats(spacing, "--spacing")))
         if not 0 <= holdout < 0.9:
             raise UserError(f"--holdout must be in [0, 0.9), got {holdout}")
-        if min_samples < 1 or not 0 <= min_coverage <= 1:
-            raise UserError("--min-samples must be >= 1 and --min-coverage in [0, 1]")
-        modes = sum([source is not None, use_sim, bool(camera)])
-        if modes != 1:
-            raise UserError("give exactly one of --from REC, --sim or --camera (live)")
-        if intrinsics is not None and rig_path is not None:
-            raise UserError("give --intrinsics or --rig, not both")
-        if dots is not None and rig_path is None:
-            raise UserError("--dots needs --rig: the poses from the calibkit extrinsic run that "
-                            "wrote the dots (they are in the same world frame)")
-        if dots is not None and floor_rec is not None:
-            raise UserError("give --dots or --floor, not both: each sets the world frame")
-        extra = None
-        if dots is not None:
-            from calibkit.extrinsic import bundle_data, load_dots
-
-            dot_obs = load_dots(dots)
-
-            def extra(start_rig):
-                # On their planes only: the dots' positions come from a homography fitted to
-                # tape measurements (mm errors) and priors on them pull the wand's scale and
-                # shape; the planes alone kept the rig 2.7x closer to the truth (docs/wand.md).
-                return bundle_data(start_rig, dot_obs, known=False)
+        targets = pipeline.CaptureTargets(min_samples, min_coverage)
+        _check_sources(source, use_sim, camera, intrinsics, rig_path, dots, floor_rec)
+        extra = pipeline.dots_extra(dots) if dots is not None else None
         initial = Rig.load(rig_path) if rig_path is not None else None
         intr = initial or (Rig.load(intrinsics) if intrinsics is not None else None)
-        capture_path = save_capture or out.with_name(out.stem + ".capture.mcrec")
-        world = None
+        intr_path = rig_path or intrinsics
+        world, run = None, None
         if use_sim:
-            if intr is None:
-                raise need_intrinsics_for_sim("calibkit wand")
-            if sim_rig is not None and cameras is not None:
-                raise UserError("give --sim-rig or --cameras, not both: the rig file sets the "
-                                "cameras")
-            # without --sim-rig: the ring `calibkit intrinsic --sim` made with the same
-            # options, whose image size the estimate file records
-            true_rig = sim_hardware(sim_rig, cameras or len(intr), volume, seed,
-                                    intr.cameras[0].size)
-            check_estimate(intr, true_rig, rig_path or intrinsics,
-                           "--rig" if rig_path is not None else "--intrinsics")
-            # the cameras as the hardware numbers them, as a live capture's --camera order
-            intr = Rig(tuple(intr[n] for n in true_rig.names), intr.quality, intr.meta)
-            if initial is not None:
-                initial = intr
-            volume = float(true_rig.meta.get("volume_m", volume))
-            truth = sim.wand_motion(frames, 100.0, volume, spec.spacing_m, seed)
-            obs_all = sim.observe(true_rig, truth, noise_px=noise_px, ghosts_per_camera=ghosts,
-                                  seed=seed)
-            if dots is None:  # else the projector's dots hold the world frame
-                floor_obs = _lframe_obs(true_rig, floor.LFrame(), seed, noise_px)
+            from calibkit.synthetic import wand_sim
 
-                def world(r, _xyz):  # the L-frame lies at the true origin: truth's frame
-                    return floor.world_from_recording(r, floor_obs, "lframe")
-            batches: Iterator[Observations] = _sim_batches(obs_all)
+            run = wand_sim.setup(intr, intr_path, "--rig" if rig_path else "--intrinsics",
+                                 sim_rig, cameras, volume, frames, spec.spacing_m, noise_px,
+                                 ghosts, seed, with_lframe=dots is None)
+            intr, world, batches = run.intrinsics, run.world, run.batches()
+            initial = intr if initial is not None else None
         elif camera:
             if intr is None:
                 raise UserError("live capture needs --intrinsics RIG.toml (or --rig)")
-            batches = _live_batches(list(camera), intr)
+            batches = pipeline.live_batches(list(camera), intr)
         if intr is None:
             raise UserError("--intrinsics RIG.toml (or --rig) is required")
         if source is not None:
             obs, _ = load_observations(source, intr)
         else:
-            monitor = CaptureMonitor(intr.names, [c.size for c in intr], min_samples,
-                                     min_coverage)
-            total = frames if use_sim else None
-            with RecordingWriter(capture_path, intr.names, [c.size for c in intr],
-                                 100.0 if use_sim else None) as writer:
-                obs = capture(batches, spec, intr, monitor, writer, Progress("capture", total))
-            if obs is None:
-                raise UserError("nothing was captured")
-            print_table(monitor.rows(), ["camera", "wand samples", "coverage %", "enough"])
-            typer.echo("\nimage cells the wand reached (#):\n" + monitor.grid_text() + "\n")
-            typer.echo(f"capture saved to {capture_path}")
+            capture_path = save_capture or out.with_name(out.stem + ".capture.mcrec")
+            obs, monitor = pipeline.record_capture(
+                batches, spec, intr, targets, capture_path, wand_sim.FPS if run else None,
+                Progress("capture", frames if run else None))
+            _print_capture(monitor, capture_path)
         if floor_rec is not None:
-            floor_obs_rec, _ = load_observations(floor_rec, intr)
-
-            def world(r, _xyz):
-                return floor.world_from_recording(r, floor_obs_rec, floor_kind,
-                                                  spacing_m=spec.spacing_m)
-        from calibkit.wand_solve import calibrate
-
+            world = pipeline.world_from_floor(floor_rec, intr, floor_kind, spec)
         views = None
         if refine_intrinsics and monitor_views:
-            from calibkit import plane_views
-
-            views = plane_views.load_for(intr.quality, rig_path or intrinsics, intr.names)
+            views = pipeline.monitor_views(intr, intr_path)
             if views is not None:
                 typer.echo(f"intrinsics refined with the intrinsic step's {len(views)} "
                            f"monitor dots in {len(views.view_camera)} views")
+        from calibkit.calibrate.wand_solve import calibrate
+
         progress = Progress("wand solve, iterations")
         cal = calibrate(obs, intr, spec.spacing_m, initial, refine_intrinsics, holdout, seed,
                         world, progress=lambda text: progress.update(progress.done + 1, text),
                         extra=extra, target_views=views)
         progress.finish(f"{cal.report['solve']['time_s']:.1f} s in the solver")
-        cal.rig.save(out)
-        if use_sim:
-            true_rig.save(truth_rig_path(out))
-        if plots:
-            from calibkit import wand_report
-
-            wand_report.plot_layout(cal.rig, cal.solved["xyz"],
-                                    out.with_name(out.stem + ".layout.png"))
-            wand_report.plot_residuals(cal.rig, cal.solved,
-                                       out.with_name(out.stem + ".residuals.png"))
+        pipeline.write_outputs(cal, out, plots)
+        if run is not None:
+            run.truth.save(truth_rig_path(out))
         _print(cal.report)
         if json_path is not None:
             write_json(json_path, cal.report)
-        typer.echo(f"wrote {out}" + (f" (true rig in {truth_rig_path(out)})" if use_sim
-                                     else ""))
+        typer.echo(f"wrote {out}" + (f" (true rig in {truth_rig_path(out)})" if run else ""))
 
 
 def _print(report: dict) -> None:

@@ -10,7 +10,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from calibkit.errors import UserError
+from calibkit.core.errors import UserError
 from calibkit.sources import Frame, FrameSource
 from calibkit.synthetic import sim
 from calibkit.synthetic.sim import render_frame

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibkit.camera import Rig, rotation_from_rvec
-from calibkit.geometry import RigArrays, triangulate
-from calibkit.observations import Observations, Truth
+from calibkit.core.camera import Rig, rotation_from_rvec
+from calibkit.core.geometry import RigArrays, triangulate
+from calibkit.core.observations import Observations, Truth
 from calibkit.synthetic import sim
 
 

@@ -22,10 +22,11 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from calibkit.camera import Camera
-from calibkit.dotcapture import DotView
+from calibkit.calibrate.dotcapture import DotView
+from calibkit.core.camera import Camera
 from calibkit.synthetic.sim import MonitorView, monitor_points, monitor_views
-from projector.display import Dots, OffscreenDisplay
+from projector.display import OffscreenDisplay
+from projector.dots import Dots
 
 SUPERSAMPLE = 3
 

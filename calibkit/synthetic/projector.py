@@ -1,6 +1,6 @@
 """A simulated ceiling projector casting dots on the floor and a table, watched by a rig.
 
-The extrinsic calibration (calibkit.extrinsic) is measured against this. Two ways to see
+The extrinsic calibration (calibkit.calibrate.extrinsic_*) is measured against this. Two ways to see
 the dots. The fast 2D path (`observe_dots`) projects every dot's true landing point into
 every camera with Gaussian centroid noise: what a perfect detector and decoder would
 report, for large scenes and benchmarks. The rendered path (`ProjectorRigSim`) renders the
@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from calibkit.camera import Camera, Rig
+from calibkit.core.camera import Camera, Rig
 from calibkit.synthetic import sim
 from calibkit.synthetic.sim import Table
 
@@ -69,7 +69,7 @@ def measured_references(scene: ProjectorScene, floor_px: np.ndarray, table_px: n
                         ) -> dict:
     """What a user with a tape would write down: each reference dot's landing point with
     Gaussian error `error_m` per axis, and the table height with `height_error_m`. Returns
-    the fields of extrinsic.References (plain arrays)."""
+    the fields of extrinsic_reference.References (plain arrays)."""
     rng = np.random.default_rng(seed)
     f_xyz, f_plane = scene.land(floor_px, table_present=False)
     ok = f_plane == 0
@@ -353,7 +353,7 @@ def ray_distance_at_height(estimated: Rig, truth: Rig, z_m: float, volume_m: flo
     """Mean ray distance (mm) at height z: a grid of points at z across the volume, seen
     exactly by the true cameras, cast back as rays by the estimated ones; the mean distance
     between every pair of rays of each point, averaged over points seen by >= 2 cameras."""
-    from calibkit.geometry import RigArrays, mean_ray_distance
+    from calibkit.core.geometry import RigArrays, mean_ray_distance
 
     half = 0.4 * volume_m
     g = np.linspace(-half, half, steps)
@@ -377,11 +377,11 @@ def ray_distance_at_height(estimated: Rig, truth: Rig, z_m: float, volume_m: flo
 def simulated_dots(scene: ProjectorScene, points_px: np.ndarray, table_present: bool,
                    noise_px: float = 0.2, wrong_ids: float = 0.0, seed: int = 0,
                    shown: np.ndarray | None = None) -> list:
-    """The 2D path as the capture's output: per camera extrinsic.CameraDots with the true
+    """The 2D path as the capture's output: per camera extrinsic_capture.CameraDots with the true
     ids (indices into points_px), noisy centroids, and a share `wrong_ids` of dots given
     another dot's id (a decoding error, for testing the outlier rejection). shown: the ids
     the schedule shows (default all)."""
-    from calibkit.extrinsic import CameraDots
+    from calibkit.calibrate.extrinsic_capture import CameraDots
 
     rng = np.random.default_rng(seed + 7)
     shown = np.arange(len(points_px)) if shown is None else np.asarray(shown, np.int64)

@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibkit.camera import WEBCAM_DIST, Camera, Rig, look_at, rvec_from_rotation
-from calibkit.errors import UserError
-from calibkit.observations import Observations, Truth
+from calibkit.core.camera import WEBCAM_DIST, Camera, Rig, look_at, rvec_from_rotation
+from calibkit.core.errors import UserError
+from calibkit.core.observations import Observations, Truth
 from calibkit.synthetic.blobs import merge_blobs
 
 MARKER_RADIUS_M = 0.007  # a 14 mm retro-reflective ball

@@ -14,7 +14,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from calibkit.observations import Observations, Truth
+from calibkit.core.observations import Observations, Truth
 
 
 @dataclass(frozen=True)

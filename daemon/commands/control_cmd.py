@@ -60,7 +60,7 @@ def register(app: typer.Typer) -> None:
                stop: Annotated[bool, typer.Option("--stop", help="Stop recording.")] = False,
                runtime_dir: RuntimeDir = None) -> None:
         """Record the cameras' blobs (.mcrec) or the poses and markers (.mcap), or stop."""
-        from calibkit.errors import UserError
+        from calibkit.core.errors import UserError
 
         if stop:
             answer = request(runtime_dir, {"cmd": "record_stop"})

@@ -8,8 +8,8 @@ from typing import Annotated
 import typer
 
 from calibkit.clitools import print_table, write_json
-from calibkit.errors import UserError
-from calibkit.fileio import write_text_atomic
+from calibkit.core.errors import UserError
+from calibkit.core.fileio import write_text_atomic
 
 
 def register(app: typer.Typer) -> None:
@@ -63,9 +63,9 @@ def register(app: typer.Typer) -> None:
         absolute and relative pose errors."""
         # imported here: scipy.signal and the plotting cost every other mocapd command a
         # second and more at its start
-        from daemon import trajectory_report as report
-        from daemon.trajectory_eval import evaluate, figures
-        from daemon.trajectory_io import read_trajectory
+        from daemon.markers import trajectory_report as report
+        from daemon.markers.trajectory_eval import evaluate, figures
+        from daemon.markers.trajectory_io import read_trajectory
 
         if delta <= 0 or max_offset <= 0 or gross_mm <= 0:
             raise UserError("--delta, --max-offset and --gross-mm must be positive")

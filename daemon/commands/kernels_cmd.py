@@ -21,7 +21,7 @@ from typing import Annotated
 import numpy as np
 import typer
 
-from calibkit.errors import UserError
+from calibkit.core.errors import UserError
 
 
 def _tracking(folder: Path) -> None:
@@ -36,7 +36,7 @@ def _tracking(folder: Path) -> None:
 
 def _detection(folder: Path) -> None:
     """Blob detection on a live camera's image: grey and colour, every mode."""
-    from calibkit.detect import DetectorConfig, detect
+    from calibkit.vision.detect import DetectorConfig, detect
 
     rng = np.random.default_rng(0)
     grey = rng.integers(0, 12, (120, 160), dtype=np.uint8)
@@ -52,7 +52,7 @@ def _detection(folder: Path) -> None:
 def _labelling(folder: Path) -> None:
     """Live marker-set labelling: the simulated person in its shipped marker set."""
     from daemon.config import Config, SimConfig
-    from daemon.markerset import SHIPPED
+    from daemon.markers.markerset import SHIPPED
     from daemon.service import Daemon
 
     sim = SimConfig(cameras=6, bodies=0, fps=60.0, seed=1, realtime=False, person=True)

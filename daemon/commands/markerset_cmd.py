@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 
 from calibkit.clitools import Progress, print_table, write_json
-from calibkit.errors import UserError
+from calibkit.core.errors import UserError
 
 JsonOpt = Annotated[Path | None, typer.Option("--json", help="Write the figures as JSON.")]
 RateOpt = Annotated[float | None, typer.Option(
@@ -28,10 +28,10 @@ def _triangulated(path: Path, rig_path: Path | None):
     triangulate` does: (Points, the recording's frame rate or None)."""
     import numpy as np
 
-    from calibkit.camera import Rig
-    from calibkit.correspondence import match_frames
-    from calibkit.recording import load_observations
-    from daemon.c3dio import Points
+    from calibkit.core.camera import Rig
+    from calibkit.core.recording import load_observations
+    from calibkit.vision.correspondence import match_frames
+    from daemon.markers.c3dio import Points
 
     if rig_path is None:
         raise UserError(f"{path}: a recording holds 2D blobs; give --rig RIG.toml to "
@@ -63,8 +63,8 @@ def register(app: typer.Typer) -> None:
         json_path: JsonOpt = None,
     ) -> None:
         """Learn a marker set (segments, distances, handedness) from labelled takes."""
-        from daemon.c3dio import read_take
-        from daemon.markerset import learn
+        from daemon.markers.c3dio import read_take
+        from daemon.markers.markerset import learn
 
         if out.suffix.lower() != ".toml":
             raise UserError(f"--out must be a .toml file, got {out.name}")
@@ -106,9 +106,9 @@ def register(app: typer.Typer) -> None:
         """Name every point of every frame; ghosts are left out."""
         import numpy as np
 
-        from daemon.c3dio import Points, read_points_csv, read_take, write_take
-        from daemon.label import duplicate_trajectories, label_take, merged_points
-        from daemon.markerset import open_set
+        from daemon.markers.c3dio import Points, read_points_csv, read_take, write_take
+        from daemon.markers.label import duplicate_trajectories, label_take, merged_points
+        from daemon.markers.markerset import open_set
 
         _check_out(out, [points])
         if seed_frames < 0:
@@ -191,9 +191,9 @@ def register(app: typer.Typer) -> None:
         json_path: JsonOpt = None,
     ) -> None:
         """Fill the gaps of hidden markers; filled samples are marked (CSV column filled)."""
-        from daemon.c3dio import read_take, write_take
-        from daemon.gapfill import METHODS, fill
-        from daemon.markerset import open_set
+        from daemon.markers.c3dio import read_take, write_take
+        from daemon.markers.gapfill import METHODS, fill
+        from daemon.markers.markerset import open_set
 
         _check_out(out, [take_path])
         if method not in METHODS:
@@ -231,8 +231,8 @@ def _register_skeleton(app: typer.Typer) -> None:
         json_path: JsonOpt = None,
     ) -> None:
         """Joint centres by sphere fits, bone lengths; export motion as BVH."""
-        from daemon.c3dio import read_take
-        from daemon.skeleton import export_bvh, fit_skeleton, load_model
+        from daemon.markers.c3dio import read_take
+        from daemon.markers.skeleton import export_bvh, fit_skeleton, load_model
 
         if out.suffix.lower() != ".toml":
             raise UserError(f"--out must be a .toml file, got {out.name}")

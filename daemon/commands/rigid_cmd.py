@@ -11,9 +11,9 @@ import tomli_w
 import tomllib
 import typer
 
-from calibkit.commands.common import parse_floats
-from calibkit.errors import UserError
-from calibkit.fileio import write_text_atomic
+from calibkit.clitools import parse_floats
+from calibkit.core.errors import UserError
+from calibkit.core.fileio import write_text_atomic
 from daemon.config import load_config, parse_config
 from daemon.console import print_table
 from daemon.rigid_define import body_from_snapshots

@@ -9,16 +9,13 @@ from typing import Annotated
 
 import typer
 
-from calibkit.camera import Rig
 from calibkit.clitools import write_json
-from calibkit.errors import UserError
+from calibkit.core.errors import UserError
 from daemon.config import (
     Config,
     MavlinkOut,
     NatnetOut,
-    ReplayIn,
     SerialOut,
-    SimConfig,
     UdpOut,
     VrpnOut,
     load_config,
@@ -26,8 +23,9 @@ from daemon.config import (
     parse_address,
     parse_serial,
 )
-from daemon.console import Progress, print_table
+from daemon.console import print_table
 from daemon.logs import setup_logging
+from daemon.start import StartOverrides, run_daemon
 
 
 def protocol_outputs(natnet: str | None, natnet_up: str | None, vrpn: list[str]):
@@ -177,14 +175,15 @@ def register(app: typer.Typer) -> None:
             "--noise-px", help="--sim: centroid noise sigma, px (default 0.2).")] = None,
         seed: Annotated[int | None, typer.Option("--seed", help="--sim: random seed.")] = None,
         verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Debug log.")] = False,
+        view: Annotated[str | None, typer.Option(
+            "--view", help="Serve the live web view on [HOST:]PORT (a bare port: this "
+                           "computer only), e.g. 8080.")] = None,
     ) -> None:
         """Track markers and rigid bodies and serve their poses until stopped (SIGTERM).
 
         SIGHUP reloads the configuration. With --frames or --duration it stops by itself
         and prints (and with --json writes) its figures.
         """
-        from daemon.service import Daemon
-
         setup_logging(verbose)
         for name, value in (("--frames", frames), ("--duration", duration)):
             if value is not None and value <= 0:
@@ -193,45 +192,14 @@ def register(app: typer.Typer) -> None:
             raise UserError(f"--mode must be triggered or greedy, got {mode!r}")
         extend = command_line_additions(udp, serial, mavlink, mavlink_body, mavlink_message,
                                         natnet, natnet_up, vrpn, mavlink_origin)
-        base = load_config(config)
+        overrides = StartOverrides(rig, runtime_dir, mode, replay, fast, sim, sim_bodies,
+                                   sim_cameras, sim_fps, noise_px, seed)
 
         def full(cfg: Config) -> Config:
-            cfg = extend(cfg)
-            changes = {}
-            if rig is not None:
-                changes["rig"] = rig
-            if runtime_dir is not None:
-                changes["runtime_dir"] = runtime_dir
-            if mode is not None:
-                changes["mode"] = mode
-            if replay is not None:
-                changes["replay"] = ReplayIn(replay, realtime=not fast)
-            elif fast and cfg.replay is not None:
-                changes["replay"] = replace(cfg.replay, realtime=False)
-            if sim or cfg.sim is not None:
-                s = cfg.sim or SimConfig()
-                sim_changes = {"realtime": not fast} if fast else {}
-                for key, value in (("bodies", sim_bodies), ("cameras", sim_cameras),
-                                   ("fps", sim_fps), ("noise_px", noise_px), ("seed", seed)):
-                    if value is not None:
-                        sim_changes[key] = value
-                s = replace(s, **sim_changes)
-                changes["sim"] = s
-                changes["fps"] = s.fps
-            return replace(cfg, **changes)
+            return overrides.apply(extend(cfg))
 
-        cfg = full(base)
-        if cfg.sim is not None and cfg.sim.fps <= 0:
-            raise UserError(f"--sim-fps must be positive, got {cfg.sim.fps}")
-        truth = Rig.load(truth_rig) if truth_rig is not None else None
-        daemon = Daemon(cfg, truth, extend=full)
-        daemon.install_signals()
-        fps = cfg.sim.fps if cfg.sim else cfg.fps
-        total = frames or (int(duration * fps) if duration else None)
-        progress = Progress("mocapd", total) if total else None
-        figures = daemon.run(frames, duration, progress.update if progress else None)
-        if progress:
-            progress.finish()
+        figures = run_daemon(full(load_config(config)), full, truth_rig, frames, duration,
+                             view)
         _report(figures)
         if json_path is not None:
             write_json(json_path, figures)

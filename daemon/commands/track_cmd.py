@@ -11,14 +11,14 @@ import numpy as np
 import typer
 
 from calibkit.clitools import Progress, print_table, write_json
-from calibkit.errors import UserError
+from calibkit.core.errors import UserError
 
 
 def load_markers(path: Path, rate_hz: float | None):
     """(MarkerCloud, MotiveTake or None, what the file is) from any 3D marker file."""
-    from daemon.c3dio import csv_rate, read_c3d, read_points_csv
-    from daemon.motive_csv import read_motive_csv, sniff
-    from daemon.offline_track import cloud_from_arrays, cloud_from_points
+    from daemon.markers.c3dio import csv_rate, read_c3d, read_points_csv
+    from daemon.markers.motive_csv import read_motive_csv, sniff
+    from daemon.markers.offline_track import cloud_from_arrays, cloud_from_points
 
     if not path.is_file():
         raise UserError(f"{path} not found")
@@ -102,10 +102,10 @@ def register(app: typer.Typer) -> None:
         """Find and pose rigid bodies in a file of 3D markers with the daemon's own rigid
         tracker; one CSV row per frame and body (see docs/track.md)."""
         from daemon.config import load_config
-        from daemon.offline_track import compare_poses, figures, track_cloud
-        from daemon.point_tracks import PointTrackConfig
+        from daemon.markers.offline_track import compare_poses, figures, track_cloud
+        from daemon.markers.point_tracks import PointTrackConfig
+        from daemon.markers.trajectory_io import PoseTable, write_poses_csv
         from daemon.rigid import RigidConfig
-        from daemon.trajectory_io import PoseTable, write_poses_csv
 
         if (bodies is None) == (not from_file):
             raise UserError("give the bodies to track: --bodies mocapd.toml or "
@@ -164,7 +164,7 @@ def register(app: typer.Typer) -> None:
                           result.position, result.quaternion, result.error_m * 1000.0,
                           result.n_markers)
         if out.suffix.lower() == ".mcap":
-            from daemon.mcap_poses import write_poses_mcap
+            from daemon.publish.mcap_poses import write_poses_mcap
 
             write_poses_mcap(out, table, cloud.xyz)
         else:
@@ -192,7 +192,7 @@ def register(app: typer.Typer) -> None:
 
 def _write_motive(path: Path, cloud, result, defs) -> None:
     """Our markers (unlabelled) and poses in Motive's modern layout."""
-    from daemon.motive_csv import MotiveBody, MotivePoses, MotiveTake, write_motive_csv
+    from daemon.markers.motive_csv import MotiveBody, MotivePoses, MotiveTake, write_motive_csv
 
     bodies = [MotiveBody(b.name, b.id, b.markers - b.pivot) for b in defs]
     poses = {b.name: MotivePoses(result.valid[:, i], result.position[:, i],

@@ -16,8 +16,8 @@ from typing import Annotated
 
 import typer
 
-from calibkit.errors import UserError
-from calibkit.fileio import write_text_atomic
+from calibkit.core.errors import UserError
+from calibkit.core.fileio import write_text_atomic
 
 USER_DIR = ".config/systemd/user"
 

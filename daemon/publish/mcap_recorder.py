@@ -1,12 +1,12 @@
 """Recording output as MCAP: each frame's body poses and markers, for Foxglove and other MCAP
-readers (daemon/mcap_poses.py), where a .mcrec keeps the blobs for replay."""
+readers (daemon/publish/mcap_poses.py), where a .mcrec keeps the blobs for replay."""
 
 from __future__ import annotations
 
 import time
 
-from daemon.mcap_poses import McapPoseWriter
 from daemon.publish.base import Publisher
+from daemon.publish.mcap_poses import McapPoseWriter
 
 
 class McapRecorderPublisher(Publisher):

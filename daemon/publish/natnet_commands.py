@@ -195,7 +195,7 @@ class Commands:
             log.warning("NatNet: StartRecording refused: set record_dir in [natnet] to "
                         "record takes")
             return FAILED
-        from calibkit.errors import UserError
+        from calibkit.core.errors import UserError
 
         folder = self.record_dir / self.session if self.session else self.record_dir
         take = self.take or time.strftime("take_%Y-%m-%d_%H-%M-%S")
@@ -217,7 +217,7 @@ class Commands:
     def _stop_recording(self) -> int:
         if self.control is None:
             return FAILED
-        from calibkit.errors import UserError
+        from calibkit.core.errors import UserError
 
         try:
             answer = self.control({"cmd": "record_stop"})

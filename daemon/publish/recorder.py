@@ -1,8 +1,8 @@
-"""Recording output: each frame's blobs appended to a .mcrec recording (calibkit.recording)."""
+"""Recording output: each frame's blobs appended to a .mcrec recording (calibkit.core.recording)."""
 
 from __future__ import annotations
 
-from calibkit.recording import RecordingWriter
+from calibkit.core.recording import RecordingWriter
 from daemon.publish.base import Publisher
 
 

@@ -237,7 +237,7 @@ def match_bodies(true_markers, defined_markers):
     marker m, defined = R @ true + t."""
     from scipy.optimize import linear_sum_assignment
 
-    from calibkit.geometry import rigid_fit
+    from calibkit.core.geometry import rigid_fit
 
     nt, nd = len(true_markers), len(defined_markers)
     cost = np.full((nt, nd), 1e9)

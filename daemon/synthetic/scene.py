@@ -21,8 +21,8 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from calibkit.camera import Rig
-from calibkit.errors import UserError
+from calibkit.core.camera import Rig
+from calibkit.core.errors import UserError
 from calibkit.synthetic import sim
 from daemon.config import SimConfig
 from daemon.sources import CameraSample, fine_timer_slack
@@ -116,7 +116,7 @@ class SimScene:
         rig's frame sets. Only the blobs reach the daemon. `place` picks where it is held
         (HOLD_PLACES, around the middle of the volume): a user whose definition came out
         short of markers moves the body and tries again."""
-        from calibkit.observations import Truth
+        from calibkit.core.observations import Truth
         from daemon.multiplexer import FrameSet
 
         cfg, b = self.cfg, self.bodies_truth[body]

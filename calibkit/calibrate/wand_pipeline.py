@@ -1,0 +1,149 @@
+"""The wand calibration from end to end, as `calibkit wand` runs it: capture until every
+camera has enough, set up the world frame, solve, write the files.
+
+Each step takes what hardware (or a recording) gives, so the command handler only parses
+and prints, and the simulator (calibkit.synthetic.wand_sim) can hand in its batches of
+frames and its floor recording without the rest knowing.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from calibkit.calibrate import floor
+from calibkit.calibrate.wand import CaptureMonitor, WandSpec, identify
+from calibkit.core.camera import Rig
+from calibkit.core.errors import UserError
+from calibkit.core.observations import Observations
+from calibkit.core.recording import RecordingWriter, load_observations
+
+World = Callable[[Rig, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+def capture(batches: Iterator[Observations], spec: WandSpec, intrinsics: Rig,
+            monitor: CaptureMonitor, writer: RecordingWriter | None,
+            progress) -> Observations | None:
+    """Feed batches of frames through identification until every camera has enough (or
+    Ctrl-C); every batch is appended to the recording as it comes. Returns what it got.
+    progress: has update(frames, text) and finish(text) (calibkit.clitools.Progress)."""
+    parts: list[Observations] = []
+    frames = 0
+    try:
+        for batch in batches:
+            if len(batch):
+                parts.append(batch)
+                monitor.add(identify(batch, spec, intrinsics))
+                if writer is not None:
+                    writer.append_observations(batch)
+            frames += len(np.unique(batch.frame)) if len(batch) else 1
+            progress.update(frames, monitor.summary())
+            if monitor.done():
+                break
+    except KeyboardInterrupt:
+        progress.finish("interrupted: using what was captured")
+        return Observations.concatenate(parts) if parts else None
+    progress.finish(monitor.summary())
+    return Observations.concatenate(parts) if parts else None
+
+
+def live_batches(specs: list[str], rig: Rig) -> Iterator[Observations]:
+    """One frame from every camera at a time, detected: cameras named as in the rig, in the
+    order given."""
+    from calibkit.sources import open_source
+    from calibkit.vision.detect import DetectorConfig, detect
+
+    if len(specs) != len(rig):
+        raise UserError(f"give one --camera per camera of the intrinsics file ({len(rig)}), "
+                        f"got {len(specs)}")
+    sources = [open_source(s) for s in specs]
+    config = DetectorConfig()
+    try:
+        for index, frames in enumerate(zip(*sources, strict=False)):
+            rows = []
+            for c, frame in enumerate(frames):
+                blobs = detect(frame.image, config)
+                n = len(blobs.uv)
+                rows.append(Observations(rig.names, [cam.size for cam in rig],
+                                         np.full(n, index), np.full(n, c),
+                                         np.full(n, frame.t_ns), blobs.uv, blobs.area,
+                                         blobs.peak))
+            yield Observations.concatenate(rows)
+    finally:
+        for s in sources:
+            s.close()
+
+
+@dataclass(frozen=True)
+class CaptureTargets:
+    """When a capture has enough: wand sightings and share of image cells per camera."""
+
+    min_samples: int = 1000
+    min_coverage: float = 0.8
+
+    def __post_init__(self) -> None:
+        if self.min_samples < 1 or not 0 <= self.min_coverage <= 1:
+            raise UserError("--min-samples must be >= 1 and --min-coverage in [0, 1]")
+
+
+def record_capture(batches: Iterator[Observations], spec: WandSpec, intrinsics: Rig,
+                   targets: CaptureTargets, path: Path, fps: float | None, progress
+                   ) -> tuple[Observations, CaptureMonitor]:
+    """Capture into a recording at `path` (fps: the camera rate, if known) until every
+    camera has enough; the observations and the monitor with its coverage figures."""
+    monitor = CaptureMonitor(intrinsics.names, [c.size for c in intrinsics],
+                             targets.min_samples, targets.min_coverage)
+    with RecordingWriter(path, intrinsics.names, [c.size for c in intrinsics], fps) as writer:
+        obs = capture(batches, spec, intrinsics, monitor, writer, progress)
+    if obs is None:
+        raise UserError("nothing was captured")
+    return obs, monitor
+
+
+def world_from_floor(path: Path, intrinsics: Rig, kind: str, spec: WandSpec) -> World:
+    """The world frame from a recording of the L-frame, the wand or plane dots on the
+    floor (--floor, --floor-kind)."""
+    obs, _ = load_observations(path, intrinsics)
+
+    def world(rig: Rig, _xyz: np.ndarray):
+        return floor.world_from_recording(rig, obs, kind, spacing_m=spec.spacing_m)
+
+    return world
+
+
+def dots_extra(path: Path):
+    """The projector's floor and table dots (NAME.dots.npz from calibkit extrinsic) as
+    extra bundle rows, held on their planes only: their positions come from a homography
+    fitted to tape measurements (mm errors) and priors on them pull the wand's scale and
+    shape; the planes alone kept the rig 2.7x closer to the truth (docs/wand.md)."""
+    from calibkit.calibrate.extrinsic_capture import load_dots
+    from calibkit.calibrate.extrinsic_solve import bundle_data
+
+    dots = load_dots(path)
+
+    def extra(start_rig: Rig):
+        return bundle_data(start_rig, dots, known=False)
+
+    return extra
+
+
+def monitor_views(intrinsics: Rig, intrinsics_path: Path | None):
+    """The intrinsic step's monitor views its rig file names (None without)."""
+    from calibkit.calibrate import plane_views
+
+    return plane_views.load_for(intrinsics.quality, intrinsics_path, intrinsics.names)
+
+
+def write_outputs(cal, out: Path, plots: bool) -> None:
+    """The rig file and, with plots, NAME.layout.png and NAME.residuals.png."""
+    cal.rig.save(out)
+    if plots:
+        from calibkit.calibrate import wand_report
+
+        wand_report.plot_layout(cal.rig, cal.solved["xyz"],
+                                out.with_name(out.stem + ".layout.png"))
+        wand_report.plot_residuals(cal.rig, cal.solved,
+                                   out.with_name(out.stem + ".residuals.png"))

@@ -1,0 +1,359 @@
+"""How good a wand calibration is: figures on solved and held-out frames, checks for
+impossible solutions, a grade in plain words with stated thresholds, and PNG plots.
+
+The held-out figures matter: frames left out of the solve (some at random, some whole
+regions of the volume) are triangulated with the solved rig, so an over-fitted rig (one
+that explains its own frames but not new ones) shows there. What wrong intrinsics leave
+is different: the solve bends the poses until the reprojection looks fine and the space
+it reconstructs is quietly warped, millimetres off with an excellent-looking pixel RMS.
+A warped space cannot keep a rigid wand's length: it comes out long in one part of the
+volume and short in another, or short near the image edges and long at the centre. So the
+grade also looks at how the length error varies across the volume and with the distance
+from the image centre (`systematics`), which no choice of intrinsics can hide.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from calibkit.calibrate.wand import WandObservations, WandSpec, point_index
+from calibkit.core.camera import Rig
+from calibkit.core.geometry import RigArrays, triangulate
+
+# Grade thresholds, on the held-out frames (docs/wand.md explains them).
+# (name, reprojection RMS px at most, wand length error SD at most as % of the wand's
+# length: per-frame length noise scales with the volume and the cameras' resolution)
+GRADES = (
+    ("excellent", 0.25, 0.15),
+    ("good", 0.5, 0.3),
+    ("usable", 1.0, 1.0),
+)
+# Systematic length errors, each at most as % of the wand's length, per grade (docs/wand.md):
+# the spread of the mean length error over cells of the volume, the trend from the image
+# centre to its edges, and the bias in the held-out regions. On the simulator's 4 m volume
+# a rig 1 mm off (grid RMS) shows about 0.03 % on the first two.
+SYSTEMATIC_GRADES = (("excellent", 0.02), ("good", 0.05), ("usable", 0.1))
+VOLUME_CELLS = (3, 3, 2)  # x, y, z quantile bins of the wand's centre
+MIN_CELL_FRAMES = 10
+BEHIND_SHARE = 0.01  # more observations than this behind their camera: a mirrored solution
+
+
+def evaluate(rig: Rig, wand: WandObservations, spec: WandSpec, frames: np.ndarray | None = None,
+             camera_of: np.ndarray | None = None) -> dict:
+    """Triangulate the wand in `frames` (all when None) with `rig` and measure it.
+
+    camera_of maps the wand's camera numbers to the rig's (-1: not in the rig).
+    """
+    sel = np.ones(len(wand), dtype=bool) if frames is None else np.isin(wand.frame, frames)
+    cam = wand.camera.astype(np.int64) if camera_of is None else camera_of[wand.camera]
+    sel &= cam >= 0
+    w = wand.select(sel)
+    cam = cam[sel]
+    pidx, pinfo = point_index(w, spec.n_markers)
+    tri = triangulate(rig, pidx, cam, w.uv, n_points=len(pinfo))
+    proj, z = RigArrays.from_rig(rig).project(cam, tri.xyz[pidx])
+    r = w.uv - proj
+    ok = np.isfinite(r[:, 0])
+    sq = np.sum(r**2, axis=1)
+    n = len(rig)
+    count = np.bincount(cam[ok], minlength=n)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cam_rms = np.sqrt(np.bincount(cam[ok], weights=sq[ok], minlength=n) / count)
+    lengths = _all_lengths(tri.xyz, pinfo, spec)
+    err_mm = (lengths[:, 0] - lengths[:, 1]) * 1000.0
+    err_mm = err_mm[np.isfinite(err_mm)]
+    # triangulation leaves a point out (NaN) when it lands behind one of its cameras: among
+    # markers seen twice or more, those are the observations a mirror image puts behind
+    seen2 = tri.n_cameras[pidx] >= 2
+    behind = np.sum(seen2 & ~ok)
+    frame_err, frame_centre, frame_radius = _per_frame(rig, w, cam, pidx, pinfo, tri.xyz, spec)
+    return {
+        "frames": int(len(np.unique(w.frame))),
+        "observations": int(ok.sum()),
+        "reprojection_rms_px": float(np.sqrt(np.mean(sq[ok]))) if ok.any() else float("nan"),
+        "camera_rms_px": cam_rms,
+        "camera_observations": count,
+        "wand_length_error_mean_mm": float(np.mean(err_mm)) if len(err_mm) else float("nan"),
+        "wand_length_error_sd_mm": float(np.std(err_mm)) if len(err_mm) else float("nan"),
+        "wand_length_error_rms_mm": float(np.sqrt(np.mean(err_mm**2))) if len(err_mm)
+        else float("nan"),
+        "mean_ray_distance_mm": float(np.nanmean(tri.ray_dist_m) * 1000.0)
+        if np.isfinite(tri.ray_dist_m).any() else float("nan"),
+        "behind_share": float(behind / max(1, seen2.sum())),
+        "residual_px": r, "residual_camera": cam, "residual_uv": w.uv,
+        "xyz": tri.xyz[np.isfinite(tri.xyz[:, 0])],
+        "frame_length_error_mm": frame_err, "frame_centre_m": frame_centre,
+        "frame_radius": frame_radius,
+    }
+
+
+def hold_out(frames: np.ndarray, centre_m: np.ndarray, share: float, seed: int = 0
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Frames to keep out of the solve: (at random, in whole regions), about `share` of
+    `frames` in all, half each way. The regions are cells of a 4 x 4 x 2 grid over the
+    quantiles of the wand's centre (`centre_m`, NaN where unknown), drawn at random until
+    they hold half the share: a rig that is right only where it was fitted shows there."""
+    rng = np.random.default_rng(seed)
+    n_held = int(round(share * len(frames))) if share > 0 else 0
+    if n_held == 0:
+        return frames[:0], frames[:0]
+    known = np.isfinite(centre_m).all(axis=1)
+    region = np.zeros(len(frames), dtype=bool)
+    if known.sum() >= 16 * MIN_CELL_FRAMES:
+        c = centre_m[known]
+        key = np.zeros(len(c), dtype=np.int64)
+        for axis, bins in enumerate((4, 4, 2)):
+            edges = np.quantile(c[:, axis], np.arange(1, bins) / bins)
+            key = key * bins + np.searchsorted(edges, c[:, axis])
+        cell = np.full(len(frames), -1)
+        cell[known] = key
+        for k in rng.permutation(np.unique(key)):
+            if region.sum() >= n_held // 2:
+                break
+            region |= cell == k
+    rest = np.flatnonzero(~region)
+    n_random = max(0, min(len(rest), n_held - int(region.sum())))
+    random = np.sort(rng.choice(frames[rest], n_random, replace=False))
+    return random, frames[region]
+
+
+def _per_frame(rig: Rig, w: WandObservations, cam: np.ndarray, pidx: np.ndarray,
+               pinfo: np.ndarray, xyz: np.ndarray, spec: WandSpec
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per frame with both end markers triangulated: the end-to-end length error (mm), the
+    wand's centre (m), and how far from the image centres it was seen (the mean over its
+    observations of the distance from the principal point over the half-diagonal)."""
+    if spec.n_markers < 2 or not len(pinfo):
+        return np.zeros(0), np.zeros((0, 3)), np.zeros(0)
+    frames, f_of = np.unique(pinfo[:, 0], return_inverse=True)
+    ends = np.full((len(frames), 2, 3), np.nan)
+    first, last = pinfo[:, 1] == 0, pinfo[:, 1] == spec.n_markers - 1
+    ends[f_of[first], 0] = xyz[first]
+    ends[f_of[last], 1] = xyz[last]
+    err = (np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1) - spec.length_m) * 1000.0
+    arrays = RigArrays.from_rig(rig)
+    half = 0.5 * np.hypot([c.width for c in rig], [c.height for c in rig])
+    r = np.hypot(w.uv[:, 0] - arrays.cx[cam], w.uv[:, 1] - arrays.cy[cam]) / half[cam]
+    fo = f_of[pidx]
+    radius = np.bincount(fo, r, len(frames)) / np.maximum(np.bincount(fo, None, len(frames)), 1)
+    ok = np.isfinite(err)
+    return err[ok], 0.5 * (ends[ok, 0] + ends[ok, 1]), radius[ok]
+
+
+def systematics(figures: list[dict], region: dict | None, wand_length_m: float) -> dict:
+    """How the wand's length error varies where the solve cannot hide it, over the frames
+    of all `figures` (evaluate results, e.g. solved and held out), each figure beside its
+    own noise so that the grade counts only what stands out of it:
+
+    volume_pct: the spread of the mean length error over cells of the volume (VOLUME_CELLS
+    quantile bins of the wand's centre): the RMS of the cell means about the overall
+    mean, less what the per-frame noise alone gives (sqrt(max(0, ms - noise^2))).
+    radius_pct: the mean length error of the third of frames seen farthest from the image
+    centres minus that of the nearest third, less two standard errors (at least 0).
+    region_pct: the mean length error in the held-out regions (frames in whole cells of the
+    volume kept out of the solve) minus that over the other frames, less two standard
+    errors. All in % of the wand's length (and mm beside)."""
+    err = np.concatenate([f["frame_length_error_mm"] for f in figures])
+    centre = np.concatenate([f["frame_centre_m"] for f in figures]).reshape(-1, 3)
+    radius = np.concatenate([f["frame_radius"] for f in figures])
+    out = {"frames": int(len(err)), "volume_mm": float("nan"), "radius_mm": float("nan"),
+           "radius_trend_mm": float("nan"), "region_mm": float("nan"),
+           "region_bias_mm": float("nan")}
+    length_mm = 1000.0 * wand_length_m
+    if len(err) >= 3 * MIN_CELL_FRAMES and length_mm > 0:
+        key = np.zeros(len(err), dtype=np.int64)
+        for axis, bins in enumerate(VOLUME_CELLS):
+            edges = np.quantile(centre[:, axis], np.arange(1, bins) / bins)
+            key = key * bins + np.searchsorted(edges, centre[:, axis])
+        _, cell = np.unique(key, return_inverse=True)
+        n = np.bincount(cell)
+        mean = np.bincount(cell, err) / n
+        var = np.bincount(cell, err**2) / n - mean**2
+        use = n >= MIN_CELL_FRAMES
+        ms = np.average((mean[use] - err.mean()) ** 2, weights=n[use])
+        noise2 = np.average(var[use] * n[use] / np.maximum(n[use] - 1, 1) / n[use],
+                            weights=n[use])
+        out["volume_mm"] = float(np.sqrt(max(0.0, ms - noise2)))
+        out["volume_cells"] = int(use.sum())
+        lo, hi = np.quantile(radius, [1 / 3, 2 / 3])
+        inner, outer = err[radius <= lo], err[radius >= hi]
+        trend = outer.mean() - inner.mean()
+        se = np.sqrt(inner.var() / len(inner) + outer.var() / len(outer))
+        out["radius_trend_mm"] = float(trend)
+        out["radius_mm"] = float(max(0.0, abs(trend) - 2 * se))
+    if region is not None and len(region["frame_length_error_mm"]) >= MIN_CELL_FRAMES \
+            and len(err) > len(region["frame_length_error_mm"]):
+        inside = region["frame_length_error_mm"]
+        bias = inside.mean() - err.mean()
+        se = np.sqrt(inside.var() / len(inside) + err.var() / len(err))
+        out["region_bias_mm"] = float(bias)
+        out["region_mm"] = float(max(0.0, abs(bias) - 2 * se))
+    for k in ("volume", "radius", "region"):
+        out[f"{k}_pct"] = 100.0 * out[f"{k}_mm"] / length_mm if length_mm > 0 else float("nan")
+    return out
+
+
+def _all_lengths(xyz: np.ndarray, pinfo: np.ndarray, spec: WandSpec) -> np.ndarray:
+    """(measured, true) distance of every marker pair of every frame, metres."""
+    pairs, true = spec.edges()
+    key = pinfo[:, 0] * spec.n_markers + pinfo[:, 1]
+    out = []
+    for (a, b), d in zip(pairs.tolist(), true.tolist(), strict=True):
+        ia = np.flatnonzero(pinfo[:, 1] == a)
+        want = pinfo[ia, 0] * spec.n_markers + b
+        pos = np.minimum(np.searchsorted(key, want), len(key) - 1)
+        found = key[pos] == want
+        m = np.linalg.norm(xyz[ia[found]] - xyz[pos[found]], axis=1)
+        out.append(np.stack([m, np.full(len(m), d)], axis=1))
+    return np.concatenate(out) if out else np.zeros((0, 2))
+
+
+def checks(rig: Rig, points_xyz: np.ndarray, behind_share: float) -> dict:
+    """Impossible solutions, each True when found, with what was seen.
+
+    camera_behind_volume: the middle of the wand's points lies behind a camera.
+    upside_down: the wand moved mostly below the floor (z < 0), or most cameras sit below it.
+    mirrored: more than 1 % of the observations of markers seen twice or more triangulate
+    behind a camera (evaluate's behind_share: the "twisted pair" of a two-view start, a
+    mirror image of the true rig), or a left-handed camera.
+    """
+    pts = points_xyz[np.isfinite(points_xyz).all(axis=1)]
+    middle = np.median(pts, axis=0) if len(pts) else np.zeros(3)
+    depth = np.array([cam.to_camera(middle[None])[0, 2] for cam in rig])
+    behind = [cam.name for cam, d in zip(rig, depth, strict=True) if not d > 0]
+    below = float(np.median(pts[:, 2])) < 0 if len(pts) else False
+    cams_below = float(np.mean(rig.centres()[:, 2] < 0)) > 0.5
+    left_handed = [cam.name for cam in rig if np.linalg.det(cam.R) < 0]
+    mirrored = behind_share > BEHIND_SHARE or bool(left_handed)
+    return {
+        "camera_behind_volume": bool(behind), "cameras_behind": behind,
+        "upside_down": bool(below or cams_below),
+        "median_point_height_m": float(np.median(pts[:, 2])) if len(pts) else float("nan"),
+        "mirrored": bool(mirrored), "behind_share": behind_share,
+        "ok": not (behind or below or cams_below or mirrored),
+    }
+
+
+def grade(held: dict, found: dict, wand_length_m: float, syst: dict | None = None
+          ) -> tuple[str, str]:
+    """(grade, the reason in plain words) from the held-out figures, the checks and the
+    systematic length errors (`systematics`): the worst of the grades each allows."""
+    name, reason = _grade_held(held, found, wand_length_m)
+    if syst is None or name in ("failed", "poor"):
+        return name, reason
+    order = [g for g, *_ in GRADES] + ["poor"]
+    worst, why = name, ""
+    for key, what in (("volume", "across the volume"), ("radius", "from the image centre "
+                                                                   "to its edges"),
+                      ("region", "in the held-out regions")):
+        pct = syst.get(f"{key}_pct", float("nan"))
+        if not np.isfinite(pct):
+            continue
+        allowed = next((g for g, limit in SYSTEMATIC_GRADES if pct <= limit), "poor")
+        if order.index(allowed) > order.index(worst):
+            worst = allowed
+            missed = order[order.index(allowed) - 1]
+            why = (f"the wand's length varies {what} by {syst[key + '_mm']:.2f} mm "
+                   f"({pct:.3f} % of its length, above the {dict(SYSTEMATIC_GRADES)[missed]} "
+                   f"% '{missed}' allows): the reconstructed space is warped, most often by "
+                   "wrong intrinsics; "
+                   "refine them (the default) or recalibrate them")
+    if why:
+        return worst, why
+    return name, reason + (f"; systematic length errors within the {dict(SYSTEMATIC_GRADES)[name]}"
+                           f" % '{name}' allows")
+
+
+def _grade_held(held: dict, found: dict, wand_length_m: float) -> tuple[str, str]:
+    if not found["ok"]:
+        what = [k for k in ("camera_behind_volume", "upside_down", "mirrored") if found[k]]
+        return "failed", ("the solution is impossible (" + ", ".join(what).replace("_", " ")
+                          + "): recapture or check the floor frame")
+    rms, sd = held["reprojection_rms_px"], held["wand_length_error_sd_mm"]
+    if not wand_length_m > 0 or not np.isfinite(sd):  # a 1-marker wand: pixels only
+        for name, max_px, _ in GRADES:
+            if rms <= max_px:
+                return name, f"held-out reprojection {rms:.3f} px <= {max_px} px (no wand length)"
+        return "poor", f"held-out reprojection {rms:.3f} px > {GRADES[-1][1]} px"
+    pct = 100.0 * sd / (1000.0 * wand_length_m)
+    for name, max_px, max_pct in GRADES:
+        if rms <= max_px and pct <= max_pct:
+            return name, (f"held-out reprojection {rms:.3f} px <= {max_px} px and wand length "
+                          f"spread {sd:.2f} mm = {pct:.2f} % <= {max_pct} % of its length")
+    return "poor", (f"held-out reprojection {rms:.3f} px or wand length spread {sd:.2f} mm "
+                    f"({pct:.2f} %) is beyond 'usable' ({GRADES[-1][1]} px, {GRADES[-1][2]} "
+                    "%): recapture with more coverage or check the intrinsics")
+
+
+# ---- plots ------------------------------------------------------------------------------------
+
+def plot_layout(rig: Rig, xyz: np.ndarray, path: Path) -> None:
+    """Cameras and wand points from above and from the side (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from calibkit.core.fileio import write_bytes_atomic
+
+    c = rig.centres()
+    axes_z = np.array([cam.R[2] for cam in rig])  # optical axes in the world
+    pts = xyz[:: max(1, len(xyz) // 3000)]
+    fig, (top, side) = plt.subplots(1, 2, figsize=(11, 5))
+    for ax, (i, j), title in ((top, (0, 1), "from above (x, y)"),
+                              (side, (0, 2), "from the side (x, z)")):
+        ax.scatter(pts[:, i], pts[:, j], s=1, c="0.6", label="wand markers")
+        ax.scatter(c[:, i], c[:, j], s=30, c="tab:red", label="cameras")
+        ax.quiver(c[:, i], c[:, j], axes_z[:, i], axes_z[:, j], color="tab:red", width=0.004)
+        for cam, p in zip(rig, c, strict=True):
+            ax.annotate(cam.name, (p[i], p[j]), fontsize=8)
+        ax.set_aspect("equal")
+        ax.set_title(title)
+        ax.set_xlabel("xyz"[i] + " (m)")
+        ax.set_ylabel("xyz"[j] + " (m)")
+    top.legend(loc="upper right", fontsize=8)
+    write_bytes_atomic(path, _png(fig))
+    plt.close(fig)
+
+
+def plot_residuals(rig: Rig, figures: dict, path: Path) -> None:
+    """Per camera: residual vectors over the image (scaled up), coloured by size (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from calibkit.core.fileio import write_bytes_atomic
+
+    n = len(rig)
+    cols = min(4, n)
+    rows = (n + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3.2 * rows), squeeze=False)
+    r, cam, uv = figures["residual_px"], figures["residual_camera"], figures["residual_uv"]
+    scale = 20.0 / max(1e-9, float(np.nanpercentile(np.linalg.norm(r, axis=1), 95)))
+    for k, ax in enumerate(axes.ravel()):
+        if k >= n:
+            ax.axis("off")
+            continue
+        m = (cam == k) & np.isfinite(r[:, 0])
+        m = np.flatnonzero(m)[:: max(1, int(m.sum()) // 2000)]
+        size = np.linalg.norm(r[m], axis=1)
+        ax.quiver(uv[m, 0], uv[m, 1], r[m, 0] * scale, -r[m, 1] * scale, size, angles="xy",
+                  scale_units="xy", scale=1, width=0.003, cmap="viridis")
+        ax.set_xlim(0, rig[k].width)
+        ax.set_ylim(rig[k].height, 0)
+        ax.set_title(f"{rig[k].name}: RMS {figures['camera_rms_px'][k]:.3f} px", fontsize=9)
+        ax.set_aspect("equal")
+    fig.suptitle(f"residuals x{scale:.0f}")
+    write_bytes_atomic(path, _png(fig))
+    plt.close(fig)
+
+
+def _png(fig) -> bytes:
+    import io
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+    return buf.getvalue()

@@ -1,0 +1,407 @@
+"""The wand calibration from blobs to a graded rig: identify, hold frames out, initialise,
+bundle-adjust, set the world frame, evaluate. `calibrate_wand` is the one entry point the
+command line and the demo call; each step lives in its own module.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from calibkit.calibrate import bundle, floor, intrinsic_prior, wand_report
+from calibkit.calibrate.plane_views import PlaneViews
+from calibkit.calibrate.wand import WandObservations, WandSpec, identify, initial_poses, point_index
+from calibkit.core.camera import Rig, rotation_from_rvec
+from calibkit.core.errors import UserError
+from calibkit.core.geometry import RigArrays, triangulate
+from calibkit.core.observations import Observations
+
+MIN_WAND_FRAMES = 20  # a camera that sees the wand fewer times is left out, with a warning
+
+
+@dataclass(eq=False)
+class WandCalibration:
+    rig: Rig
+    report: dict
+    wand: WandObservations  # identified markers, cameras numbered as the recording's
+    solved: dict  # wand_report.evaluate figures on the frames solved
+    held: dict  # ... and on the frames held out
+    bundle: bundle.BundleResult
+    held_frames: np.ndarray  # the frames kept out of the solve
+
+
+def _ordered_intrinsics(obs: Observations, intrinsics: Rig) -> Rig:
+    names = set(intrinsics.names)
+    missing = [n for n in obs.camera_names if n not in names]
+    if missing:
+        raise UserError(f"camera '{missing[0]}' of the recording has no intrinsics in the rig "
+                        f"file (it has {', '.join(intrinsics.names)})")
+    return Rig(tuple(intrinsics[n] for n in obs.camera_names), dict(intrinsics.quality),
+               dict(intrinsics.meta))
+
+
+def _edges(pinfo: np.ndarray, spec: WandSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Point pairs of the same frame joined by the wand, and their lengths."""
+    pairs, lengths = spec.edges()
+    key = pinfo[:, 0] * spec.n_markers + pinfo[:, 1]
+    E, L = [], []
+    for (a, b), d in zip(pairs.tolist(), lengths.tolist(), strict=True):
+        ia = np.flatnonzero(pinfo[:, 1] == a)
+        want = pinfo[ia, 0] * spec.n_markers + b
+        pos = np.minimum(np.searchsorted(key, want), max(0, len(key) - 1))
+        ok = key[pos] == want
+        E.append(np.stack([ia[ok], pos[ok]], axis=1))
+        L.append(np.full(int(ok.sum()), d))
+    return np.concatenate(E).reshape(-1, 2), np.concatenate(L)
+
+
+def labelled_wand_data(rig: Rig, obs: Observations, spacing_m) -> bundle.BundleData:
+    """Bundle input for wand blobs that carry their marker labels (the simulator's truth):
+    for benchmarks and tests that want the solve without the identification step. Cameras
+    are the rig's, numbered as in `obs`."""
+    spec = WandSpec(tuple(spacing_m))
+    pidx, pinfo = point_index(obs, spec.n_markers)
+    cam = obs.camera.astype(np.int64)
+    xyz = triangulate(rig, pidx, cam, obs.uv, n_points=len(pinfo), ray_distance=False).xyz
+    edge, length = _edges(pinfo, spec)
+    return bundle.BundleData(rig, pidx, cam, obs.uv, xyz, edge, length)
+
+
+def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None = None,
+              refine_intrinsics: bool = True, holdout: float = 0.1, seed: int = 0,
+              world: Callable[[Rig, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
+              options: bundle.BundleOptions | None = None, progress=None,
+              extra: Callable[[Rig], bundle.BundleData] | None = None,
+              target_views: PlaneViews | None = None) -> WandCalibration:
+    """Everything: see calibrate_wand. `extra(start_rig)` gives more points to solve with
+    (the projector's floor and table dots: calibkit.calibrate.extrinsic_solve.bundle_data),
+    joined to the wand's; their plane and position priors then hold the world frame, so it needs
+    `initial` poses already in that frame (from calibkit extrinsic). `options` sets the
+    bundle adjustment's other knobs; `refine_intrinsics` and the intrinsics' priors
+    (calibkit.calibrate.intrinsic_prior, from the rig file's quality.intrinsic) are set here.
+    `target_views` (calibkit.calibrate.plane_views, the intrinsic step's monitor views) join the
+    graph when the intrinsics are refined: a camera with views gets them in place of the
+    prior from its intrinsic step's standard deviations (a loose prior stays)."""
+    if extra is not None and initial is None:
+        raise UserError("points on known planes need initial poses in the world frame: give "
+                        "--rig (e.g. from calibkit extrinsic)")
+    spec = WandSpec(tuple(spacing_m))
+    intr = _ordered_intrinsics(obs, intrinsics)
+    wand = identify(obs, spec, intr)
+    warnings: list[str] = []
+    per_cam = np.bincount(wand.camera[wand.marker == 0], minlength=len(intr))
+    never = [intr[c].name for c in range(len(intr)) if per_cam[c] < MIN_WAND_FRAMES]
+    for name in never:
+        warnings.append(f"camera {name} saw the wand in {per_cam[intr.index(name)]} frames "
+                        f"(fewer than {MIN_WAND_FRAMES}): left out, not calibrated")
+    keep_cams = [c for c in range(len(intr)) if intr[c].name not in never]
+    if len(keep_cams) < 2:
+        seen = ", ".join(f"{n} {k}" for n, k in zip(intr.names, per_cam.tolist(), strict=True))
+        raise UserError(f"fewer than two cameras saw the wand in {MIN_WAND_FRAMES} frames or "
+                        f"more (frames with the wand: {seen}); capture longer, or check "
+                        "--spacing")
+    sub = Rig(tuple(intr[c] for c in keep_cams), dict(intr.quality), dict(intr.meta))
+    seen_by_kept = wand.select(np.isin(wand.camera, keep_cams))
+    # the start from every frame (it is only where the solve begins), then the frames held
+    # out of the solve: some at random, some in whole regions of the volume
+    if initial is not None:
+        absent = [n for n in sub.names if n not in set(initial.names)]
+        if absent:
+            raise UserError(f"camera '{absent[0]}' is not in the --rig file")
+        start = Rig(tuple(sub[n].replace(rvec=initial[n].rvec, t=initial[n].t)
+                          for n in sub.names))
+        missing: list[str] = []
+    elif spec.n_markers == 2:
+        start, missing = _two_marker_start(_renumber(seen_by_kept, keep_cams, len(intr)), sub,
+                                           spec)
+    else:
+        start, missing = initial_poses(_renumber(seen_by_kept, keep_cams, len(intr)), sub,
+                                       spec)
+        for name in missing:
+            warnings.append(f"camera {name} could not be placed (it shares too few wand "
+                            "sightings with the others): left out, not calibrated")
+    camera_of = np.full(len(intr), -1)
+    for k, name in enumerate(start.names):
+        camera_of[intr.index(name)] = k
+    frames = wand.frames()
+    placed = _two_marker_labels(wand, start, camera_of) if spec.n_markers == 2 else wand
+    held_random, held_region = wand_report.hold_out(
+        frames, _frame_centres(placed, start, camera_of, spec, frames), holdout, seed)
+    held_frames = np.union1d(held_random, held_region)
+    prior = Rig(tuple(intr[n] for n in start.names), dict(intr.quality))
+    sigmas, prior_source = intrinsic_prior.prior_sigmas(intrinsics, start.names)
+    if refine_intrinsics and spec.n_markers < 2:
+        refine_intrinsics = False
+        warnings.append("intrinsics held: a 1-marker wand has no length to check them against")
+    target = _target_data(target_views, prior) if refine_intrinsics else None
+    if target is not None:
+        for k in np.unique(target.obs_camera).tolist():
+            sigmas[k] = intrinsic_prior.default_sigmas(prior[k])
+            prior_source[k] = "intrinsic step's views"
+    raw = wand
+    # a 2-marker wand started from midpoints is labelled again with the solved poses and
+    # solved once more: the start's labels are wrong where its poses were a little off
+    passes = 2 if spec.n_markers == 2 and initial is None else 1
+    for _ in range(passes):
+        if spec.n_markers == 2:
+            wand = _two_marker_labels(raw, start, camera_of)
+        train = wand.select(~np.isin(wand.frame, held_frames))
+        tw = train.select(camera_of[train.camera] >= 0)
+        cam = camera_of[tw.camera]
+        pidx, pinfo = point_index(tw, spec.n_markers)
+        tri = triangulate(start, pidx, cam, tw.uv, n_points=len(pinfo), ray_distance=False)
+        edge, length = _edges(pinfo, spec) if spec.n_markers > 1 else (np.zeros((0, 2)), [])
+        data = bundle.BundleData(start, pidx, cam, tw.uv, tri.xyz, edge, length)
+        if extra is not None:
+            from calibkit.calibrate.extrinsic_solve import join_bundle_data
+
+            data = join_bundle_data(data, extra(start))
+        data.target = target
+        opts = dataclasses.replace(
+            options or bundle.BundleOptions(reference_camera=int(np.argmax(
+                np.bincount(cam, minlength=len(start))))),
+            refine_intrinsics=refine_intrinsics,
+            intrinsic_sigma=tuple(map(tuple, sigmas.tolist())))
+        try:
+            result = bundle.solve(data, opts, progress)
+        except RuntimeError as exc:  # GTSAM: an indeterminate system (too little data)
+            raise UserError(f"the bundle adjustment failed ({str(exc).splitlines()[0]}): a "
+                            "camera sees too few wand markers; capture longer") from None
+        # the next pass starts from these poses; its intrinsics' priors stay the file's
+        start = Rig(tuple(p.replace(rvec=c.rvec, t=c.t)
+                          for p, c in zip(prior, result.rig, strict=True)))
+    intrinsics_moved: list[dict] = []
+    if refine_intrinsics:
+        intrinsics_moved, moved_warnings = intrinsic_prior.check_refined(prior, result.rig,
+                                                                         sigmas)
+        warnings.extend(moved_warnings)
+    # the world frame
+    if world is None and extra is not None:  # the extra points' priors set the frame
+        def world(_rig, _xyz):
+            return np.eye(3), np.zeros(3)
+    A, b = (world or floor.frame_from_cameras)(result.rig, result.xyz)
+    rig = floor.transform_rig(result.rig, A, b)
+    solved = wand_report.evaluate(rig, wand, spec, np.setdiff1d(frames, held_frames), camera_of)
+    held = wand_report.evaluate(rig, wand, spec, held_frames, camera_of) if len(held_frames) \
+        else solved
+    region = wand_report.evaluate(rig, wand, spec, held_region, camera_of) if len(held_region) \
+        else None
+    syst = wand_report.systematics([solved, held] if len(held_frames) else [solved], region,
+                                   spec.length_m)
+    try:
+        cov = bundle.camera_covariances(result)
+    except RuntimeError as exc:  # an indeterminate system: say so rather than fail
+        warnings.append(f"no uncertainty: the marginals failed ({exc})")
+        cov = None
+    found = wand_report.checks(rig, solved["xyz"], solved["behind_share"])
+    grade, reason = wand_report.grade(held, found, spec.length_m, syst)
+    report = _report(rig, spec, result, solved, held, cov, found, grade, reason, warnings,
+                     never + missing, wand, intr, world is not None)
+    report["systematic"] = syst
+    report["held_out"]["random_frames"] = int(len(held_random))
+    report["held_out"]["region_frames"] = int(len(held_region))
+    report["intrinsics"] = _intrinsics_report(refine_intrinsics, prior, sigmas, prior_source,
+                                              intrinsics_moved, cov, result)
+    quality = {"reprojection_rms_px": report["solve"]["reprojection_rms_px"],
+               "held_out_rms_px": report["held_out"]["reprojection_rms_px"],
+               "wand_length_error_sd_mm": report["held_out"]["wand_length_error_sd_mm"],
+               "mean_ray_distance_mm": report["held_out"]["mean_ray_distance_mm"],
+               "length_variation_volume_pct": syst["volume_pct"],
+               "length_variation_radius_pct": syst["radius_pct"],
+               "intrinsics_refined": bool(refine_intrinsics),
+               "grade": grade}
+    if isinstance(intrinsics.quality.get("intrinsic"), dict):
+        quality["intrinsic"] = intrinsics.quality["intrinsic"]  # where they came from
+    meta = {"source": "calibkit wand", "wand_spacing_m": list(spec.spacing_m),
+            "world_frame": report["world_frame"]}
+    rig = Rig(rig.cameras, quality, {**{k: v for k, v in intrinsics.meta.items()
+                                        if k in ("volume_m",)}, **meta})
+    return WandCalibration(rig, report, wand, solved, held, result, held_frames)
+
+
+def _target_data(views: PlaneViews | None, rig: Rig) -> bundle.TargetData | None:
+    """The intrinsic step's views of the cameras of `rig` as bundle input (None when it
+    has none)."""
+    if views is None:
+        return None
+    sub = views.cameras(rig.names)
+    if len(sub) == 0:
+        return None
+    R = np.stack([rotation_from_rvec(r) for r in sub.view_rvec]).reshape(-1, 3, 3)
+    return bundle.TargetData(sub.camera, sub.view, sub.xyz, sub.uv, R, sub.view_tvec.copy())
+
+
+def _frame_centres(wand: WandObservations, rig: Rig, camera_of: np.ndarray, spec: WandSpec,
+                   frames: np.ndarray) -> np.ndarray:
+    """Each frame's wand centre triangulated with `rig` (NaN where fewer than two cameras
+    saw a marker): where in the volume the frame was, to hold out whole regions."""
+    w = wand.select(camera_of[wand.camera] >= 0)
+    pidx, pinfo = point_index(w, spec.n_markers)
+    xyz = triangulate(rig, pidx, camera_of[w.camera], w.uv, n_points=len(pinfo),
+                      ray_distance=False).xyz
+    ok = np.isfinite(xyz[:, 0])
+    f = np.searchsorted(frames, pinfo[ok, 0])
+    n = np.bincount(f, minlength=len(frames))
+    with np.errstate(invalid="ignore"):
+        return np.stack([np.bincount(f, xyz[ok, k], len(frames)) for k in range(3)],
+                        axis=1) / np.where(n > 0, n, np.nan)[:, None]
+
+
+def _intrinsics_report(refined: bool, prior: Rig, sigmas: np.ndarray, source: list[str],
+                       moved: list[dict], cov: dict | None,
+                       result: bundle.BundleResult) -> dict:
+    """Per camera: where the priors came from and their sigmas; when refined, how far the
+    wand moved each camera's intrinsics and how well it now knows them, and the intrinsic
+    step's views' residual RMS (per axis) in the joint solve where they took part."""
+    rows = []
+    for k, cam in enumerate(prior):
+        row = {"name": cam.name, "prior_from": source[k],
+               "prior_sigma": dict(zip(intrinsic_prior.CAL3DS2, sigmas[k].tolist(),
+                                       strict=True))}
+        if refined:
+            row.update({key: v for key, v in moved[k].items() if key != "name"})
+            t = result.target
+            if t is not None and np.any(t.obs_camera == k):
+                sel = result.target_inlier & (t.obs_camera == k)
+                row["views_rms_px"] = float(np.sqrt(np.mean(
+                    result.target_residual_px[sel] ** 2))) if sel.any() else float("nan")
+                row["views_points"] = int(sel.sum())
+            if cov is not None and "intrinsic_std" in cov:
+                row["std_after"] = dict(zip(intrinsic_prior.CAL3DS2,
+                                            cov["intrinsic_std"][k].tolist(), strict=True))
+        rows.append(row)
+    return {"refined": bool(refined), "cameras": rows}
+
+
+def calibrate_wand(observations: Observations, intrinsics_rig: Rig, wand_spacing_m,
+                   initial_rig: Rig | None = None, refine_intrinsics: bool = True,
+                   holdout: float = 0.1, seed: int = 0, world=None) -> tuple[Rig, dict]:
+    """Calibrate a rig from a wand capture: (the rig, the report's figures).
+
+    observations: unlabelled blobs (a recording); intrinsics_rig: every camera's
+    intrinsics (poses ignored); wand_spacing_m: marker positions along the wand, e.g.
+    (0, 0.2, 0.5); initial_rig: start from its poses instead of from nothing;
+    world(rig, xyz) -> (A, b): the world frame (floor.frame_from_*), else a provisional one
+    from the cameras' up direction.
+    """
+    cal = calibrate(observations, intrinsics_rig, wand_spacing_m, initial_rig,
+                    refine_intrinsics, holdout, seed, world)
+    return cal.rig, cal.report
+
+
+def _two_marker_start(wand: WandObservations, sub: Rig, spec: WandSpec
+                      ) -> tuple[Rig, list[str]]:
+    """Initial poses for a 2-marker wand, whose ends look alike: the image midpoint of the
+    two blobs (nearly the image of the wand's middle) is the same point whichever end is
+    which, so the poses come from the midpoints; then the ends are labelled with those
+    poses and the wand's length gives the scale."""
+    pairs = wand.select(np.lexsort((wand.marker, wand.camera, wand.frame)))
+    mid = WandObservations(pairs.camera_names, pairs.camera_sizes, pairs.frame[0::2],
+                           pairs.camera[0::2], np.zeros(len(pairs) // 2, dtype=np.int32),
+                           0.5 * (pairs.uv[0::2] + pairs.uv[1::2]))
+    start, missing = initial_poses(mid, sub, WandSpec((0.0,)), unscaled=True)
+    camera_of = np.array([start.names.index(n) if n in start.names else -1
+                          for n in sub.names])
+    labelled = _two_marker_labels(pairs, start, camera_of)
+    pidx, pinfo = point_index(labelled, 2)
+    xyz = triangulate(start, pidx, camera_of[labelled.camera], labelled.uv,
+                      n_points=len(pinfo), ray_distance=False).xyz
+    from calibkit.calibrate.wand import wand_lengths
+
+    lengths = wand_lengths(xyz, pinfo, spec)
+    lengths = lengths[np.isfinite(lengths)]
+    if len(lengths) < 5:
+        raise UserError("too few 2-marker wand frames seen by two cameras to find the scale")
+    scale = spec.length_m / float(np.median(lengths))
+    return Rig(tuple(c.replace(t=c.t * scale) for c in start)), missing
+
+
+def _renumber(wand: WandObservations, keep: list[int], n: int) -> WandObservations:
+    local = np.full(n, -1)
+    local[keep] = np.arange(len(keep))
+    w = wand.select(local[wand.camera] >= 0)
+    w.camera = local[w.camera].astype(np.int32)
+    return w
+
+
+def _two_marker_labels(wand: WandObservations, rig: Rig, camera_of: np.ndarray
+                       ) -> WandObservations:
+    """Label a 2-marker wand's ends consistently across cameras: per frame, the first
+    camera's labels stand; every other camera's are swapped when its rays then pass
+    closer to the first camera's."""
+    w = wand.select(camera_of[wand.camera] >= 0)
+    w = w.select(np.lexsort((w.marker, w.camera, w.frame)))
+    f = w.frame[0::2]
+    cam = camera_of[w.camera[0::2]]
+    o, d = RigArrays.from_rig(rig).rays(np.repeat(cam, 2), w.uv)
+    o0, o1, d0, d1 = o[0::2], o[1::2], d[0::2], d[1::2]
+    first = np.r_[True, f[1:] != f[:-1]]
+    ref = np.maximum.accumulate(np.where(first, np.arange(len(f)), 0))
+
+    def gap(oa, da, ob, db):
+        n = np.cross(da, db)
+        nn = np.linalg.norm(n, axis=1)
+        return np.abs(np.sum((ob - oa) * n, axis=1)) / np.maximum(nn, 1e-12)
+
+    keep_cost = gap(o0[ref], d0[ref], o0, d0) + gap(o1[ref], d1[ref], o1, d1)
+    swap_cost = gap(o0[ref], d0[ref], o1, d1) + gap(o1[ref], d1[ref], o0, d0)
+    swap = (swap_cost < keep_cost) & ~first
+    # where both labellings fit about as well (the wand along an epipolar line) say nothing
+    clear = first | (np.minimum(keep_cost, swap_cost) < 0.3 * np.maximum(keep_cost, swap_cost))
+    marker = w.marker.copy()
+    marker[0::2] = np.where(swap, 1, 0)  # rows come in (0, 1) pairs
+    marker[1::2] = np.where(swap, 0, 1)
+    w.marker = marker.astype(np.int32)
+    w = w.select(np.repeat(clear, 2))
+    return w.select(np.lexsort((w.marker, w.camera, w.frame)))
+
+
+def _report(rig, spec, result, solved, held, cov, found, grade, reason, warnings, left_out,
+            wand, intr, floor_given) -> dict:
+    from calibkit.calibrate.wand import CaptureMonitor
+
+    monitor = CaptureMonitor(intr.names, [c.size for c in intr])
+    monitor.add(wand)
+    coverage = dict(zip(intr.names, monitor.coverage.tolist(), strict=True))
+    cams = []
+    for k, cam in enumerate(rig):
+        row = {"name": cam.name, "observations": int(solved["camera_observations"][k]),
+               "coverage": coverage[cam.name],
+               "reprojection_rms_px": float(solved["camera_rms_px"][k]),
+               "held_out_rms_px": float(held["camera_rms_px"][k]),
+               "centre_m": cam.centre.tolist()}
+        if cov is not None:
+            row["position_std_mm"] = float(cov["position_std_total_m"][k] * 1000)
+            row["orientation_std_deg"] = float(np.degrees(cov["orientation_std_total_rad"][k]))
+        cams.append(row)
+
+    def figures(e):
+        return {k: e[k] for k in ("frames", "observations", "reprojection_rms_px",
+                                  "wand_length_error_mean_mm", "wand_length_error_sd_mm",
+                                  "wand_length_error_rms_mm", "mean_ray_distance_mm")}
+
+    n_out = int(np.sum(~result.inlier))
+    return {
+        "wand_spacing_m": list(spec.spacing_m),
+        "cameras": cams,
+        "solve": {**figures(solved), "noise_px": result.noise_px,
+                  "iterations": result.iterations, "time_s": result.time_s,
+                  "cpu_s": result.cpu_s,
+                  "outliers": n_out, "refine_intrinsics": result.options.refine_intrinsics},
+        "held_out": figures(held),
+        "uncertainty_reference_camera": None if cov is None else cov["reference_camera"],
+        "checks": found, "grade": grade, "grade_reason": reason,
+        "grade_thresholds": [{"grade": g, "held_out_rms_px": p, "wand_length_sd_pct": m}
+                             for g, p, m in wand_report.GRADES],
+        "systematic_thresholds_pct": dict(wand_report.SYSTEMATIC_GRADES),
+        "left_out_cameras": left_out, "warnings": warnings,
+        "world_frame": "floor" if floor_given else "cameras (provisional: run calibkit floor)",
+        "identification": {"frames_with_wand": dict(zip(intr.names,
+                                                        wand.stats["frames_with_wand"],
+                                                        strict=True)),
+                           "ambiguous": dict(zip(intr.names, wand.stats["ambiguous"],
+                                                 strict=True))},
+    }
