@@ -1,0 +1,409 @@
+"""The live view's process: a viser web server showing the rig as the daemon sees it.
+
+It gets the daemon's frames (daemon.view.link: the newest, up to 30 a second) down a
+pipe and asks the daemon everything else through its control socket, as the `mocapd`
+commands do: `status` for each camera's rate and drops, `markers` and `reload` to define a
+body. The page: per camera a thumbnail (daemon.view.draw.thumbnail, a few a second over
+viser's websocket) and its figures; a 3D view of the frusta, the floor, the markers
+(free, on a body, picked, labelled with the marker set's sticks) and the bodies with their
+axes and trails; bodies made from picked markers, renamed and removed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import logging
+import threading
+import time
+from collections import deque
+
+import numpy as np
+
+from daemon.view import draw
+
+log = logging.getLogger("mocapd.view")
+THUMB_HZ = 8.0  # thumbnails a second, per camera
+SCENE_HZ = 30.0  # 3D updates a second
+STATUS_HZ = 2.0  # `status` requests a second
+TRAIL_S = 2.0
+COLOURS = {"free": (235, 235, 235), "held": (40, 200, 230), "picked": (255, 0, 200),
+           "labelled": (60, 220, 90)}
+BODY_COLOURS = [(230, 80, 60), (70, 160, 240), (250, 200, 40), (160, 90, 220),
+                (60, 200, 120), (240, 130, 200), (140, 140, 140), (255, 150, 60)]
+
+
+def main(conn, host: str, port: int) -> None:
+    """The process: serve, say so (or why not), then follow the daemon until it stops."""
+    logging.basicConfig(level=logging.WARNING, format="mocapd-view: %(message)s")
+    try:
+        import viser
+
+        with contextlib.redirect_stdout(io.StringIO()):  # its banner: the daemon logs the URL
+            server = viser.ViserServer(host=host, port=port, label="mocapd", verbose=False)
+        # viser can tunnel a page to its public share service when a client asks; the rig
+        # is shown only where the operator said (--view), so that request does nothing
+        server.request_share_url = lambda *args, **kwargs: None
+    except Exception as exc:  # noqa: BLE001 - any failure to serve goes back as one line
+        conn.send({"error": f"cannot serve on {host}:{port}: {exc}"})
+        return
+    if server.get_port() != port:
+        server.stop()
+        conn.send({"error": f"port {port} on {host} is taken; choose another"})
+        return
+    conn.send({"ready": True})
+    view = LiveView(server)
+    try:
+        view.follow(conn)
+    finally:
+        view.close()
+
+
+class LiveView:
+    """The page's contents, updated from the daemon's frames."""
+
+    def __init__(self, server) -> None:
+        self.server = server
+        self.desc: dict | None = None
+        self.frame: dict | None = None
+        self.blobs: dict[int, tuple] = {}  # camera -> (uv, area) of its newest sample
+        self.status: dict | None = None
+        self.picked: set[int] = set()
+        self.trails: dict[int, deque] = {}
+        self.body_frames: dict[int, object] = {}
+        self.thumbs: list = []
+        self.cam_md: list = []
+        self.frames_drawn = 0
+        self.thumbs_drawn = 0
+        self._rates = deque(maxlen=2)  # (time, scenes drawn, thumbnail rounds drawn)
+        self._stop = threading.Event()
+        self._busy = threading.Lock()  # one body edit at a time
+        server.gui.configure_theme(control_width="large", dark_mode=True, show_logo=False,
+                                  show_share_button=False)
+        server.scene.set_up_direction("+z")
+        self.head = server.gui.add_markdown("**mocapd**: waiting for the daemon's rig")
+
+    # ---- from the daemon -------------------------------------------------------------------
+
+    def follow(self, conn) -> None:
+        """Read the pipe (the newest frame wins), redraw at the scene's and thumbnails'
+        rates, ask for the status now and then; until the daemon stops or goes away."""
+        next_scene = next_thumb = next_status = 0.0
+        threading.Thread(target=self._status_loop, name="view-status", daemon=True).start()
+        while True:
+            try:
+                if conn.poll(0.01):
+                    while True:  # drain: set-ups in order, the last frame kept
+                        msg = conn.recv()
+                        if "stop" in msg:
+                            return
+                        if "setup" in msg:
+                            self.setup(msg["setup"])
+                        elif "frame" in msg:
+                            self.take(msg["frame"])
+                        if not conn.poll(0):
+                            break
+            except (EOFError, OSError):
+                return
+            if self.desc is None:
+                continue
+            now = time.monotonic()
+            if now >= next_scene and self.frame is not None:
+                next_scene = now + 1.0 / SCENE_HZ
+                self.draw_scene()
+            if now >= next_thumb:
+                next_thumb = now + 1.0 / THUMB_HZ
+                self.draw_thumbnails()
+            if now >= next_status:
+                next_status = now + 1.0 / STATUS_HZ
+                self.draw_figures()
+
+    def take(self, frame: dict) -> None:
+        self.frame = frame
+        for cam, uv, area in frame["cameras"]:
+            self.blobs[cam] = (uv, area)
+        now = frame["t_ns"] * 1e-9
+        for i, ok, p in zip(frame["body_ids"].tolist(), frame["body_valid"].tolist(),
+                            frame["body_position"], strict=True):
+            trail = self.trails.setdefault(i, deque(maxlen=int(TRAIL_S * SCENE_HZ) + 1))
+            trail.append((now, p if ok else np.full(3, np.nan, np.float32)))
+
+    def _status_loop(self) -> None:
+        from daemon.service import request
+
+        while not self._stop.wait(1.0 / STATUS_HZ):
+            if self.desc is None:
+                continue
+            try:
+                self.status = request(self.desc["runtime_dir"], {"cmd": "status"},
+                                      timeout_s=2.0)
+            except Exception as exc:  # noqa: BLE001 - the daemon may be going away
+                log.debug("status: %s", exc)
+
+    # ---- building the page -------------------------------------------------------------------
+
+    def setup(self, desc: dict) -> None:
+        """The rig's scene and the page's panels, once; the body list again after a reload."""
+        first = self.desc is None
+        self.desc = desc
+        if first:
+            self._build_scene(desc["rig"])
+            self._build_gui(desc)
+        self._build_bodies(desc["bodies"])
+
+    def _build_scene(self, rig) -> None:
+        sc = self.server.scene
+        centre, side = draw.floor_extent(rig)
+        sc.add_grid("/floor", width=side, height=side, plane="xy", cell_size=0.5,
+                    section_size=1.0, position=(float(centre[0]), float(centre[1]), 0.0),
+                    cell_color=(90, 90, 90), section_color=(130, 130, 130))
+        sc.add_frame("/world", axes_length=0.3, axes_radius=0.008)
+        for f in draw.camera_frusta(rig):
+            sc.add_camera_frustum(f"/cameras/{f['name']}", fov=float(f["fov"]),
+                                  aspect=float(f["aspect"]), scale=0.25, thickness=0.01,
+                                  color=(200, 200, 120), wxyz=f["wxyz"],
+                                  position=f["position"])
+            sc.add_label(f"/cameras/{f['name']}/label", f["name"], font_screen_scale=0.8)
+        empty = np.zeros((1, 3), np.float32)
+        self.clouds = {k: sc.add_point_cloud(f"/markers/{k}", empty, c, point_size=0.05
+                                             if k == "picked" else 0.035,
+                                             point_shape="circle", visible=False)
+                       for k, c in COLOURS.items()}
+        self.sticks = sc.add_line_segments("/markers/sticks", np.zeros((1, 2, 3), np.float32),
+                                           COLOURS["labelled"], thickness=0.006,
+                                           visible=False)
+        self.trail_lines = sc.add_line_segments(
+            "/bodies/trails", np.zeros((1, 2, 3), np.float32), (255, 255, 255),
+            thickness=0.004, visible=False)
+        top = rig.centres()
+        self.server.initial_camera.look_at = (float(centre[0]), float(centre[1]), 0.8)
+        self.server.initial_camera.position = tuple(
+            (np.array([centre[0], centre[1], 0.8]) + 1.6 * (top[0] - [centre[0], centre[1],
+                                                                       0.8])).tolist())
+        self.server.initial_camera.up = (0.0, 0.0, 1.0)
+        sc.on_click()(self._on_click)
+        sc.on_rect_select(modifier="shift")(self._on_rect)
+
+    def _build_gui(self, desc: dict) -> None:
+        gui = self.server.gui
+        rig = desc["rig"]
+        tabs = gui.add_tab_group()
+        cams = tabs.add_tab("Cameras", icon="camera")
+        with cams:
+            if desc["simulated"]:
+                gui.add_markdown("_Simulated cameras give blobs, not images: each thumbnail "
+                                 "is the blobs drawn on a dark frame of the camera's size._")
+            for cam in rig:
+                blank = draw.thumbnail(cam.size, np.zeros((0, 2)), np.zeros(0))
+                self.thumbs.append(gui.add_image(blank, label=cam.name, format="jpeg",
+                                                 jpeg_quality=75))
+                self.cam_md.append(gui.add_markdown(f"`{cam.name}`: waiting"))
+        bodies = tabs.add_tab("Bodies", icon="cube")
+        with bodies:
+            self.bodies_md = gui.add_markdown("no rigid bodies")
+            gui.add_markdown("**New body**: click markers in the 3D view (shift-drag a box "
+                             "to pick several), hold the body still, name it, create.")
+            self.picked_md = gui.add_markdown("picked: none")
+            clear = gui.add_button("Clear picks")
+            self.new_name = gui.add_text("Name", "")
+            create = gui.add_button("Create body from picked markers", color="green")
+            gui.add_markdown("**Existing body**")
+            self.body_choice = gui.add_dropdown("Body", ["-"])
+            self.rename_to = gui.add_text("Rename to", "")
+            rename = gui.add_button("Rename")
+            remove = gui.add_button("Remove", color="red")
+            self.message = gui.add_markdown("")
+        clear.on_click(lambda _: self._set_picked(set()))
+        create.on_click(lambda _: self._edit(self._create))
+        rename.on_click(lambda _: self._edit(self._rename))
+        remove.on_click(lambda _: self._edit(self._remove))
+
+    def _build_bodies(self, bodies: list) -> None:
+        for handle in self.body_frames.values():
+            handle.remove()
+        self.body_frames = {}
+        sc = self.server.scene
+        for k, (i, name) in enumerate(bodies):
+            h = sc.add_frame(f"/bodies/{name}", axes_length=0.15, axes_radius=0.006,
+                             origin_radius=0.012,
+                             origin_color=BODY_COLOURS[k % len(BODY_COLOURS)], visible=False)
+            sc.add_label(f"/bodies/{name}/label", name, font_screen_scale=0.8)
+            self.body_frames[i] = h
+        names = [n for _, n in bodies]
+        self.body_choice.options = names or ["-"]
+        self.names = dict(bodies)
+
+    # ---- drawing ----------------------------------------------------------------------------
+
+    def draw_scene(self) -> None:
+        f = self.frame
+        seen = f["track_seen"]
+        ids, xyz, held = f["track_ids"][seen], f["track_xyz"][seen], f["track_held"][seen]
+        picked = np.isin(ids, list(self.picked))
+        lab_idx = f.get("labelled_index")
+        labelled = np.zeros(len(ids), bool)
+        groups = {"free": ~held & ~picked, "held": held & ~picked, "picked": picked}
+        with self.server.atomic():
+            if lab_idx is not None:
+                lab_xyz = f["labelled_xyz"]
+                self._cloud("labelled", lab_xyz)
+                near = np.linalg.norm(xyz[:, None] - lab_xyz[None], axis=2).min(axis=1) \
+                    if len(lab_xyz) and len(xyz) else np.zeros(len(ids))
+                labelled = near < 1e-4
+                self._sticks(lab_idx, lab_xyz)
+            for k, sel in groups.items():
+                self._cloud(k, xyz[sel & ~labelled])
+            valid = f["body_valid"]
+            for i, ok, p, q in zip(f["body_ids"].tolist(), valid.tolist(), f["body_position"],
+                                   f["body_quaternion"], strict=True):
+                h = self.body_frames.get(i)
+                if h is None:
+                    continue
+                h.visible = bool(ok)
+                if ok:
+                    h.position = p.astype(np.float64)
+                    h.wxyz = np.array([q[3], q[0], q[1], q[2]], np.float64)
+            segs = [draw.trail_segments(np.array([p for _, p in t]))
+                    for t in self.trails.values()]
+            segs = np.concatenate(segs) if segs else np.zeros((0, 2, 3), np.float32)
+            self.trail_lines.visible = len(segs) > 0
+            if len(segs):
+                self.trail_lines.points = segs
+        self.frames_drawn += 1
+
+    def _cloud(self, kind: str, xyz: np.ndarray) -> None:
+        h = self.clouds[kind]
+        h.visible = len(xyz) > 0
+        if len(xyz):
+            h.points = np.asarray(xyz, np.float32)
+            h.colors = np.tile(np.array(COLOURS[kind], np.uint8), (len(xyz), 1))
+
+    def _sticks(self, index: np.ndarray, xyz: np.ndarray) -> None:
+        pairs = self.desc.get("sticks") or []
+        where = {int(m): k for k, m in enumerate(index.tolist())}
+        seg = [(xyz[where[a]], xyz[where[b]]) for a, b in pairs if a in where and b in where]
+        self.sticks.visible = bool(seg)
+        if seg:
+            self.sticks.points = np.asarray(seg, np.float32)
+
+    def draw_thumbnails(self) -> None:
+        rig = self.desc["rig"]
+        thr = self.desc["cameras"]
+        for c, cam in enumerate(rig):
+            uv, area = self.blobs.get(c, (np.zeros((0, 2)), np.zeros(0)))
+            t = thr.get(cam.name, {}).get("threshold")
+            self.thumbs[c].image = draw.thumbnail(cam.size, uv, area, threshold=t)
+        self.thumbs_drawn += 1
+
+    def draw_figures(self) -> None:
+        st, f = self.status, self.frame
+        if f is not None:
+            valid = [self.names.get(i, str(i)) for i, ok in
+                     zip(f["body_ids"].tolist(), f["body_valid"].tolist(), strict=True) if ok]
+            rate = f"{st['rate_hz']:.0f} fps, " if st else ""
+            lat = st["latency"]["median_ms"] if st else None
+            self._rates.append((time.monotonic(), self.frames_drawn, self.thumbs_drawn))
+            (t0, s0, h0), (t1, s1, h1) = self._rates[0], self._rates[-1]
+            dt = max(t1 - t0, 1e-9)
+            view = (f"  \nview: 3D {(s1 - s0) / dt:.0f}/s, thumbnails {(h1 - h0) / dt:.1f}/s "
+                    "per camera" if t1 > t0 else "")
+            self.head.content = (
+                f"**mocapd** frame {f['frame']}: {rate}"
+                + (f"latency {lat:.2f} ms median, " if lat is not None else "")
+                + f"{int(f['track_seen'].sum())} markers, "
+                f"{len(valid)} of {len(self.names)} bodies tracked" + view)
+            rows = "\n".join(f"| {n} | {i} | {'tracked' if n in valid else 'lost'} |"
+                             for i, n in self.names.items())
+            self.bodies_md.content = ("| body | id | |\n|---|---|---|\n" + rows
+                                      if rows else "no rigid bodies")
+        cams = {c["name"]: c for c in (st or {}).get("cameras", [])}
+        for c, cam in enumerate(self.desc["rig"]):
+            s = cams.get(cam.name)
+            n = len(self.blobs.get(c, ((),))[0])
+            if s is None:
+                self.cam_md[c].content = f"`{cam.name}`: {n} blobs"
+            else:
+                self.cam_md[c].content = (
+                    f"`{cam.name}`: {s['rate_hz']:.0f} fps, {s['dropped']} dropped, "
+                    f"{n} blobs" + ("" if s["connected"] else ", **disconnected**"))
+
+    # ---- picking and editing ----------------------------------------------------------------
+
+    def _free_seen(self):
+        f = self.frame
+        if f is None:
+            return np.zeros(0, np.int64), np.zeros((0, 3))
+        sel = f["track_seen"] & ~f["track_held"]
+        return f["track_ids"][sel], f["track_xyz"][sel]
+
+    def _set_picked(self, picked: set) -> None:
+        self.picked = set(picked)
+        self.picked_md.content = ("picked: " + (", ".join(f"marker {i}" for i in
+                                                          sorted(self.picked)) or "none"))
+
+    def _on_click(self, event) -> None:
+        ids, xyz = self._free_seen()
+        k = draw.pick_by_ray(xyz, event.ray_origin, event.ray_direction)
+        if k >= 0:
+            self._set_picked(self.picked ^ {int(ids[k])})
+
+    def _on_rect(self, event) -> None:
+        ids, xyz = self._free_seen()
+        cam = event.client.camera
+        inside = draw.pick_in_rect(xyz, cam.position, cam.wxyz, cam.fov, cam.aspect,
+                                   event.screen_min, event.screen_max)
+        self._set_picked(self.picked | {int(i) for i in ids[inside]})
+
+    def _edit(self, action) -> None:
+        """Body edits run on a thread of their own (a creation watches 30 frames) and one at
+        a time; their outcome, or the user's error, is written under the buttons."""
+        from calibkit.core.errors import UserError
+
+        def run():
+            if not self._busy.acquire(blocking=False):
+                self.message.content = "busy with the last request"
+                return
+            try:
+                self.message.content = action() + "; the daemon is reloading"
+                from daemon.service import request
+
+                request(self.desc["runtime_dir"], {"cmd": "reload"})
+            except UserError as exc:
+                self.message.content = f"**not done**: {exc}"
+            except Exception as exc:  # noqa: BLE001 - the page must say, not die
+                log.exception("body edit failed")
+                self.message.content = f"**failed**: {exc}"
+            finally:
+                self._busy.release()
+
+        self.message.content = "working..."
+        threading.Thread(target=run, name="view-edit", daemon=True).start()
+
+    def _create(self) -> str:
+        from daemon.service import request
+        from daemon.view.bodies import add_picked
+
+        rt = self.desc["runtime_dir"]
+        name = self.new_name.value
+        body_id, n = add_picked(self.desc["config"], name, self.picked,
+                                lambda: request(rt, {"cmd": "markers"}))
+        self._set_picked(set())
+        return f"added rigid body {name.strip()!r} (id {body_id}, {n} markers)"
+
+    def _rename(self) -> str:
+        from daemon.view.bodies import rename_body
+
+        old, new = self.body_choice.value, self.rename_to.value
+        rename_body(self.desc["config"], old, new)
+        return f"renamed {old!r} to {new.strip()!r}"
+
+    def _remove(self) -> str:
+        from daemon.view.bodies import remove_body
+
+        name = self.body_choice.value
+        remove_body(self.desc["config"], name)
+        return f"removed {name!r}"
+
+    def close(self) -> None:
+        self._stop.set()
+        self.server.stop()

@@ -1,0 +1,187 @@
+"""The daemon's side of the live view: keep the newest frame, hand it to the view process.
+
+Tracking never waits for the view. The per-frame hook only stores a reference to the
+result (no copy, no lock); a feeder thread wakes FEED_HZ times a second, packs the newest
+result into a few small arrays and sends them down a pipe to the view process, which does
+everything else (the web server, thumbnails, the 3D scene) under its own interpreter
+lock. A slow view blocks the feeder on the pipe, never the frame loop, and the frames in
+between are dropped for the view: the queue is the one newest result.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import logging
+import multiprocessing as mp
+import socket
+import threading
+import time
+
+import numpy as np
+
+from calibkit.core.errors import UserError
+
+log = logging.getLogger("mocapd.view")
+FEED_HZ = 30.0  # frames a second the view gets (its 3D view redraws at this rate)
+READY_TIMEOUT_S = 20.0  # the view process importing viser and binding its port
+
+
+def parse_view(text: str) -> tuple[str, int]:
+    """--view [HOST:]PORT -> (host, port); a bare port is served on loopback only."""
+    host, sep, port = text.rpartition(":")
+    host = host.strip("[]") if sep else "127.0.0.1"
+    try:
+        ipaddress.ip_address(host)
+        port_n = int(port)
+        if not 0 < port_n < 65536:
+            raise ValueError
+    except ValueError:
+        raise UserError(f"--view: expected [HOST:]PORT with HOST an IP address (127.0.0.1 "
+                        f"for this computer only), got {text!r}") from None
+    return host, port_n
+
+
+def is_loopback(host: str) -> bool:
+    return ipaddress.ip_address(host).is_loopback
+
+
+def check_port_free(host: str, port: int) -> None:
+    """A port in use is the user's to change: one line, before anything starts."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, port))
+        except OSError as exc:
+            raise UserError(f"--view: cannot serve on {host}:{port}: {exc.strerror or exc}; "
+                            "choose another port") from None
+
+
+def pack(result) -> dict:
+    """What the view needs of one frame, as small arrays (pickled down the pipe)."""
+    tr, po = result.tracks, result.poses
+    cams = [(int(s.camera), np.asarray(s.uv, np.float32), np.asarray(s.area, np.float32))
+            for s in (result.samples or ())]
+    out = {"frame": int(result.frame), "t_ns": int(result.t_ns),
+           "latency_ms": (result.done_ns - result.arrival_ns) * 1e-6, "cameras": cams,
+           "track_ids": tr.ids.copy(), "track_xyz": tr.xyz.astype(np.float32),
+           "track_seen": tr.seen.copy(), "track_held": result.held_by_bodies(),
+           "body_ids": po.ids.copy(), "body_valid": po.valid.copy(),
+           "body_position": po.position.astype(np.float32),
+           "body_quaternion": po.quaternion.astype(np.float32)}
+    lab = result.labelled
+    if lab is not None and hasattr(lab, "index"):
+        out["labelled_index"] = np.asarray(lab.index, np.int64)
+        out["labelled_xyz"] = np.asarray(lab.xyz, np.float32)
+    return out
+
+
+def describe(daemon) -> dict:
+    """What the view needs once (and again after a reload): the rig, the bodies' names,
+    where the control socket and the configuration are, the cameras' detection settings."""
+    from daemon.config import default_runtime_dir
+
+    cfg = daemon.config
+    ms = daemon._markerset() if hasattr(daemon, "_markerset") else None
+    sticks = None
+    if ms is not None:
+        from daemon.view.draw import markerset_sticks
+
+        sticks = markerset_sticks(ms)
+    return {"rig": daemon.rig,
+            "bodies": [(int(b.id), b.name) for b in daemon.pipeline.rigid.bodies],
+            "runtime_dir": str(cfg.runtime_dir or default_runtime_dir()),
+            "config": None if cfg.path is None else str(cfg.path),
+            "cameras": {c.name: {"threshold": c.threshold} for c in cfg.cameras},
+            "simulated": cfg.sim is not None, "sticks": sticks,
+            "fps": cfg.sim.fps if cfg.sim is not None else cfg.fps}
+
+
+class ViewLink:
+    """The view process, started early (it imports the web server while the daemon sets
+    up), then attached to the daemon's pipeline."""
+
+    def __init__(self, host: str, port: int) -> None:
+        check_port_free(host, port)
+        from daemon.view.app import main
+
+        self.host, self.port = host, port
+        ctx = mp.get_context("spawn")  # a fresh interpreter: nothing of the daemon's state
+        self._conn, child = ctx.Pipe()
+        self.process = ctx.Process(target=main, args=(child, host, port), name="mocapd-view",
+                                   daemon=True)
+        self.process.start()
+        child.close()
+        self._latest = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._described: tuple | None = None
+        self.sent = 0
+        self.url = f"http://{host if ':' not in host else f'[{host}]'}:{port}"
+
+    def submit(self, result) -> None:
+        """The per-frame hook: the newest result replaces the one before, nothing else."""
+        self._latest = result
+
+    def attach(self, daemon) -> None:
+        """Wait for the view to serve (a failure is the user's: one line), give it the rig
+        and hook it to the frame loop."""
+        msg = self._conn.recv() if self._conn.poll(READY_TIMEOUT_S) else {
+            "error": "the view process did not start (see the log)"}
+        if "error" in msg:
+            self.close()
+            raise UserError(f"--view: {msg['error']}")
+        self._daemon = daemon
+        self._send({"setup": describe(daemon)})
+        daemon.pipeline.hooks.append(self.submit)
+        self._thread = threading.Thread(target=self._feed, name="view-feed", daemon=True)
+        self._thread.start()
+        where = "" if is_loopback(self.host) else " (not loopback: anyone who can reach " \
+                                                   "this address can see and change the rig)"
+        log.info("live view at %s%s", self.url, where)
+
+    def _send(self, obj) -> bool:
+        try:
+            self._conn.send(obj)
+            return True
+        except (BrokenPipeError, ConnectionResetError, OSError, EOFError):
+            if not self._stop.is_set():
+                log.warning("the live view process has ended; tracking goes on without it")
+            self._stop.set()
+            return False
+
+    def _feed(self) -> None:
+        period = 1.0 / FEED_HZ
+        last = None
+        while not self._stop.wait(period):
+            d = self._daemon
+            key = (tuple(b.name for b in d.pipeline.rigid.bodies), str(d.config.path))
+            if key != self._described:  # a reload changed the bodies: tell the view
+                self._described = key
+                if not self._send({"setup": describe(d)}):
+                    return
+            res = self._latest
+            if res is None or res is last:
+                continue
+            last = res
+            t0 = time.perf_counter()
+            if not self._send({"frame": pack(res)}):
+                return
+            self.sent += 1
+            if time.perf_counter() - t0 > 0.5:
+                log.debug("the view took %.1f s to take a frame", time.perf_counter() - t0)
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(1.0)
+        if self._thread is None or not self._thread.is_alive():  # else stuck on a full pipe
+            try:
+                self._conn.send({"stop": True})
+            except (OSError, EOFError, BrokenPipeError):
+                pass
+        self.process.join(3.0)
+        if self.process.is_alive():
+            self.process.terminate()
+            self.process.join(2.0)
+        self._conn.close()
