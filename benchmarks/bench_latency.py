@@ -11,6 +11,14 @@ figures per packet:
 - daemon: the packet's own latency field, the last sample's arrival to the pose (the
   frame loop alone).
 
+Beside these, the daemon's own stage figures (its `--json` `latency_stages`): capture to
+every output handed the result ("sent", the UDP send is inline) and the wait between a set
+being complete and the frame loop starting on it ("pickup"), the stage where the tail was.
+The daemon runs under real-time scheduling as it does by default; RTPRIO=0 (a variant) runs
+it at normal priority, RTPRIO=N at SCHED_RR N. LOAD=N runs N CPU-bound processes beside
+the daemon for the run (a machine doing other work; the benchmark's receiver stands in for
+a robot on a machine of its own, so it runs at a real-time priority when it may).
+
 The first second (tracks being found, late cameras opening) is left out. The machine may
 be shared: each configuration runs `--repeats` times, alternating, and the table gives
 the median of the runs' medians and p99s, and their worst. `--variant NAME=VAR=VALUE,...` adds
@@ -25,6 +33,7 @@ comparison is made back to back on the same machine. VIEW=1 turns the live web v
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import socket
 import subprocess
@@ -36,9 +45,11 @@ import numpy as np
 
 from calibkit.clitools import print_table, write_json
 from daemon.publish.packet import decode
+from daemon.realtime import raise_priority, restore_normal
 
 ROOT = Path(__file__).resolve().parents[1]
 FPS, N_CAMERAS, N_BODIES, PER_BODY, NOISE_PX = 240.0, 8, 10, 5, 0.2
+RECEIVER_PRIORITY = 20  # above the daemon's: a robot's receiver is not sharing its cores
 
 
 def receive_latencies(proc, rx) -> tuple[list[int], list[int]]:
@@ -76,7 +87,7 @@ def open_browser(url: str):
                              f"--user-data-dir={profile}", "--remote-debugging-port=0",
                              "--window-size=1400,900", url],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            start_new_session=True)
+                            start_new_session=True, preexec_fn=restore_normal)
 
 
 def one_run(seconds: float, env: dict, extra: list[str]) -> dict:
@@ -87,12 +98,16 @@ def one_run(seconds: float, env: dict, extra: list[str]) -> dict:
     cfg = ROOT / "benchmarks" / f".bench_latency_{port}.toml"
     # SCORE=0 (a variant): no truth scoring, the daemon's own cost alone
     score = "false" if env.get("SCORE") == "0" else "true"
-    cfg.write_text(f"[sim]\nmarkers_per_body = {PER_BODY}\nscore = {score}\n")
+    rtprio = int(env.get("RTPRIO", 10))
+    figures = cfg.with_suffix(".json")
+    cfg.write_text(f"[pipeline]\nrealtime_priority = {rtprio}\n"
+                   f"[sim]\nmarkers_per_body = {PER_BODY}\nscore = {score}\n")
     cmd = [sys.executable, "-m", "daemon.cli", "start", "--sim", "--config", str(cfg),
            "--sim-cameras", str(N_CAMERAS), "--sim-bodies", str(N_BODIES),
            "--sim-fps", str(FPS), "--noise-px", str(NOISE_PX),
            "--udp", f"127.0.0.1:{port}", "--duration", str(seconds),
-           "--runtime-dir", f"/tmp/mocapd-bench-latency-{port}", *extra]
+           "--runtime-dir", f"/tmp/mocapd-bench-latency-{port}", "--json", str(figures),
+           *extra]
     view = env.get("VIEW")  # VIEW=1: the live web view on; VIEW=browser: and a page open
     browser = None
     if view:
@@ -100,9 +115,14 @@ def one_run(seconds: float, env: dict, extra: list[str]) -> dict:
             s.bind(("127.0.0.1", 0))
             view_port = s.getsockname()[1]
         cmd += ["--view", f"127.0.0.1:{view_port}"]
+    # LOAD=N: CPU-bound jobs beside the daemon for the run
+    load = [subprocess.Popen([sys.executable, "-c", "while True: pass"],
+                             preexec_fn=restore_normal) for _ in range(int(env.get("LOAD", 0)))]
     root = env.get("ROOT", str(ROOT))  # another checkout's daemon (its own imports)
+    # children start at normal priority, whatever the receiver runs at
     proc = subprocess.Popen(cmd, cwd=root, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            env={**os.environ, "PYTHONPATH": root, **env})
+                            env={**os.environ, "PYTHONPATH": root, **env},
+                            preexec_fn=restore_normal)
     if view == "browser":
         browser = open_browser(f"http://127.0.0.1:{view_port}")
     try:
@@ -111,18 +131,27 @@ def one_run(seconds: float, env: dict, extra: list[str]) -> dict:
         if browser is not None:
             os.killpg(browser.pid, 15)
             browser.wait(5)
+        for job in load:
+            job.kill()
+            job.wait()
         err = proc.communicate()[1]
         cfg.unlink(missing_ok=True)
         rx.close()
     if proc.returncode != 0:
         raise SystemExit(f"mocapd failed: {err.decode().strip().splitlines()[-1:]}")
+    fig = json.loads(figures.read_text())
+    figures.unlink()
+    stages = fig["latency_stages"]
     skip = int(FPS)
     a = np.array(lat[skip:]) * 1e-6
     d = np.array(daemon_lat[skip:]) * 1e-6
     return {"packets": len(a), "udp_median_ms": float(np.median(a)),
             "udp_p99_ms": float(np.percentile(a, 99)),
             "daemon_median_ms": float(np.median(d)),
-            "daemon_p99_ms": float(np.percentile(d, 99)), "rate_hz": len(lat) / seconds}
+            "daemon_p99_ms": float(np.percentile(d, 99)), "rate_hz": len(lat) / seconds,
+            "sent_median_ms": stages["total"]["median_ms"],
+            "sent_p99_ms": stages["total"]["p99_ms"],
+            "pickup_p99_ms": stages["pickup"]["p99_ms"], "scheduling": fig["scheduling"]}
 
 
 def main() -> None:
@@ -138,6 +167,9 @@ def main() -> None:
     for v in args.variant:
         name, _, rest = v.partition("=")
         configs[name] = dict(kv.split("=", 1) for kv in rest.split(",") if kv)
+    # the receiver stands in for a robot on a machine of its own: on this shared machine it
+    # must not wait for a core either, or the figure measures its wait, not the daemon's
+    print(f"receiver: {raise_priority(RECEIVER_PRIORITY)}", file=sys.stderr)
     runs: dict[str, list[dict]] = {name: [] for name in configs}
     for r in range(args.repeats):
         for name, env in configs.items():
@@ -148,15 +180,21 @@ def main() -> None:
                   file=sys.stderr, flush=True)
     rows, out = [], {"seconds": args.seconds, "repeats": args.repeats, "configs": {}}
     for name, rs in runs.items():
-        med = {k: float(np.median([x[k] for x in rs])) for k in rs[0]}
-        worst = {k: float(np.max([x[k] for x in rs])) for k in rs[0]}
+        numbers = [k for k in rs[0] if k != "scheduling"]
+        med = {k: float(np.median([x[k] for x in rs])) for k in numbers}
+        worst = {k: float(np.max([x[k] for x in rs])) for k in numbers}
         out["configs"][name] = {"env": configs[name], "median": med, "worst": worst,
                                 "runs": rs}
         rows.append([name, round(med["rate_hz"], 1), round(med["udp_median_ms"], 3),
                      round(med["udp_p99_ms"], 3), round(worst["udp_p99_ms"], 3),
-                     round(med["daemon_median_ms"], 3), round(med["daemon_p99_ms"], 3)])
+                     round(med["daemon_median_ms"], 3), round(med["daemon_p99_ms"], 3),
+                     round(med["sent_median_ms"], 3), round(med["sent_p99_ms"], 3),
+                     round(worst["sent_p99_ms"], 3), round(med["pickup_p99_ms"], 3),
+                     rs[0]["scheduling"]])
     print_table(rows, ["config", "rate_hz", "udp_median_ms", "udp_p99_ms",
-                       "udp_p99_worst_ms", "daemon_median_ms", "daemon_p99_ms"])
+                       "udp_p99_worst_ms", "daemon_median_ms", "daemon_p99_ms",
+                       "sent_median_ms", "sent_p99_ms", "sent_p99_worst_ms", "pickup_p99_ms",
+                       "scheduling"])
     if args.json:
         write_json(args.json, out)
 

@@ -157,6 +157,8 @@ class Config:
     fps: float = 240.0  # expected camera rate (the triggered multiplexer's timeout)
     timeout_frames: float = 1.5  # triggered: wait this many frame periods for a full set
     pair_tolerance: float = 0.5  # a set gathers samples within this many frame periods
+    # live runs: SCHED_RR priority of the daemon's threads (0: normal scheduling)
+    realtime_priority: int = 10
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     # the [tracker] keys the file sets: the pixel gates it leaves out follow the rig's
     # residual (calibkit.vision.gates), the ones it sets stay as set
@@ -311,13 +313,16 @@ def parse_config(data: dict, path: Path | None = None, base: Path | None = None)
     if "markerset" in data:
         changes["markerset"] = _markerset(w, _string(w, data, "markerset", ""), base)
     pipe = _table(w, data, "pipeline")
-    _check_keys(w, pipe, {"mode", "fps", "timeout_frames", "pair_tolerance"}, "pipeline.")
+    _check_keys(w, pipe, {"mode", "fps", "timeout_frames", "pair_tolerance",
+                          "realtime_priority"}, "pipeline.")
     changes["mode"] = _string(w, pipe, "mode", "pipeline.", "triggered", ("triggered", "greedy"))
     changes["fps"] = _number(w, pipe, "fps", "pipeline.", cfg.fps, lo=1, hi=10000)
     changes["timeout_frames"] = _number(w, pipe, "timeout_frames", "pipeline.", 1.5, lo=0.1,
                                         hi=100)
     changes["pair_tolerance"] = _number(w, pipe, "pair_tolerance", "pipeline.", 0.5, lo=0.05,
                                         hi=0.5)
+    changes["realtime_priority"] = _number(w, pipe, "realtime_priority", "pipeline.", 10,
+                                           kind=int, lo=0, hi=99)
     changes["tracker"] = _dataclass_table(w, _table(w, data, "tracker"), TrackerConfig,
                                           TrackerConfig(), "tracker.")
     changes["tracker_keys"] = frozenset(_table(w, data, "tracker"))

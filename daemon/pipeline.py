@@ -51,6 +51,8 @@ class FrameResult:
     poses: BodyPoses
     samples: list | None = None
     labelled: object | None = None  # what the labelling stage made of the tracks, if any
+    pickup_ns: int = 0  # when the frame loop started on the set
+    published_ns: int = 0  # when every output had been handed the result
 
     def held_by_bodies(self) -> np.ndarray:
         """(T,) whether a rigid body holds each track this frame."""
@@ -137,6 +139,9 @@ class Stats:
         self.body_valid: dict[int, int] = {}  # body id -> frames it was valid
         self.body_frames: dict[int, int] = {}
         self.markers_seen: list[int] = []
+        # per frame, ns: capture, the set complete, the frame loop picks it up, poses,
+        # outputs handed over (what the stage figures are made of)
+        self.stage_ns: list[tuple[int, int, int, int, int]] = []
 
     def add(self, result: FrameResult) -> None:
         self.frames += 1
@@ -151,12 +156,39 @@ class Stats:
             self.body_frames[i] = self.body_frames.get(i, 0) + 1
         if len(self.markers_seen) < 10_000_000:
             self.markers_seen.append(int(np.sum(result.tracks.seen)))
+            self.stage_ns.append((result.t_ns, result.arrival_ns, result.pickup_ns,
+                                  result.done_ns, result.published_ns))
 
     def rate_hz(self) -> float:
         d = list(self.done)
         if len(d) < 2:
             return 0.0
         return (len(d) - 1) / max((d[-1] - d[0]) * 1e-9, 1e-9)
+
+
+STAGES = ("delivery", "pickup", "compute", "outputs")
+
+
+def latency_stage_figures(stage_ns, skip: int = 0) -> dict:
+    """Where a frame's latency goes, in ms: delivery (capture to the set's last sample
+    arriving: the camera's transfer and its capture thread), pickup (the set complete to the
+    frame loop starting on it), compute (tracking, bodies, labelling), outputs (handing the
+    result over, inline sends included). Median and p99 of each, and the mean of each over
+    the slowest 1 % of frames (capture to outputs), which says what the tail waits for.
+    `skip` leaves out the first frames (tracks being found)."""
+    a = np.asarray(stage_ns[skip:], dtype=np.float64).reshape(-1, 5)
+    if not len(a):
+        return {}
+    parts = np.diff(a, axis=1) * 1e-6
+    total = (a[:, 4] - a[:, 0]) * 1e-6
+    tail = total >= np.percentile(total, 99)
+    out = {"total": {"median_ms": float(np.median(total)),
+                     "p99_ms": float(np.percentile(total, 99))}}
+    for k, name in enumerate(STAGES):
+        out[name] = {"median_ms": float(np.median(parts[:, k])),
+                     "p99_ms": float(np.percentile(parts[:, k], 99)),
+                     "slowest_1pct_mean_ms": float(parts[tail, k].mean())}
+    return out
 
 
 def latency_figures(latency_ns) -> dict:
@@ -232,6 +264,7 @@ class Pipeline:
             self._period_anchor = (fs.index, fs.t_ns)
 
     def process(self, fs: FrameSet) -> FrameResult:
+        pickup_ns = time.monotonic_ns()
         if (self._pending_bodies is not None or self._pending_publishers is not None
                 or self._pending_labeller is not None):
             self._apply_pending()
@@ -247,12 +280,13 @@ class Pipeline:
         tracks = self.tracker.update(camera, uv, fs.t_ns, area)
         poses = self.rigid.update(tracks, uv, self.tracker.cams)
         result = FrameResult(fs.index, fs.t_ns, fs.arrival_ns, time.monotonic_ns(), camera, uv,
-                             tracks, poses, samples)
+                             tracks, poses, samples, pickup_ns=pickup_ns)
         if self.labeller is not None:
             result.labelled = self.labeller(result)
             result.done_ns = time.monotonic_ns()
         for p in self.publishers:
             p.submit(result)
+        result.published_ns = time.monotonic_ns()
         # for the next frame only (the result holds copies): after the outputs, off the
         # latency path
         self.tracker.place(*self.rigid.hidden_markers(tracks))

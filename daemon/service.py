@@ -30,7 +30,14 @@ from calibkit.core.errors import UserError
 from calibkit.core.fileio import write_text_atomic
 from calibkit.vision.gates import correspondence_config, rig_residual, tracker_gates
 from daemon.config import Config, default_runtime_dir, load_config, parse_config
-from daemon.pipeline import CaptureThread, FrameSet, Multiplexer, Pipeline, latency_figures
+from daemon.pipeline import (
+    CaptureThread,
+    FrameSet,
+    Multiplexer,
+    Pipeline,
+    latency_figures,
+    latency_stage_figures,
+)
 from daemon.publish.line import fit_mavlink, fit_serial
 from daemon.publish.mavlink import MavlinkPublisher
 from daemon.publish.mcap_recorder import McapRecorderPublisher
@@ -39,6 +46,7 @@ from daemon.publish.recorder import RecorderPublisher
 from daemon.publish.serial import SerialPublisher
 from daemon.publish.udp import UdpPublisher
 from daemon.publish.vrpn import VrpnPublisher
+from daemon.realtime import raise_priority, restore_normal
 from daemon.rigid import alike_bodies
 from daemon.rigid_define import bodies_toml, learn_body
 from daemon.sources import DetectCamera, ReplayCamera, ReplayScene, missing_plugins
@@ -271,6 +279,7 @@ class Daemon:
         self.labelling: LiveLabeller | None = None
         self.label_score: LabelScore | None = None
         self.captures: list[CaptureThread] = []
+        self.scheduling = "normal"  # what the live run's threads run at (daemon.realtime)
         self._learned: tuple[str, list] | None = None  # --sim: bodies defined live (toml, defs)
         self.learned_path: Path | None = None
         self.rig = self._rig(config)
@@ -517,16 +526,22 @@ class Daemon:
         cfg = self.config
         fps = cfg.sim.fps if cfg.sim is not None else cfg.fps
         n_scene = frames or (int(duration_s * fps) + 10 if duration_s else None)
-        self.setup(n_scene)
         realtime = _paced(cfg)
+        # before any thread starts, so that they all inherit it; a batch run stays normal
+        self.scheduling = (raise_priority(cfg.realtime_priority) if realtime
+                           else "normal (as fast as possible)")
         try:
-            if realtime:
-                self._run_live(frames, duration_s, progress)
-            else:
-                self._run_fast(frames, duration_s, progress)
+            self.setup(n_scene)
+            try:
+                if realtime:
+                    self._run_live(frames, duration_s, progress)
+                else:
+                    self._run_fast(frames, duration_s, progress)
+            finally:
+                self.pipeline.run_idle()  # the scorers see every frame
+                self.shutdown()
         finally:
-            self.pipeline.run_idle()  # the scorers see every frame
-            self.shutdown()
+            restore_normal()
         return self.figures()
 
     def _run_fast(self, frames, duration_s, progress) -> None:
@@ -582,9 +597,9 @@ class Daemon:
             cap.on_open = self.mux.reset_camera
             cap.start()
         sd_notify("READY=1")
-        log.info("tracking %d cameras (%s at %.0f fps, %s)", len(sources),
+        log.info("tracking %d cameras (%s at %.0f fps, %s; scheduling %s)", len(sources),
                  "live" if self.live_sources else "replay" if isinstance(scene, ReplayScene)
-                 else "simulated", fps, cfg.mode)
+                 else "simulated", fps, cfg.mode, self.scheduling)
         end = None if duration_s is None else t0 + int(duration_s * 1e9)
         while not self.stop_event.is_set():
             if end is not None and time.monotonic_ns() >= end:
@@ -770,6 +785,7 @@ class Daemon:
             valid = np.zeros(len(bodies), dtype=bool)
         return {
             "uptime_s": (time.monotonic_ns() - self.started_ns) * 1e-9,
+            "scheduling": self.scheduling,
             "frames": st.frames, "rate_hz": st.rate_hz(),
             "latency": latency_figures(st.latency),
             "cameras": cams,
@@ -784,6 +800,7 @@ class Daemon:
 
     def figures(self) -> dict:
         st = self.pipeline.stats
+        fps = self.config.sim.fps if self.config.sim is not None else self.config.fps
         elapsed = (st.done[-1] - st.done[0]) * 1e-9 if len(st.done) > 1 else 0.0
         out = {
             "frames": st.frames,
@@ -795,11 +812,14 @@ class Daemon:
                                       for i in st.body_frames},
             "cameras": self.status()["cameras"],
             "outputs": [p.status() for p in self.pipeline.publishers],
+            "scheduling": self.scheduling,
         }
         sent = [p for p in self.pipeline.publishers if isinstance(p, UdpPublisher)]
         if sent:
             out["latency_to_udp_sent"] = latency_figures(
                 [s - a for a, s in sent[0].send_ns])
+        if self.captures:  # live: where the latency goes (the first second left out)
+            out["latency_stages"] = latency_stage_figures(st.stage_ns, skip=int(fps))
         if self.mux_stats():
             out["multiplexer"] = self.mux_stats()
         if self.evaluator is not None:

@@ -25,7 +25,8 @@ def register(app: typer.Typer) -> None:
         lat = st["latency"]
         typer.echo(f"frames {st['frames']}, {st['rate_hz']:.1f} fps, latency median "
                    f"{lat['median_ms'] or 0:.2f} ms, p99 {lat['p99_ms'] or 0:.2f} ms, "
-                   f"{st['bodies_tracked']} of {len(st['bodies'])} bodies tracked")
+                   f"{st['bodies_tracked']} of {len(st['bodies'])} bodies tracked, "
+                   f"scheduling {st.get('scheduling', '?')}")
         print_table([[c["name"], "yes" if c["connected"] else "NO", round(c["rate_hz"], 1),
                       c["frames"], c["dropped"]] for c in st["cameras"]],
                     ["camera", "connected", "fps", "frames", "dropped"])

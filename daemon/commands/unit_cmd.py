@@ -40,11 +40,12 @@ def exec_line(words: list[str]) -> str:
 
 def unit_text(config: Path, executable: list[str], watchdog_s: int = 5,
               wanted_by: str = "default.target") -> str:
-    # A system unit runs the tracking ahead of ordinary work on the machine: under load a
-    # frame loop at the default priority waits for the CPU and the latency tail grows from
-    # ~3 ms to tens of ms (docs/tracking.md). A user manager may not raise priority, and a
-    # unit asking for it would fail to start, so user units leave it out.
-    priority = "" if wanted_by == "default.target" else "Nice=-10\n"
+    # A system unit lets the daemon put its threads under real-time scheduling (daemon.
+    # realtime; [pipeline] realtime_priority): under load a frame loop at the default
+    # priority waits for the CPU and the latency tail grows from ~1.5 ms to tens of ms
+    # (docs/tracking.md). A user manager may not raise these limits, and a unit asking for
+    # them would fail to start, so user units leave them out (the daemon then says so).
+    priority = "" if wanted_by == "default.target" else "Nice=-10\nLimitRTPRIO=99\n"
     return f"""[Unit]
 Description=mocapd motion-capture tracking daemon
 After=network-online.target

@@ -1,0 +1,93 @@
+"""Real-time scheduling of the live daemon (daemon/realtime.py) and the latency stage figures
+that showed why it is needed."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import threading
+
+import pytest
+
+from daemon.config import load_config
+from daemon.realtime import current_policy, raise_priority, restore_normal
+
+may_be_realtime = pytest.mark.skipif(
+    os.geteuid() != 0, reason="real-time scheduling needs root or CAP_SYS_NICE; the "
+                              "refused case is tested below")
+
+
+def _in_thread(fn):
+    """Run fn on a thread of its own (scheduling is per thread: never change pytest's)."""
+    out = {}
+    t = threading.Thread(target=lambda: out.update(value=fn()))
+    t.start()
+    t.join(10)
+    return out["value"]
+
+
+@may_be_realtime
+def test_threads_started_afterwards_inherit_it():
+    def body():
+        said = raise_priority(10)
+        mine = current_policy()
+        child = {}
+        t = threading.Thread(target=lambda: child.update(policy=current_policy()))
+        t.start()
+        t.join()
+        restore_normal()
+        return said, mine, child["policy"], current_policy()
+
+    said, mine, thread_policy, after = _in_thread(body)
+    assert said == "SCHED_RR 10"
+    assert mine == "SCHED_RR" and thread_policy == "SCHED_RR"
+    assert after == "SCHED_OTHER"
+    assert current_policy() == "SCHED_OTHER"  # pytest's own thread was never touched
+
+
+def test_a_refused_priority_is_one_warning_with_the_remedy(monkeypatch, caplog):
+    def refuse(*_):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+    with caplog.at_level(logging.WARNING, logger="mocapd.realtime"):
+        said = raise_priority(10)
+    assert said == "normal (SCHED_RR 10 refused)"
+    assert len(caplog.records) == 1
+    assert "LimitRTPRIO=10" in caplog.text and "realtime_priority = 0" in caplog.text
+
+
+def test_priority_zero_leaves_scheduling_alone():
+    assert _in_thread(lambda: (raise_priority(0), current_policy())) == (
+        "normal (realtime_priority = 0)", "SCHED_OTHER")
+
+
+def test_the_configuration_key(tmp_path, start_refused):
+    good = tmp_path / "good.toml"
+    good.write_text("[pipeline]\nrealtime_priority = 0\n")
+    assert load_config(good).realtime_priority == 0
+    assert load_config(None).realtime_priority == 10
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[pipeline]\nrealtime_priority = 100\n")
+    assert "pipeline.realtime_priority: must be between 0 and 99, got 100" in start_refused(bad)
+
+
+@may_be_realtime
+def test_a_live_run_tracks_real_time_reports_its_stages_and_returns_normal(tmp_path,
+                                                                          mocapd_cli):
+    out = tmp_path / "fig.json"
+    r = mocapd_cli("start", "--sim", "--duration", 2.5, "--sim-fps", 120, "--json", out,
+                   "--runtime-dir", tmp_path / "rt", "--udp", "127.0.0.1:9")
+    assert r.code == 0, r.err
+    fig = json.loads(out.read_text())
+    assert fig["scheduling"] == "SCHED_RR 10"
+    assert current_policy() == "SCHED_OTHER"  # the in-process run put its caller back
+    st = fig["latency_stages"]
+    assert set(st) == {"total", "delivery", "pickup", "compute", "outputs"}
+    parts = sum(st[k]["median_ms"] for k in ("delivery", "pickup", "compute", "outputs"))
+    # medians of the parts need not add up exactly, but they bracket the whole
+    assert 0.5 * st["total"]["median_ms"] <= parts <= 2.0 * st["total"]["median_ms"]
+    assert 0 < st["compute"]["median_ms"] < st["total"]["median_ms"]
+    # the simulated cameras deliver 0.1-0.5 ms after capture
+    assert 0.1 <= st["delivery"]["median_ms"] <= 5
