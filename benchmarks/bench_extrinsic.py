@@ -8,7 +8,7 @@ placements and tape errors); the table gives the median and the worst camera of 
 over runs of the mean ray distance at the floor and at 1.7 m (points seen exactly by the
 true cameras, cast back by the calibrated ones), and the median solve time. Ratios are
 against the baseline run in the same process: floor dots only, each camera on its own
-(PnP), as the original work did before it added the table.
+(PnP), the way a projector-only calibration without the table would.
 
 The estimate starts from estimated intrinsics, as a user's does: each camera calibrated by
 the intrinsic step on its own simulated monitor views (calibkit.calibrate.intrinsic.calibrate on the
