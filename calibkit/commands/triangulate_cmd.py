@@ -2,41 +2,18 @@
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 from typing import Annotated
 
-import numpy as np
 import typer
 
 from calibkit.clitools import Progress, print_table, write_json
 from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
-from calibkit.core.fileio import atomic_write
 from calibkit.core.recording import load_observations
 from calibkit.synthetic.truthcheck import score_points, stands_for
-from calibkit.vision.correspondence import CorrespondenceConfig, FramePoints, match_frames
-from calibkit.vision.gates import gated_config
-
-COLUMNS = ("frame", "x", "y", "z", "reproj_px", "ray_mm", "n_cameras", "cameras")
-
-
-def write_points_csv(path: Path, points: FramePoints, camera_names: list[str],
-                     error_mm: np.ndarray | None = None) -> None:
-    """The points as CSV (COLUMNS, then error_mm with truth); `cameras` lists the cameras
-    that saw each point, separated by ';'."""
-    names = np.asarray(camera_names, dtype=object)
-    seen = points.rows >= 0
-    with atomic_write(path, "w", encoding="utf-8") as handle:
-        handle.write(",".join(COLUMNS + (("error_mm",) if error_mm is not None else ())) + "\n")
-        for i in range(len(points.frame)):  # file output, not a hot path
-            x, y, z = points.xyz[i]
-            row = (f"{points.frame[i]},{x:.6f},{y:.6f},{z:.6f},{points.reproj_px[i]:.4f},"
-                   f"{points.ray_dist_m[i] * 1000:.4f},{points.n_cameras[i]},"
-                   f"{';'.join(names[seen[i]])}")
-            if error_mm is not None:
-                row += f",{error_mm[i]:.4f}"
-            handle.write(row + "\n")
+from calibkit.vision.correspondence import CorrespondenceConfig
+from calibkit.vision.reconstruct import reconstruct, write_points_csv
 
 
 def register(app: typer.Typer) -> None:
@@ -94,36 +71,17 @@ def register(app: typer.Typer) -> None:
                                    ("max_reproj_px", max_reproj_px)) if v is not None}
         base = CorrespondenceConfig(min_cameras=min_cameras, two_camera=two_camera, **given)
         fixed = {"epipolar_px", "max_reproj_px"} if fixed_gates else set(given)
-        started = time.perf_counter()
+        n_frames = len(obs.frames())
+        progress = Progress("triangulate", n_frames)
         try:
-            cfg, residual = gated_config(rig, obs, residual_px, estimate_residual, base, fixed)
+            run = reconstruct(rig, obs, base, residual_px, estimate_residual, fixed,
+                              progress.update, say=lambda line: typer.echo(line, err=True))
         except UserError as exc:
             raise UserError(f"{rig_path}: {exc}" if str(exc).startswith("quality.")
                             else str(exc)) from None
-        typer.echo(_gates_line(cfg, residual, fixed), err=True)
-        residual_s = time.perf_counter() - started
-        start = time.perf_counter()
-        n_frames = len(obs.frames())
-        progress = Progress("triangulate", n_frames)
-        points = match_frames(rig, obs, cfg, progress=progress.update)
-        elapsed = time.perf_counter() - start
+        points, cfg, residual, figures = run.points, run.config, run.residual, run.figures
         progress.finish(f"{len(points.frame)} points")
-
         error_mm = None
-        figures: dict = {
-            "frames": n_frames, "points": int(len(points.frame)),
-            "points_per_frame": len(points.frame) / n_frames,
-            "residual": residual.as_dict() if residual is not None else None,
-            "gates": {"epipolar_px": cfg.epipolar_px, "max_reproj_px": cfg.max_reproj_px,
-                      "fixed": sorted(fixed)},
-            "reproj_px_median": _stat(np.median, points.reproj_px),
-            "reproj_px_p95": _stat(lambda a: np.percentile(a, 95), points.reproj_px),
-            "ray_mm_median": _stat(np.median, points.ray_dist_m * 1000),
-            "n_cameras": {str(k): int(v) for k, v in zip(
-                *np.unique(points.n_cameras, return_counts=True), strict=True)},
-            "residual_seconds": residual_s,
-            "seconds": elapsed, "frames_per_s": n_frames / elapsed if elapsed > 0 else None,
-        }
         if truth is not None:
             score = score_points(points.frame, points.xyz, truth, obs, rows=points.rows)
             figures["truth"] = score.as_dict()
@@ -140,7 +98,7 @@ def register(app: typer.Typer) -> None:
                 ["reprojection gate px", cfg.max_reproj_px],
                 ["reprojection px (median)", figures["reproj_px_median"]],
                 ["ray distance mm (median)", figures["ray_mm_median"]],
-                ["frames per second", round(n_frames / elapsed, 1)]]
+                ["frames per second", round(figures["frames_per_s"] or 0.0, 1)]]
         if truth is not None:
             t = figures["truth"]
             rows += [["3D error mm RMS, all matched points (vs truth)", t["error_mm_rms"]],
@@ -151,19 +109,3 @@ def register(app: typer.Typer) -> None:
                      ["ghost points (fraction)", t["ghost_fraction"]]]
         print_table(rows, ["what", "value"])
         typer.echo(f"wrote {out}")
-
-
-def _gates_line(cfg: CorrespondenceConfig, residual, fixed) -> str:
-    """One line saying which residual the gates follow and where it came from."""
-    gates = f"epipolar {cfg.epipolar_px:.2f} px, reprojection {cfg.max_reproj_px:.2f} px"
-    if {"epipolar_px", "max_reproj_px"} <= set(fixed):
-        return f"gates: {gates} (fixed)"
-    if residual is None:
-        return (f"gates: {gates} (the defaults: the rig file records no residual and the "
-                "data gave too few confident matches to measure one)")
-    return f"gates: {gates}, following the residual {residual}"
-
-
-def _stat(fn, values: np.ndarray) -> float:
-    v = values[np.isfinite(values)]
-    return float(fn(v)) if len(v) else float("nan")
