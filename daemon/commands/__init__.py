@@ -1,1 +1,6 @@
-"""The `mocapd` subcommands: one module each, every one with register(app)."""
+"""The `mocapd` subcommands: one module each, every one with register(app).
+
+A handler imports the library modules its work needs inside itself, on purpose: the CLI
+loads every command module to build its help, and `mocapd start` must reach its first pose
+quickly, without loading the labelling, file-format or report stacks it does not use.
+"""
