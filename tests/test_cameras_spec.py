@@ -139,7 +139,7 @@ def test_device_fps_taken_or_not_asked_is_not_reported(capture):
         open_camera("0", fps=0)
 
 
-def test_daemon_camera_fps_reaches_the_device(capture, tmp_path, caplog):
+def test_daemon_camera_fps_reaches_the_device(capture, tmp_path, caplog, monkeypatch):
     """`[[camera]] fps` goes from the configuration through the daemon's capture source to
     the device; the device's refusal is logged by the daemon. Without it, nothing is set."""
     from calibkit.synthetic import sim
@@ -152,8 +152,11 @@ def test_daemon_camera_fps_reaches_the_device(capture, tmp_path, caplog):
         {"name": "cam1", "source": "1"}]}, base=tmp_path)
     assert [c.fps for c in cfg.cameras] == [90.0, None]
     cams = Daemon(cfg)._cameras(cfg)
-    with caplog.at_level(logging.WARNING, logger="mocapd"):
-        samples = [list(c.open()) for c in cams]
+    # the daemon's logger does not propagate once set up (daemon.logs): listen on it alone
+    daemon_log = logging.getLogger("mocapd")
+    monkeypatch.setattr(daemon_log, "handlers", [caplog.handler])
+    monkeypatch.setattr(daemon_log, "propagate", False)
+    samples = [list(c.open()) for c in cams]
     assert [len(s) for s in samples] == [3, 3]
     c0, c1 = capture.opened
     assert (cv2.CAP_PROP_FPS, 90.0) in c0.sets
