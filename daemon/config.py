@@ -19,7 +19,8 @@ opens. docs/daemon.md documents every key.
     [[rigid_body]] name, id, markers = [[x, y, z], ...], pivot, min_markers_start,
                    min_markers_keep, smoothing
     [[camera]]  name (a camera of the rig), source ("0" a device, a video, an image folder,
-                "basler:SERIAL", "genicam:SERIAL"), fps, threshold, min_area, max_area,
+                "basler:SERIAL", "genicam:SERIAL"), fps (set on the camera; default: its
+                own rate), threshold, min_area, max_area,
                 timestamps ("device": the camera's own stamps where it gives them, or
                 "arrival")
     [replay]    path (a .mcrec recording), realtime
@@ -79,7 +80,7 @@ class SimConfig:
 class CameraIn:
     name: str
     source: str
-    fps: float = 30.0
+    fps: float | None = None  # set on the camera (an image folder's timeline); None: its own
     threshold: float | str = "auto"
     min_area: float = 2.0
     max_area: float = 4000.0
@@ -459,7 +460,7 @@ def _camera(w, t, p, base: Path) -> CameraIn:
     if not source.isdigit() and ":" not in source and (base / source).exists():
         source = str(base / source)  # files and folders are relative to the configuration
     return CameraIn(_string(w, t, "name", p), source,
-                    _number(w, t, "fps", p, 30.0, lo=0.1, hi=10000), threshold,
+                    _number(w, t, "fps", p, None, lo=0.1, hi=10000), threshold,
                     _number(w, t, "min_area", p, 2.0, lo=0), _number(w, t, "max_area", p,
                                                                      4000.0, lo=1),
                     _string(w, t, "timestamps", p, "device", ("device", "arrival")))

@@ -49,7 +49,7 @@ from daemon.publish.vrpn import VrpnPublisher
 from daemon.realtime import raise_priority, restore_normal
 from daemon.rigid import alike_bodies
 from daemon.rigid_define import bodies_toml, learn_body
-from daemon.sources import DetectCamera, ReplayCamera, ReplayScene, missing_plugins
+from daemon.sources import DetectCamera, ReplayCamera, ReplayScene
 from daemon.synthetic.evaluator import Evaluator
 from daemon.synthetic.labelling import LabelScore
 from daemon.synthetic.scene import SimCamera, SimScene
@@ -369,6 +369,7 @@ class Daemon:
     def _cameras(self, cfg: Config) -> list:
         """Capture sources for the configured cameras; a camera whose plugin library is
         missing is reported and skipped, the rest run."""
+        from calibkit.cameras import missing_plugins
         from calibkit.vision.detect import DetectorConfig
 
         names = self.rig.names

@@ -1,27 +1,28 @@
 """Daemon-side blob sources: what each capture thread reads.
 
-A blob source yields CameraSample (one camera's blobs of one frame). Real cameras are
-frame sources (calibkit.sources) followed by detection; recordings are played back as they
-were captured. The simulated cameras live apart, in daemon.synthetic. Industrial cameras
-come from optional plugins; a plugin whose library is missing is reported and skipped.
+A blob source has `name` (the rig's camera name), `camera` (its index in the rig) and
+`open()`, which yields CameraSample (one camera's blobs of one frame) until the camera
+fails (the capture thread reopens it) or ends. Real cameras are calibkit cameras
+(calibkit.cameras: OpenCV devices, files, Basler, GenICam) followed by detection
+(DetectCamera); recordings are played back as they were captured (ReplayCamera); the
+simulated cameras live apart, in daemon.synthetic, and have the same shape.
 """
 
 from __future__ import annotations
 
-import importlib.util
 import logging
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from calibkit import cameras
 from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
 
 log = logging.getLogger("mocapd.sources")
-
-PLUGINS = {"basler": "pypylon", "genicam": "harvesters"}
 
 
 @dataclass(eq=False)
@@ -46,10 +47,15 @@ class CameraSample:
     device_frame_id: int = -1  # the camera's own frame counter (-1: none)
 
 
-def missing_plugins(kinds) -> list[str]:
-    """The camera plugins asked for whose library is not installed."""
-    return [f"{k} (needs {PLUGINS[k]})" for k in kinds
-            if k in PLUGINS and importlib.util.find_spec(PLUGINS[k]) is None]
+@runtime_checkable
+class BlobSource(Protocol):
+    """What a capture thread reads: DetectCamera, ReplayCamera and daemon.synthetic's
+    SimCamera. `open()` starts a session (the thread calls it again after a failure)."""
+
+    name: str  # the rig's name for the camera
+    camera: int  # its index in the rig
+
+    def open(self) -> Iterator[CameraSample]: ...
 
 
 class ReplayScene:
@@ -125,11 +131,12 @@ def fine_timer_slack() -> None:
 
 
 class DetectCamera:
-    """A real camera: a calibkit frame source, detection, and undistortion left to the
-    tracker (it works in distorted pixels)."""
+    """A real camera: a calibkit camera (calibkit.cameras), detection, and undistortion
+    left to the tracker (it works in distorted pixels). fps: the rate to run the camera at
+    (None: its own); a device that will not take it is logged."""
 
-    def __init__(self, name: str, camera: int, spec: str, detector=None, fps: float = 30.0,
-                 device_stamps: bool = True):
+    def __init__(self, name: str, camera: int, spec: str, detector=None,
+                 fps: float | None = None, device_stamps: bool = True):
         self.name, self.camera, self.spec, self.fps = name, camera, spec, fps
         self.detector = detector
         self.device_stamps = device_stamps  # False: pair by arrival (stamps not trusted)
@@ -137,7 +144,7 @@ class DetectCamera:
     def open(self) -> Iterator[CameraSample]:
         from calibkit.vision.detect import DetectorConfig, detect
 
-        source = open_camera(self.spec, self.fps)
+        source = open_camera(self.spec, self.fps, self.name)
         cfg = self.detector or DetectorConfig()
         try:
             for frame in source:
@@ -159,138 +166,8 @@ class DetectCamera:
             source.close()
 
 
-def open_camera(spec: str, fps: float):
-    """A calibkit frame source for a camera spec; industrial cameras through their plugins."""
-    from calibkit.sources import open_source
-
-    kind, _, serial = spec.partition(":")
-    if kind == "basler":
-        return _PylonSource(serial)
-    if kind == "genicam":
-        return _HarvesterSource(serial)
-    return open_source(spec, fps=fps)
-
-
-class _PylonSource:
-    """A Basler camera through pypylon (untested here: no camera on the build machine).
-
-    Each frame carries the camera's own timestamp and frame counter, as pylon documents
-    them: the grab result's TimeStamp is the camera's tick count when the frame was taken
-    (ticks since it powered up or was reset; 1 ns on USB3 cameras, GevTimestampTickFrequency
-    per second on GigE ones) and BlockID its frame counter (USB3: from 0; GigE: from 1,
-    wrapping after 65535 unless extended ids are on, 0 when unsupported)."""
-
-    def __init__(self, serial: str) -> None:
-        from pypylon import pylon
-
-        factory = pylon.TlFactory.GetInstance()
-        devices = [d for d in factory.EnumerateDevices()
-                   if not serial or d.GetSerialNumber() == serial]
-        if not devices:
-            raise OSError(f"no Basler camera {serial or ''} found")
-        self.cam = pylon.InstantCamera(factory.CreateDevice(devices[0]))
-        self.cam.Open()
-        self.gige = "GigE" in str(devices[0].GetDeviceClass())
-        self.tick_hz = 1_000_000_000
-        if self.gige:
-            try:
-                self.tick_hz = int(self.cam.GevTimestampTickFrequency.GetValue())
-            except Exception:  # noqa: BLE001 - a model without the node: ns ticks
-                pass
-        self.cam.StartGrabbing(pylon.GrabStrategy_LatestImageOnly)
-        self.pylon = pylon
-        self._last_block = -1
-        self._wraps = 0
-
-    def _frame_id(self, block: int) -> int:
-        """The block id as a counter that never wraps (-1: the camera gives none)."""
-        if block >= 2**64 - 1 or (self.gige and block == 0):
-            return -1
-        if self.gige and 0 <= block < self._last_block - 32768:
-            self._wraps += 1  # 16-bit GigE block ids go 65535 -> 1
-        self._last_block = block
-        return block + 65535 * self._wraps
-
-    def __iter__(self):
-        from calibkit.sources import Frame
-
-        i = 0
-        serial = str(self.cam.GetDeviceInfo().GetSerialNumber())
-        while self.cam.IsGrabbing():
-            res = self.cam.RetrieveResult(2000, self.pylon.TimeoutHandling_ThrowException)
-            try:
-                if res.GrabSucceeded():
-                    arrival = time.monotonic_ns()
-                    ticks = int(res.TimeStamp)
-                    device_ns = ticks * 1_000_000_000 // self.tick_hz if ticks > 0 else -1
-                    yield Frame(serial, i, arrival, res.Array.copy(), device_ns,
-                                self._frame_id(int(res.BlockID)))
-                    i += 1
-            finally:
-                res.Release()
-
-    def close(self) -> None:
-        self.cam.Close()
-
-
-class _HarvesterSource:
-    """A GenICam camera through harvesters (untested here: no camera on the build machine).
-    MOCAPD_GENTL_CTI names the GenTL producer (.cti) file.
-
-    Each frame carries the camera's own timestamp and frame id as harvesters documents
-    them: Buffer.timestamp_ns (ns on the device's clock; producers that cannot convert
-    raise, and then Buffer.timestamp counts Buffer.timestamp_frequency ticks per second)
-    and the GenTL buffer's frame id (BUFFER_INFO_FRAMEID)."""
-
-    def __init__(self, serial: str) -> None:
-        import os
-
-        from harvesters.core import Harvester
-
-        self.h = Harvester()
-        cti = os.environ.get("MOCAPD_GENTL_CTI")
-        if not cti:
-            raise OSError("set MOCAPD_GENTL_CTI to your camera's GenTL producer (.cti) file")
-        self.h.add_file(cti)
-        self.h.update()
-        sel = {"serial_number": serial} if serial else 0
-        self.ia = self.h.create(sel)
-        self.ia.start()
-
-    @staticmethod
-    def _stamps(buf) -> tuple[int, int]:
-        """(device time ns, frame id) of a harvesters Buffer; -1 for what it lacks."""
-        device_ns = -1
-        try:
-            device_ns = int(buf.timestamp_ns)
-        except Exception:  # noqa: BLE001 - the producer has no ns timestamps
-            try:
-                hz = int(buf.timestamp_frequency)
-                ticks = int(buf.timestamp)
-                if hz > 0 and ticks > 0:
-                    device_ns = ticks * 1_000_000_000 // hz
-            except Exception:  # noqa: BLE001 - nor ticks
-                pass
-        try:
-            frame_id = int(buf._buffer.frame_id)  # the wrapped GenTL buffer's frame id
-        except Exception:  # noqa: BLE001
-            frame_id = -1
-        return (device_ns if device_ns > 0 else -1), frame_id
-
-    def __iter__(self):
-        from calibkit.sources import Frame
-
-        i = 0
-        while True:
-            with self.ia.fetch(timeout=2.0) as buf:
-                arrival = time.monotonic_ns()
-                device_ns, frame_id = self._stamps(buf)
-                comp = buf.payload.components[0]
-                image = comp.data.reshape(comp.height, comp.width).copy()
-            yield Frame("genicam", i, arrival, image, device_ns, frame_id)
-            i += 1
-
-    def close(self) -> None:
-        self.ia.stop()
-        self.ia.destroy()
-        self.h.reset()
+def open_camera(spec: str, fps: float | None = None,
+                name: str | None = None) -> cameras.FrameSource:
+    """The frame source for a `[[camera]] source` spec: calibkit's kinds (calibkit.cameras);
+    a setting the camera does not take is logged here."""
+    return cameras.open_camera(spec, fps=fps, name=name, warn=log.warning)

@@ -12,13 +12,13 @@ from calibkit.synthetic.truthcheck import match_to_truth
 from calibkit.vision.detect import (
     Blobs,
     DetectorConfig,
-    _background_level,
-    _label_pixels,
     background_level,
     detect,
     detect_reference,
     label_pixels,
 )
+from calibkit.vision.detect_regions import label_pixels_with
+from calibkit.vision.detect_threshold import estimate_background
 from calibkit.vision.masks import build_mask, load_mask, save_mask
 
 SIZE = (640, 480)
@@ -264,7 +264,7 @@ def test_compiled_labelling_equals_the_numpy_reference():
         h, w = int(rng.integers(1, 50)), int(rng.integers(1, 90))
         pix = np.flatnonzero(rng.random((h, w)) < rng.uniform(0.05, 0.7))
         labels, n = label_pixels(pix, w)
-        ref_labels, ref_n = _label_pixels(pix, w, None)
+        ref_labels, ref_n = label_pixels_with(pix, w, None)
         assert n == ref_n and np.array_equal(labels, ref_labels)
 
 
@@ -377,7 +377,7 @@ def test_compiled_path_equals_the_numpy_reference_on_random_scenes():
         deep = img.astype(np.uint16) * 257 + rng.integers(0, 200, img.shape).astype(np.uint16)
         assert_same_blobs(detect(deep), detect_reference(deep))
         level = background_level(img, mask)
-        assert level == pytest.approx(_background_level(img, mask, None), abs=1e-12)
+        assert level == pytest.approx(estimate_background(img, mask, None), abs=1e-12)
     assert n_blobs > 1000  # the scenes did hold blobs to compare
 
 

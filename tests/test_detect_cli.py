@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from calibkit.sources import Frame, FrameSource
+from calibkit.cameras import Frame, FrameSource
 from calibkit.synthetic.spots import render_spots, render_spots_float
 from calibkit.synthetic.truthcheck import match_to_truth
 

@@ -204,11 +204,11 @@ def test_sim_starts_from_the_intrinsics_file(calibkit_cli, tmp_path):
 def test_live_path_with_a_stand_in_projector_and_cameras(calibkit_cli, tmp_path, monkeypatch):
     """The live code path (--camera, --monitor) end to end: the projector window and the
     camera devices are stood in for by the simulator (no display or camera here)."""
-    import calibkit.sources
+    import calibkit.cameras
     import projector.display
     import projector.screens
     from calibkit.calibrate import extrinsic_reference as exr
-    from calibkit.sources import Frame
+    from calibkit.cameras import Frame
     from calibkit.synthetic import projector as sp
 
     four = sp.make_scene(4, size=(320, 240), table_height_m=None, seed=2)
@@ -246,9 +246,16 @@ def test_live_path_with_a_stand_in_projector_and_cameras(calibkit_cli, tmp_path,
         def close(self):
             pass
 
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.close()
+
     monkeypatch.setattr(projector.display, "WindowDisplay", Window)
     monkeypatch.setattr(projector.screens, "require_display", lambda: None)
-    monkeypatch.setattr(calibkit.sources, "open_source", lambda spec: Camera(int(spec)))
+    monkeypatch.setattr(calibkit.cameras, "open_camera",
+                        lambda spec, name=None: Camera(int(spec)))
     out = tmp_path / "rig.toml"
     res = calibkit_cli("extrinsic", "--projector", "--refs", tmp_path / "refs.toml",
                        "--intrinsics", tmp_path / "intr.toml", "--camera", "0", "--camera",

@@ -418,10 +418,10 @@ def test_display_mode_runs_with_a_monitor_and_camera(calibkit_cli, monkeypatch, 
     simulator (no glfw or camera here): show -> settle -> decode -> solve -> rig."""
     import builtins
 
-    import calibkit.sources
+    import calibkit.cameras
     import projector.display
     import projector.screens
-    from calibkit.sources import Frame
+    from calibkit.cameras import Frame
     from projector.screens import Screen
 
     config = MonitorSimConfig(**SMALL)
@@ -429,8 +429,9 @@ def test_display_mode_runs_with_a_monitor_and_camera(calibkit_cli, monkeypatch, 
     view = iter(range(3))
 
     class FakeCamera:
-        def __init__(self, device, camera=None):
-            self.camera = camera
+        def __init__(self, spec, name=None):
+            assert spec == "0"  # --device's default
+            self.camera = name
 
         def __enter__(self):
             return self
@@ -458,7 +459,7 @@ def test_display_mode_runs_with_a_monitor_and_camera(calibkit_cli, monkeypatch, 
     monkeypatch.setattr(projector.screens, "require_display", lambda: None)
     monkeypatch.setattr(projector.screens, "pick_screen",
                         lambda index, pitch: (screen, config.pixel_pitch_mm))
-    monkeypatch.setattr(calibkit.sources, "DeviceSource", FakeCamera)
+    monkeypatch.setattr(calibkit.cameras, "open_camera", FakeCamera)
     monkeypatch.setattr(projector.display, "WindowDisplay", FakeWindow)
     monkeypatch.setattr(builtins, "input", lambda prompt="": sim.set_view(next(view)))
     out = tmp_path / "live.json"

@@ -1,7 +1,8 @@
 """Layer boundaries besides the simulator's: calibration and vision code never import the
-OpenGL display (a capture is handed a display object by its command), and the daemon never
+OpenGL display (a capture is handed a display object by its command), the daemon never
 imports calibkit's command handlers (what both share lives in calibkit.clitools or
-calibkit.core)."""
+calibkit.core), calibkit's core layer (calibkit.core, calibkit.cameras) imports nothing
+above it, and no module of ours imports itself through others (no import cycles)."""
 
 from __future__ import annotations
 
@@ -54,3 +55,124 @@ def test_importing_the_calibration_modules_loads_no_display():
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
                          text=True, check=True)
     assert out.stdout.split() == ["False", "False"]
+
+
+# ---- the core layer and import cycles --------------------------------------------------------
+
+PACKAGES = ("calibkit", "daemon", "projector")
+# what calibkit's core layer (the camera model, files, errors, and the cameras) stays below
+UPPER = ("calibkit.commands", "calibkit.synthetic", "daemon", "moderngl", DISPLAY)
+CORE = ["calibkit/core", "calibkit/cameras"]
+
+
+def test_the_core_and_the_cameras_import_no_upper_layer():
+    assert (ROOT / "calibkit" / "cameras" / "spec.py").is_file()  # the scan covers them
+    for prefix in UPPER:
+        assert _offenders(CORE, prefix) == {}, prefix
+
+
+def test_importing_the_core_and_the_cameras_loads_no_upper_layer():
+    names = sorted(_module_name(f) for folder in CORE for f in (ROOT / folder).glob("*.py"))
+    assert "calibkit.cameras.basler" in names and "calibkit.core.rigfile" in names
+    code = ("import importlib, sys\n"
+            f"for name in {names!r}:\n    importlib.import_module(name)\n"
+            f"print(sorted(m for m in sys.modules if m.startswith({UPPER!r})))\n")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
+                         text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
+def _module_name(path: Path) -> str:
+    rel = path.relative_to(ROOT).with_suffix("")
+    return ".".join(rel.parts[:-1] if rel.name == "__init__" else rel.parts)
+
+
+def _runtime_imports(tree: ast.AST):
+    """Import statements that run, at any level (inside functions too: a lazy import is
+    still a dependency), but not those under `if TYPE_CHECKING:` (annotations only)."""
+    for node in ast.iter_child_nodes(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            yield from (n for child in node.orelse for n in _runtime_imports_of(child))
+            continue
+        yield from _runtime_imports_of(node)
+
+
+def _runtime_imports_of(node: ast.AST):
+    if isinstance(node, (ast.Import, ast.ImportFrom)):
+        yield node
+    else:
+        yield from _runtime_imports(node)
+
+
+def import_graph() -> dict[str, set[str]]:
+    """Module -> the modules of our packages it imports. `from a.b import c` names module
+    a.b.c when there is one, else a.b (an import of a name defined in it)."""
+    files = {_module_name(f): f for pkg in PACKAGES for f in (ROOT / pkg).rglob("*.py")}
+
+    def ours(name: str) -> str | None:
+        while name and name not in files:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    graph = {}
+    for name, path in files.items():
+        package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        found = set()
+        for node in _runtime_imports(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Import):
+                found.update(ours(a.name) for a in node.names)
+                continue
+            base = node.module or ""
+            if node.level:
+                anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*anchor, base] if base else anchor)
+            found.update(ours(f"{base}.{a.name}") for a in node.names)
+        graph[name] = found - {None, name}
+    return graph
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components with more than one module (Tarjan), each sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    out = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return sorted(out)
+
+
+def test_the_cycle_finder_finds_cycles():
+    g = {"a": {"b"}, "b": {"c"}, "c": {"a", "d"}, "d": set(), "e": {"d"}, "f": {"g"},
+         "g": {"f"}}
+    assert cycles(g) == [["a", "b", "c"], ["f", "g"]]
+
+
+def test_our_packages_have_no_import_cycles():
+    graph = import_graph()
+    # the scan sees lazy imports and resolves package-relative names
+    assert "calibkit.core.rigfile" in graph["calibkit.core.camera"]
+    assert "calibkit.cameras.spec" in graph["calibkit.cameras"]
+    assert sum(len(v) for v in graph.values()) > 300
+    assert cycles(graph) == []

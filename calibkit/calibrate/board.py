@@ -19,8 +19,8 @@ import cv2
 import numpy as np
 
 from calibkit.calibrate.intrinsic import PlaneView
+from calibkit.cameras.images import IMAGE_SUFFIXES, image_files
 from calibkit.core.errors import UserError
-from calibkit.sources import IMAGE_SUFFIXES, _natural_key
 from calibkit.vision.gray import to_gray
 
 
@@ -125,8 +125,7 @@ def board_views(folder: str | Path, board: Board, progress=None
     folder = Path(folder)
     if not folder.is_dir():
         raise UserError(f"{folder}: no such folder of images")
-    files = sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES),
-                   key=_natural_key)
+    files = image_files(folder)
     if not files:
         raise UserError(f"{folder}: no images ({', '.join(sorted(IMAGE_SUFFIXES))})")
     views, missed, size = [], [], None

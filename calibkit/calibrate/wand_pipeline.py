@@ -9,6 +9,7 @@ frames and its floor recording without the rest knowing.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -51,17 +52,18 @@ def capture(batches: Iterator[Observations], spec: WandSpec, intrinsics: Rig,
 
 
 def live_batches(specs: list[str], rig: Rig) -> Iterator[Observations]:
-    """One frame from every camera at a time, detected: cameras named as in the rig, in the
-    order given."""
-    from calibkit.sources import open_source
+    """One frame from every camera at a time, detected: cameras (calibkit.cameras specs) named
+    as in the rig, in the order given."""
+    from calibkit.cameras import open_camera
     from calibkit.vision.detect import DetectorConfig, detect
 
     if len(specs) != len(rig):
         raise UserError(f"give one --camera per camera of the intrinsics file ({len(rig)}), "
                         f"got {len(specs)}")
-    sources = [open_source(s) for s in specs]
     config = DetectorConfig()
-    try:
+    with ExitStack() as opened:  # a camera that fails to open closes those opened before it
+        sources = [opened.enter_context(open_camera(s, name=n))
+                   for s, n in zip(specs, rig.names, strict=True)]
         for index, frames in enumerate(zip(*sources, strict=False)):
             rows = []
             for c, frame in enumerate(frames):
@@ -72,9 +74,6 @@ def live_batches(specs: list[str], rig: Rig) -> Iterator[Observations]:
                                          np.full(n, frame.t_ns), blobs.uv, blobs.area,
                                          blobs.peak))
             yield Observations.concatenate(rows)
-    finally:
-        for s in sources:
-            s.close()
 
 
 @dataclass(frozen=True)

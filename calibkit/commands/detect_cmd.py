@@ -10,10 +10,10 @@ import cv2
 import numpy as np
 import typer
 
+from calibkit.cameras import SPEC_HELP, Frame, FrameSource, open_camera
 from calibkit.clitools import Progress, print_table, write_json
 from calibkit.core.errors import UserError
 from calibkit.core.fileio import write_bytes_atomic
-from calibkit.sources import Frame, FrameSource, open_source
 from calibkit.synthetic.frames import sim_source
 from calibkit.synthetic.truthcheck import match_to_truth
 from calibkit.vision.detect import Blobs, DetectorConfig, detect
@@ -90,11 +90,10 @@ def _source(source: str | None, sim: bool, frames: int | None, markers: int, see
         cam: int | str = int(camera) if camera.isdigit() else camera
         return sim_source(n_markers=markers, n_frames=frames or 1, camera=cam, seed=seed), None
     if source is None:
-        raise UserError("give a SOURCE (an image, a folder, a video or a camera number) or "
-                        "--sim")
-    src = open_source(source)
+        raise UserError(f"give a SOURCE or --sim: {SPEC_HELP}")
+    src = open_camera(source)
     limit = frames
-    if limit is None and source.strip().isdigit():
+    if limit is None and src.capabilities.live:
         limit = 1  # a live camera: one frame unless told otherwise
     return src, limit
 
@@ -103,7 +102,8 @@ def register(app: typer.Typer) -> None:
     @app.command("detect")
     def detect_command(
         source: Annotated[str | None, typer.Argument(
-            help="An image, a folder of images, a video file or a camera device number.")]
+            help="A camera: an image, a folder of images, a video file, a camera device "
+                 "number, basler:SERIAL or genicam:SERIAL.")]
         = None,
         sim: Annotated[bool, typer.Option(
             "--sim", help="Use a simulated camera (and score against its truth).")] = False,
@@ -162,8 +162,8 @@ def register(app: typer.Typer) -> None:
     @app.command("mask")
     def mask_command(
         source: Annotated[str, typer.Argument(
-            help="Frames with no markers in view: an image, a folder, a video or a camera "
-                 "number.")],
+            help="Frames with no markers in view from a camera: an image, a folder, a video, "
+                 "a camera device number, basler:SERIAL or genicam:SERIAL.")],
         out: Annotated[Path, typer.Option(help="The mask PNG to write.")],
         frames: Annotated[int, typer.Option(help="Use at most this many frames.")] = 30,
         dilate: Annotated[int, typer.Option(help="Grow masked areas by this many pixels.")]
@@ -176,7 +176,7 @@ def register(app: typer.Typer) -> None:
         if frames < 1:
             raise UserError(f"--frames must be >= 1, got {frames}")
         level = parse_threshold(threshold)
-        with open_source(source) as src:
+        with open_camera(source) as src:
             images = [f.image for f in itertools.islice(src, frames)]
         result = build_mask(images, threshold=level, dilate_px=dilate)
         save_mask(out, result)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Annotated
 
@@ -46,8 +47,9 @@ def _live_inputs(refs_path: Path | None, intrinsics: Path | None, table: bool | 
 
 def _capture_live(intr: Rig, specs: list[str], monitor: int, sessions: pipeline.Sessions,
                   samples: int) -> pipeline.Captured:
-    """The projector on monitor `monitor`, the cameras from their device numbers or files."""
-    from calibkit.sources import open_source
+    """The projector on monitor `monitor`, the cameras from their specs (calibkit.cameras:
+    device numbers, files, basler:SERIAL, genicam:SERIAL)."""
+    from calibkit.cameras import open_camera
     from projector.display import WindowDisplay
     from projector.screens import require_display
 
@@ -55,19 +57,15 @@ def _capture_live(intr: Rig, specs: list[str], monitor: int, sessions: pipeline.
         raise UserError(f"give one --camera per camera of the rig ({len(intr)}: "
                         f"{', '.join(intr.names)}), got {len(specs)}")
     require_display()
-    sources = [open_source(s) for s in specs]
-    window = None
-    try:
+    with ExitStack() as opened:  # closed in reverse: the window first, then the cameras
+        sources = [opened.enter_context(open_camera(s, name=n))
+                   for s, n in zip(specs, intr.names, strict=True)]
         window = WindowDisplay(monitor)
+        opened.callback(window.close)
         return pipeline.capture_sessions(
             LiveProjectorRig(window, sources, intr.names), sessions, len(intr), samples,
             Progress, before_table=lambda: input("put the table in place under the "
                                                  "projector, then press Enter "))
-    finally:
-        if window is not None:
-            window.close()
-        for s in sources:
-            s.close()
 
 
 def _show_references(pts: np.ndarray, monitor: int, radius: float) -> None:
@@ -135,7 +133,8 @@ def register(app: typer.Typer) -> None:
             "--intrinsics", help="Rig file with every camera's intrinsics (poses are "
                                  "ignored).")] = None,
         camera: Annotated[list[str] | None, typer.Option(
-            "--camera", help="Live: a camera device number or video, once per camera of "
+            "--camera", help="Live: a camera (device number, video, image folder, "
+                             "basler:SERIAL, genicam:SERIAL), once per camera of "
                              "--intrinsics, in its order.")] = None,
         monitor: Annotated[int, typer.Option(
             "--monitor", help="Live: the projector's display index.")] = 1,

@@ -53,22 +53,22 @@ def _board_views(images: Path, board: str | None
     return found, size
 
 
-def _monitor_views(device: int, camera: str, monitor: int, pixel_pitch: float | None,
+def _monitor_views(device: str, camera: str, monitor: int, pixel_pitch: float | None,
                    n_views: int, step: float, shifts: int, radius: float, raster: bool,
                    samples: int) -> tuple[list[PlaneView], tuple[int, int], float]:
     """A live camera watching dots on a monitor: the views, the image size, the pitch."""
-    from calibkit.sources import DeviceSource
+    from calibkit.cameras import open_camera
     from projector.display import WindowDisplay
     from projector.screens import pick_screen, require_display
 
     require_display()  # before anything else: the commonest mistake (ssh, CI)
-    with DeviceSource(device, camera=camera) as source:
+    with open_camera(device, name=camera) as source:
         screen, pitch = pick_screen(monitor, pixel_pitch)
         schedule = pipeline.make_schedule((screen.width_px, screen.height_px), step, shifts,
                                           radius, raster)
         first = next(iter(source), None)
         if first is None:
-            raise UserError(f"camera device {device} gives no frames")
+            raise UserError(f"camera {device} gives no frames")
         size = (first.image.shape[1], first.image.shape[0])
 
         def next_view(v: int, done: list) -> None:
@@ -115,7 +115,9 @@ def register(app: typer.Typer) -> None:
         camera: Annotated[str, typer.Option(
             help="The camera's name in the rig file; --sim: a camera of the simulated rig, "
                  "or 'all' for every one.")] = "cam0",
-        device: Annotated[int, typer.Option(help="--display: camera device number.")] = 0,
+        device: Annotated[str, typer.Option(
+            help="--display: the camera: a device number, basler:SERIAL or "
+                 "genicam:SERIAL.")] = "0",
         monitor: Annotated[int, typer.Option(
             help="--display: monitor index (see `calibkit displays`).")] = 0,
         pixel_pitch_text: Annotated[str | None, typer.Option(

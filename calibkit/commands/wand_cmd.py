@@ -53,7 +53,8 @@ def register(app: typer.Typer) -> None:
                               "default: a ring made from --cameras, --volume, --seed.")]
         = None,
         camera: Annotated[list[str] | None, typer.Option(
-            "--camera", help="Live: a camera device number or video, once per camera of "
+            "--camera", help="Live: a camera (device number, video, image folder, "
+                             "basler:SERIAL, genicam:SERIAL), once per camera of "
                              "--intrinsics, in its order.")] = None,
         intrinsics: Annotated[Path | None, typer.Option(
             "--intrinsics", help="Rig file whose intrinsics are used (poses ignored).")] = None,

@@ -273,9 +273,12 @@ class Rig:
 
     @classmethod
     def load(cls, path: str | Path) -> Rig:
-        from calibkit.core.rigfile import load_rig
+        """A rig from a rig.toml or OpenCV YAML file (calibkit.core.rigfile checks it)."""
+        from calibkit.core.rigfile import read_rig
 
-        return load_rig(path)
+        found = read_rig(path)
+        return cls(tuple(Camera(**c) for c in found.cameras), quality=found.quality,
+                   meta=found.meta)
 
     def save(self, path: str | Path) -> None:
         from calibkit.core.rigfile import save_rig

@@ -3,6 +3,10 @@
 The TOML format is documented in docs/formats.md. Loading validates every field and names
 the file, the camera and the field in its one-line error, because a hand-edited rig file
 is the most common way a user breaks a run.
+
+Reading gives checked plain values (RigFields), which `Rig.load` turns into cameras, so
+this module needs nothing from calibkit.core.camera at run time and the two do not import
+each other; writing reads a rig's attributes.
 """
 
 from __future__ import annotations
@@ -10,10 +14,10 @@ from __future__ import annotations
 import datetime as _dt
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from calibkit.core.camera import Camera, Rig
 from calibkit.core.errors import UserError
 from calibkit.core.fileio import write_text_atomic
 
@@ -22,8 +26,20 @@ try:
 except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib  # type: ignore[no-redef]
 
+if TYPE_CHECKING:
+    from calibkit.core.camera import Camera, Rig
+
 FORMAT = "calibkit-rig"
 VERSION = 1
+
+
+class RigFields(NamedTuple):
+    """A rig file's checked contents: per camera the keyword arguments of Camera (name,
+    size, fx, fy, cx, cy, skew, dist, rvec, t), and the free-form tables."""
+
+    cameras: list[dict]
+    quality: dict
+    meta: dict
 
 
 def _matrix(value, shape: tuple[int, ...], where: str) -> np.ndarray:
@@ -39,8 +55,9 @@ def _matrix(value, shape: tuple[int, ...], where: str) -> np.ndarray:
     return arr
 
 
-def camera_from_fields(fields: dict, where: str) -> Camera:
-    """Build a Camera from a TOML/YAML camera table; `where` prefixes every error."""
+def camera_args(fields: dict, where: str) -> dict:
+    """Check a TOML/YAML camera table and give Camera's keyword arguments from it; `where`
+    prefixes every error."""
     if not isinstance(fields, dict):
         raise UserError(f"{where}: a camera must be a table")
     name = fields.get("name")
@@ -67,14 +84,14 @@ def camera_from_fields(fields: dict, where: str) -> Camera:
         Rm = _matrix(fields["R"], (3, 3), f"{where} field 'R'")
         if not np.allclose(Rm @ Rm.T, np.eye(3), atol=1e-6) or np.linalg.det(Rm) < 0:
             raise UserError(f"{where} field 'R' is not a rotation matrix")
-        from calibkit.core.camera import rvec_from_rotation
+        from scipy.spatial.transform import Rotation
 
-        rvec = rvec_from_rotation(Rm)
+        rvec = Rotation.from_matrix(Rm).as_rotvec()
     else:
         rvec = _matrix(fields["R"], (3,), f"{where} field 'R' (a rotation vector)")
     t = _matrix(fields["t"], (3,), f"{where} field 't'")
-    return Camera(name, (int(size[0]), int(size[1])), K[0, 0], K[1, 1], K[0, 2], K[1, 2],
-                  K[0, 1], dist, rvec, t)
+    return {"name": name, "size": (int(size[0]), int(size[1])), "fx": K[0, 0], "fy": K[1, 1],
+            "cx": K[0, 2], "cy": K[1, 2], "skew": K[0, 1], "dist": dist, "rvec": rvec, "t": t}
 
 
 def _read_toml(path: Path) -> dict:
@@ -89,7 +106,8 @@ def _read_toml(path: Path) -> dict:
         raise UserError(f"{path}: cannot read ({exc.strerror})") from None
 
 
-def load_rig(path: str | Path) -> Rig:
+def read_rig(path: str | Path) -> RigFields:
+    """A rig.toml (or OpenCV YAML, by suffix) read and checked."""
     path = Path(path)
     if path.suffix.lower() in (".yaml", ".yml"):
         return import_opencv_yaml(path)
@@ -97,14 +115,14 @@ def load_rig(path: str | Path) -> Rig:
     cams = doc.get("cameras")
     if not isinstance(cams, list) or not cams:
         raise UserError(f"{path}: no [[cameras]] tables: is this a rig file?")
-    cameras = [camera_from_fields(c, f"{path}:") for c in cams]
-    names = [c.name for c in cameras]
+    cameras = [camera_args(c, f"{path}:") for c in cams]
+    names = [c["name"] for c in cameras]
     dupes = sorted({n for n in names if names.count(n) > 1})
     if dupes:
         raise UserError(f"{path}: camera name '{dupes[0]}' is used twice")
     quality = doc.get("quality", {})
     meta = doc.get("meta", {})
-    return Rig(tuple(cameras), quality=dict(quality), meta=dict(meta))
+    return RigFields(cameras, dict(quality), dict(meta))
 
 
 def _floats(a) -> list:
@@ -219,7 +237,7 @@ def export_opencv_yaml(rig: Rig, path: str | Path) -> None:
         raise
 
 
-def import_opencv_yaml(path: str | Path) -> Rig:
+def import_opencv_yaml(path: str | Path) -> RigFields:
     """Read a rig from OpenCV FileStorage YAML as written by export_opencv_yaml."""
     import cv2
 
@@ -253,7 +271,7 @@ def import_opencv_yaml(path: str | Path) -> Rig:
                         raise UserError(f"{path}: camera '{fields['name']}': field '{key}' "
                                         "is not a matrix")
                     fields[key] = value.tolist()
-            cameras.append(camera_from_fields(fields, f"{path}:"))
+            cameras.append(camera_args(fields, f"{path}:"))
     finally:
         fs.release()
-    return Rig(tuple(cameras), meta={"imported_from": str(path)})
+    return RigFields(cameras, {}, {"imported_from": str(path)})

@@ -10,8 +10,8 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from calibkit.cameras import Frame, FrameSource
 from calibkit.core.errors import UserError
-from calibkit.sources import Frame, FrameSource
 from calibkit.synthetic import sim
 from calibkit.synthetic.sim import render_frame
 

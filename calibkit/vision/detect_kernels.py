@@ -23,7 +23,8 @@ import numpy as np
 from calibkit.core.jit import jit
 
 _CHUNK = 64  # pixels tested at once for "any pixel above the threshold" (one SIMD reduction)
-_SLOPE_CHI2 = 13.8  # as calibkit.vision.detect: chi-square (2 dof, p = 0.001) for a sloping ring
+# as calibkit.vision.detect_centroids: chi-square (2 dof, p = 0.001) for a sloping ring
+_SLOPE_CHI2 = 13.8
 
 
 # ---------------------------------------------------------------------------------------------
@@ -306,7 +307,8 @@ def _region_stats(runs):
 @jit
 def measure(values, candidates, tint, mask, has_mask, runs, run_label, area, bbox, peak,
             min_area, max_area, min_roundness, margin, level, sigma):
-    """calibkit.vision.detect._measure for the single-threshold mode, one window at a time.
+    """calibkit.vision.detect_centroids.measure_regions for the single-threshold mode, one
+    window at a time.
 
     Regions inside the area range are measured over their bounding box grown by `margin`;
     pixels of another region and masked pixels get no weight. Coordinates are taken about

@@ -1,4 +1,4 @@
-"""Frame sources read what we write: images, folders, videos; missing inputs are user errors."""
+"""Cameras read what we write: images, folders, videos; missing inputs are user errors."""
 
 from __future__ import annotations
 
@@ -6,15 +6,12 @@ import cv2
 import numpy as np
 import pytest
 
+from calibkit.cameras import open_camera
+from calibkit.cameras.images import FolderSource, ImageSource
+from calibkit.cameras.opencv import DeviceSource
+from calibkit.cameras.video import VideoSource
 from calibkit.core.camera import Camera
 from calibkit.core.errors import UserError
-from calibkit.sources import (
-    DeviceSource,
-    FolderSource,
-    ImageSource,
-    VideoSource,
-    open_source,
-)
 from calibkit.synthetic import frames as frames_module
 from calibkit.synthetic.frames import SimSource
 from calibkit.synthetic.spots import render_spots
@@ -39,7 +36,7 @@ def test_image_source_reads_gray_and_colour(tmp_path):
     frames = list(ImageSource(tmp_path / "gray.png"))
     assert len(frames) == 1 and frames[0].camera == "gray" and frames[0].index == 0
     assert np.array_equal(frames[0].image, img)
-    (frame,) = open_source(tmp_path / "colour.png")
+    (frame,) = open_camera(tmp_path / "colour.png")
     assert np.array_equal(frame.image, colour)
     (tmp_path / "broken.png").write_bytes(b"not a png")
     with pytest.raises(UserError):
@@ -53,7 +50,7 @@ def test_folder_source_natural_order_and_timestamps(tmp_path):
         cv2.imwrite(str(tmp_path / f"frame{i}.png"), img)
         truths[i] = uv
     (tmp_path / "notes.txt").write_text("not an image")
-    src = open_source(tmp_path, fps=50.0)
+    src = open_camera(tmp_path, fps=50.0)
     assert isinstance(src, FolderSource)
     frames = list(src)
     assert [f.index for f in frames] == [0, 1, 2]
@@ -75,7 +72,7 @@ def test_video_source_round_trip(tmp_path):
         truths.append(uv)
         writer.write(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
     writer.release()
-    src = open_source(path)
+    src = open_camera(path)
     assert isinstance(src, VideoSource)
     with src:
         frames = list(src)
@@ -90,7 +87,7 @@ def test_video_source_round_trip(tmp_path):
 
 
 def test_missing_inputs_are_user_errors(tmp_path):
-    for make in (lambda: open_source(tmp_path / "nope.png"),
+    for make in (lambda: open_camera(tmp_path / "nope.png"),
                  lambda: ImageSource(tmp_path / "nope.png"),
                  lambda: FolderSource(tmp_path / "nope"),
                  lambda: VideoSource(tmp_path / "nope.avi"),
@@ -103,7 +100,7 @@ def test_missing_inputs_are_user_errors(tmp_path):
     with pytest.raises(UserError, match="device 57"):
         DeviceSource(57)
     with pytest.raises(UserError, match="device 57"):
-        open_source("57")
+        open_camera("57")
 
 
 def test_sim_source_follows_the_simulator_contract(monkeypatch):
