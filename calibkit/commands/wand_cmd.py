@@ -93,6 +93,9 @@ def register(app: typer.Typer) -> None:
             "--json", help="Write the figures as JSON.")] = None,
         plots: Annotated[bool, typer.Option(
             "--plots/--no-plots", help="Write NAME.layout.png and NAME.residuals.png.")] = True,
+        report_path: Annotated[Path | None, typer.Option(
+            "--report", help="The report page to write (one self-contained HTML file; "
+                             "default NAME.report.html beside the rig file).")] = None,
         cameras: Annotated[int | None, typer.Option(
             "--cameras", help="--sim without --sim-rig: cameras (default: as many as the "
                               "--intrinsics/--rig file has).")] = None,
@@ -111,6 +114,9 @@ def register(app: typer.Typer) -> None:
             raise UserError(f"--holdout must be in [0, 0.9), got {holdout}")
         targets = pipeline.CaptureTargets(min_samples, min_coverage)
         _check_sources(source, use_sim, camera, intrinsics, rig_path, dots, floor_rec)
+        page = report_path or out.with_name(out.stem + ".report.html")
+        if not page.resolve().parent.is_dir():
+            raise UserError(f"--report: the folder {page.parent} does not exist")
         extra = pipeline.dots_extra(dots) if dots is not None else None
         initial = Rig.load(rig_path) if rig_path is not None else None
         intr = initial or (Rig.load(intrinsics) if intrinsics is not None else None)
@@ -154,12 +160,16 @@ def register(app: typer.Typer) -> None:
                         extra=extra, target_views=views)
         progress.finish(f"{cal.report['solve']['time_s']:.1f} s in the solver")
         pipeline.write_outputs(cal, out, plots)
+        from calibkit.calibrate.html_report import write_wand_report
+
+        write_wand_report(page, cal, out, plots)
         if run is not None:
             run.truth.save(truth_rig_path(out))
         _print(cal.report)
         if json_path is not None:
             write_json(json_path, cal.report)
-        typer.echo(f"wrote {out}" + (f" (true rig in {truth_rig_path(out)})" if run else ""))
+        typer.echo(f"wrote {out}" + (f" (true rig in {truth_rig_path(out)})" if run else "")
+                   + f" and the report {page}")
 
 
 def _print(report: dict) -> None:
