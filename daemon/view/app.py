@@ -185,7 +185,8 @@ class LiveView:
         empty = np.zeros((1, 3), np.float32)
         self.clouds = {k: sc.add_point_cloud(f"/markers/{k}", empty, c, point_size=0.05
                                              if k == "picked" else 0.035,
-                                             point_shape="circle", visible=False)
+                                             point_shape="circle", precision="float32",
+                                             visible=False)
                        for k, c in COLOURS.items()}
         self.sticks = sc.add_line_segments("/markers/sticks", np.zeros((1, 2, 3), np.float32),
                                            COLOURS["labelled"], thickness=0.006,
