@@ -118,3 +118,45 @@ def test_report_to_a_missing_folder_is_one_line(calibkit_cli, tmp_path):
     r = calibkit_cli("wand", "--sim", "--out", tmp_path / "o.toml", "--report",
                      tmp_path / "nope" / "r.html")
     assert r.code == 2 and "--report" in r.err and len(r.err.strip().splitlines()) == 1
+
+
+@needs_browser
+def test_intrinsic_report_renders_with_the_json_figures(tmp_path):
+    """`calibkit intrinsic --sim --report`: a section per camera, its figures those of
+    --json, its dots drawn per view, the distortion plots decoded, nothing fetched."""
+    def cli(*args):
+        return subprocess.run([sys.executable, "-m", "calibkit.cli", *map(str, args)],
+                              capture_output=True, text=True, timeout=300, cwd=ROOT,
+                              env=dict(os.environ, PYTHONPATH=str(ROOT)))
+
+    r = cli("intrinsic", "--sim", "--cameras", 3, "--camera", "all", "--no-render",
+            "--views", 4, "--step", 120, "--seed", 2, "--rig", tmp_path / "i.toml",
+            "--json", tmp_path / "i.json", "--report", tmp_path / "i.html")
+    assert r.returncode == 0, r.stderr
+    figs = json.loads((tmp_path / "i.json").read_text())["cameras"]
+    b = Browser(1200, 900)
+    try:
+        b.call("Network.enable")
+        b.open((tmp_path / "i.html").as_uri())
+        assert b.wait_for("document.readyState === 'complete' && document.images.length === 3"
+                          " && [...document.images].every(i => i.complete)", 20)
+        assert b.js("document.title") == "Intrinsic calibration cam0, cam1, cam2"
+        sizes = b.js("[...document.images].map(i => [i.naturalWidth, i.naturalHeight])")
+        assert all(w > 100 and h > 100 for w, h in sizes), sizes
+        for k, f in enumerate(figs):
+            values = b.js(f"""Object.fromEntries([...document.querySelectorAll(
+                '#intrinsics-{k} tr')].slice(1).map(r => [r.cells[0].innerText,
+                [Number(r.cells[1].dataset.value), Number(r.cells[2].dataset.value)]]))""")
+            assert values["fx (px)"] == pytest.approx([f["fx"], f["std"]["fx"]], rel=1e-12)
+            assert values["cy (px)"] == pytest.approx([f["cy"], f["std"]["cy"]], rel=1e-12)
+            assert values["k1"][0] == pytest.approx(f["dist"][0], rel=1e-12)
+            dots = b.js(f"""[...document.querySelectorAll('#dots-{k} .view')]
+                .map(g => Number(g.dataset.dots))""")
+            assert len(dots) == f["views"] and sum(dots) == f["points"]
+            rms = b.js(f"Number(document.querySelector('#summary-{k} td').dataset.value)")
+            assert rms == pytest.approx(f["rms_px"], rel=1e-12)
+        assert [e for e in b.events if e["method"] == "Network.loadingFailed"] == []
+        assert [e for e in b.events if e["method"] == "Network.requestWillBeSent"
+                and not e["params"]["request"]["url"].startswith(("data:", "file:"))] == []
+    finally:
+        b.close()

@@ -48,7 +48,7 @@ text-align:right}th{background:#f2f2f2}td:first-child,th:first-child{text-align:
 .grade{display:inline-block;padding:4px 12px;border-radius:4px;font-weight:600;color:#fff}
 .excellent{background:#2a8a3e}.good{background:#4a9a2a}.usable{background:#c08a00}
 .poor{background:#c0502a}.failed{background:#a01818}
-.views{display:flex;flex-wrap:wrap;gap:12px}figure{margin:0}figcaption{color:#555}
+.views{display:flex;flex-wrap:wrap;gap:12px;align-items:flex-start}figure{margin:0}figcaption{color:#555}
 img{max-width:100%;border:1px solid #ddd}svg{border:1px solid #ddd;background:#fcfcfc}
 .muted{color:#666}.warn{color:#a04000}
 """
@@ -67,11 +67,17 @@ def number(value, digits: int = 3) -> str:
     if isinstance(value, int | np.integer):
         return str(int(value))
     v = float(value)
-    return "-" if not math.isfinite(v) else f"{v:.{digits}f}"
+    if not math.isfinite(v):
+        return "-"
+    if v != 0 and abs(v) < 0.5 * 10.0**-digits * 100:  # would show as 0.00x or 0.000
+        return f"{v:.4g}"
+    return f"{v:.{digits}f}"
 
 
-def table(headers: list[str], rows: list[list], table_id: str | None = None) -> str:
-    """A table of figures; each cell carries its exact value (data-value) for scripts."""
+def table(headers: list[str], rows: list[list], table_id: str | None = None,
+          digits: int = 3) -> str:
+    """A table of figures (`digits` after the point; small numbers in 4 significant
+    digits); each cell carries its exact value (data-value) for scripts."""
     head = "".join(f"<th>{esc(h)}</th>" for h in headers)
     body = []
     for row in rows:
@@ -81,7 +87,7 @@ def table(headers: list[str], rows: list[list], table_id: str | None = None) -> 
                 cells.append(f"<td>{esc(v)}</td>")
             else:
                 exact = "" if v is None else f' data-value="{esc(repr(_plain(v)))}"'
-                cells.append(f"<td{exact}>{number(v)}</td>")
+                cells.append(f"<td{exact}>{number(v, digits)}</td>")
         body.append("<tr>" + "".join(cells) + "</tr>")
     ident = f' id="{esc(table_id)}"' if table_id else ""
     return f"<table{ident}><tr>{head}</tr>{''.join(body)}</table>"
@@ -272,3 +278,87 @@ def write_wand_report(path: Path, cal, out: Path, plots: bool) -> None:
         images.append(("coverage", "where each camera saw the wand",
                        coverage_png(cal.rig, cam, uv)))
     write_page(path, wand_page(cal.report, cal.rig, cal.solved["xyz"], images, out.name))
+
+
+# ---- the intrinsic report -------------------------------------------------------------------
+
+VIEW_COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2",
+                "#7f7f7f", "#bcbd22", "#17becf")
+MAX_DOTS = 3000  # dots drawn per camera
+
+
+def dots_svg(size: tuple[int, int], views: list, svg_id: str, width_px: int = 420) -> str:
+    """The decoded dots of every view over the camera's image, a colour per view, with the
+    8 x 6 grid the coverage figure counts: where in the image the lens was measured."""
+    w, h = size
+    s = width_px / w
+    hp = int(round(h * s))
+    parts = [f'<svg id="{esc(svg_id)}" xmlns="http://www.w3.org/2000/svg" width="{width_px}" '
+             f'height="{hp}" viewBox="0 0 {width_px} {hp}"><rect width="{width_px}" '
+             f'height="{hp}" fill="#202020"/>']
+    for k in range(1, 8):
+        parts.append(f'<line x1="{k * width_px / 8:.1f}" y1="0" x2="{k * width_px / 8:.1f}" '
+                     f'y2="{hp}" stroke="#444"/>')
+    for k in range(1, 6):
+        parts.append(f'<line x1="0" y1="{k * hp / 6:.1f}" x2="{width_px}" '
+                     f'y2="{k * hp / 6:.1f}" stroke="#444"/>')
+    total = sum(len(v.uv) for v in views)
+    step = max(1, total // MAX_DOTS)
+    for k, v in enumerate(views):
+        uv = np.asarray(v.uv, np.float64)[::step] * s
+        colour = VIEW_COLOURS[k % len(VIEW_COLOURS)]
+        parts.append(f'<g class="view" data-view="{k}" data-dots="{len(v.uv)}" '
+                     f'fill="{colour}">' + "".join(f'<circle cx="{x:.1f}" cy="{y:.1f}" r="1.4"/>'
+                                                   for x, y in uv) + "</g>")
+    parts.append("</svg>")
+    return "".join(parts)
+
+
+def intrinsic_section(name: str, result, views: list, plot_png: bytes | None, k: int) -> str:
+    """One camera's part of the intrinsic page: its figures, the views' residuals, its
+    dots over the image and the distortion plot."""
+    c, std = result.camera, result.std
+    f = result.figures()
+    rows = [["fx (px)", c.fx, std.get("fx")], ["fy (px)", c.fy, std.get("fy")],
+            ["cx (px)", c.cx, std.get("cx")], ["cy (px)", c.cy, std.get("cy")],
+            ["skew (px)", c.skew, std.get("skew")]]
+    rows += [[n, float(v), std.get(n)] for n, v in zip(("k1", "k2", "p1", "p2", "k3"),
+                                                        c.dist.tolist(), strict=False)]
+    out = [f'<h2 id="camera-{k}">{esc(name)}</h2>',
+           table(["figure", "value", "standard deviation"], rows, f"intrinsics-{k}"),
+           table(["reprojection RMS (px)", "views", "dots", "image coverage %",
+                  "inliers %"],
+                 [[f["rms_px"], f["views"], f["points"], 100.0 * f["coverage"],
+                   100.0 * f["inlier_fraction"]]], f"summary-{k}")]
+    if f["coverage"] < 0.75:
+        out.append(f'<p class="warn">The dots reached {100 * f["coverage"]:.0f} % of the '
+                   "image's 8 x 6 cells: the lens is least known where none fell (its "
+                   "corners and edges, most often). Show the monitor there too and "
+                   "calibrate again.</p>")
+    out.append('<div class="views">' + dots_svg(c.size, views, f"dots-{k}"))
+    out.append(table(["view", "dots", "RMS (px)"],
+                     [[v.name or f"view {i + 1}", len(v.uv), float(r)] for i, (v, r) in
+                      enumerate(zip(views, result.view_rms_px, strict=False))],
+                     f"views-{k}"))
+    out.append("</div>")
+    if plot_png is not None:
+        out.append(image(plot_png, f"{name}: the lens distortion over the image",
+                         f"distortion-{k}"))
+    return "".join(out)
+
+
+def intrinsic_page(cameras: list[tuple[str, object, list]], plots: bool = True) -> str:
+    """The page of a `calibkit intrinsic` run: (name, IntrinsicResult, its views) per
+    camera calibrated."""
+    from calibkit.calibrate.intrinsic import distortion_plot_png
+
+    body = ["<h1>Intrinsic calibration: " + esc(", ".join(n for n, _, _ in cameras))
+            + "</h1>", '<p class="muted">Each camera\'s lens from the dots a monitor showed: '
+            "focal lengths, principal point and distortion with their standard deviations, "
+            "the dots each view decoded over the image, and the distortion they give.</p>"]
+    for k, (name, result, views) in enumerate(cameras):
+        uv = np.concatenate([v.uv for v in views]) if views else None
+        png = distortion_plot_png(result, uv) if plots else None
+        body.append(intrinsic_section(name, result, views, png, k))
+    names = ", ".join(n for n, _, _ in cameras)
+    return page(f"Intrinsic calibration {names}", "".join(body))

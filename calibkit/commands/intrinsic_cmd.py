@@ -134,6 +134,9 @@ def register(app: typer.Typer) -> None:
             "--skew", help="Estimate the skew too (0 otherwise).")] = False,
         rig: Annotated[Path | None, typer.Option(
             help="Write or update the camera in this rig file.")] = None,
+        report: Annotated[Path | None, typer.Option(
+            "--report", help="Write a one-page HTML report: figures, each view's dots over "
+                             "the image, the distortion plot.")] = None,
         plot: Annotated[Path | None, typer.Option(help="Write the distortion plot (PNG).")]
         = None,
         json_path: Annotated[Path | None, typer.Option(
@@ -169,7 +172,7 @@ def register(app: typer.Typer) -> None:
         if sim:
             _sim_command(sim_rig, cameras, volume, size, seed, camera, views, fill, render,
                          noise_px, latency_ms, noise, pixel_pitch, step, shifts, radius,
-                         raster, samples, estimate_skew, fix_k3, rig, json_path, plot)
+                         raster, samples, estimate_skew, fix_k3, rig, json_path, plot, report)
             return
         dot_radius_m = 0.0
         if images is not None:
@@ -192,11 +195,20 @@ def register(app: typer.Typer) -> None:
             write_bytes_atomic(plot, distortion_plot_png(result, uv))
         if json_path is not None:
             write_json(json_path, figures)
+        if report is not None:
+            _write_report(report, [(camera, result, list(target_views))])
+
+
+def _write_report(path: Path, cameras: list) -> None:
+    from calibkit.calibrate.html_report import intrinsic_page, write_page
+
+    write_page(path, intrinsic_page(cameras))
+    print(f"report written to {path}")
 
 
 def _sim_command(sim_rig, cameras, volume, size, seed, camera, views, fill, render, noise_px,
                  latency_ms, noise, pixel_pitch, step, shifts, radius, raster, samples,
-                 estimate_skew, fix_k3, rig, json_path, plot) -> None:
+                 estimate_skew, fix_k3, rig, json_path, plot, report=None) -> None:
     """--sim: one camera of the simulated rig (or all of them) calibrated from simulated
     monitor views. The estimate sees only the captured dots; the truth goes to
     NAME.truth.toml beside --rig and to the figures, for scoring."""
@@ -234,6 +246,8 @@ def _sim_command(sim_rig, cameras, volume, size, seed, camera, views, fill, rend
         write_bytes_atomic(plot, distortion_plot_png(done[0].result, uv))
     if json_path is not None:
         write_json(json_path, intrinsic_sim.figures(done, render, noise_px))
+    if report is not None:
+        _write_report(report, [(r.name, r.result, list(r.views)) for r in done])
 
 
 def _sim_summary(done) -> None:
