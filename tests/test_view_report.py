@@ -160,3 +160,42 @@ def test_intrinsic_report_renders_with_the_json_figures(tmp_path):
                 and not e["params"]["request"]["url"].startswith(("data:", "file:"))] == []
     finally:
         b.close()
+
+
+@needs_browser
+def test_extrinsic_report_renders_with_the_json_figures(tmp_path):
+    def cli(*args):
+        return subprocess.run([sys.executable, "-m", "calibkit.cli", *map(str, args)],
+                              capture_output=True, text=True, timeout=300, cwd=ROOT,
+                              env=dict(os.environ, PYTHONPATH=str(ROOT)))
+
+    r = cli("intrinsic", "--sim", "--cameras", 3, "--camera", "all", "--no-render",
+            "--views", 4, "--step", 120, "--seed", 4, "--rig", tmp_path / "i.toml")
+    assert r.returncode == 0, r.stderr
+    r = cli("extrinsic", "--projector", "--sim", "--intrinsics", tmp_path / "i.toml",
+            "--seed", 4, "--out", tmp_path / "ex.toml", "--json", tmp_path / "ex.json")
+    assert r.returncode == 0, r.stderr
+    report = json.loads((tmp_path / "ex.json").read_text())
+    b = Browser(1200, 900)
+    try:
+        b.call("Network.enable")
+        b.open((tmp_path / "ex.report.html").as_uri())
+        assert b.wait_for("document.readyState === 'complete'", 20)
+        n = len(report["calibrated"])
+        assert b.js("document.title") == \
+            f"Extrinsic calibration ex.toml: {n} of {len(report['cameras'])} cameras placed"
+        rows = b.js("""[...document.querySelectorAll('#cameras tr')].slice(1).map(r =>
+            [r.cells[0].innerText, Number(r.cells[4].dataset.value),
+             Number(r.cells[5].dataset.value)])""")
+        assert [x[0] for x in rows] == [c["name"] for c in report["cameras"]]
+        for row, c in zip(rows, report["cameras"], strict=True):
+            assert row[1:] == pytest.approx([c["reprojection_rms_px"],
+                                             c["mean_ray_distance_mm"]], rel=1e-12)
+        assert b.js("document.querySelectorAll('#rig-top .frustum').length") == n
+        assert b.js("document.querySelectorAll('#rig-top .points circle').length") > 100
+        assert "calibkit wand --rig ex.toml --dots ex.dots.npz" in b.text()
+        assert [e for e in b.events if e["method"] == "Network.loadingFailed"] == []
+        assert [e for e in b.events if e["method"] == "Network.requestWillBeSent"
+                and not e["params"]["request"]["url"].startswith(("data:", "file:"))] == []
+    finally:
+        b.close()

@@ -362,3 +362,52 @@ def intrinsic_page(cameras: list[tuple[str, object, list]], plots: bool = True) 
         body.append(intrinsic_section(name, result, views, png, k))
     names = ", ".join(n for n, _, _ in cameras)
     return page(f"Intrinsic calibration {names}", "".join(body))
+
+
+# ---- the extrinsic report -------------------------------------------------------------------
+
+def extrinsic_page(result, rig_name: str) -> str:
+    """The page of a `calibkit extrinsic` run (ExtrinsicResult): which cameras were placed,
+    their figures, the plane maps', and the rig with the dots from above and the side."""
+    r = result.report
+    n_cal, n_all = len(r["calibrated"]), len(r["cameras"])
+    out = [f"<h1>Extrinsic calibration: {esc(rig_name)}</h1>",
+           f'<p id="placed"><b>{n_cal} of {n_all} cameras placed</b> from the projector\'s '
+           "dots on the floor" + (" and the table" if r.get("table_map") else "") + ".</p>"]
+    if r["not_calibrated"]:
+        out.append('<p id="advice" class="warn"><b>What to do:</b> '
+                   f'{esc(", ".join(r["not_calibrated"]))} could not be placed (see the '
+                   "warnings): check that each sees enough of the floor's dots, then run "
+                   "again; the wand step can only refine cameras placed here.</p>")
+    else:
+        out.append('<p id="advice"><b>What to do:</b> refine every camera with the wand: '
+                   f"<code>calibkit wand --rig {esc(rig_name)} --dots "
+                   f"{esc(Path(rig_name).stem)}.dots.npz ...</code></p>")
+    out += [f'<p class="warn">warning: {esc(w)}</p>' for w in result.warnings]
+    out.append("<h2>Cameras</h2>")
+    out.append(table(["camera", "placed", "floor dots", "table dots", "reprojection RMS (px)",
+                      "mean ray distance (mm)", "on the table (mm)"],
+                     [[c["name"], bool(c["calibrated"]), c["floor_dots"], c["table_dots"],
+                       c["reprojection_rms_px"], c["mean_ray_distance_mm"],
+                       c["mean_ray_distance_table_mm"]] for c in r["cameras"]], "cameras"))
+    out.append("<h2>Figures</h2>")
+    fm, tm = r["floor_map"], r.get("table_map")
+    rows = [["reprojection RMS (px)", r["reprojection_rms_px"]],
+            ["mean ray distance (mm)", r["mean_ray_distance_mm"]],
+            ["  on the floor (mm)", r["mean_ray_distance_floor_mm"]],
+            ["  on the table (mm)", r["mean_ray_distance_table_mm"]],
+            ["dots seen by two or more cameras", r["dots"]],
+            ["floor map residual RMS (mm)", fm["residual_rms_mm"]],
+            ["floor map residual max (mm)", fm["residual_max_mm"]]]
+    if tm:
+        rows += [["table map residual RMS (mm)", tm["residual_rms_mm"]],
+                 ["table height (m)", tm["height_m"]]]
+    out.append(table(["figure", "value"], rows, "figures"))
+    pts = np.asarray(result.refined_xyz, np.float64).reshape(-1, 3)
+    out.append("<h2>The rig</h2><div class=\"views\">")
+    out.append(rig_svg(result.rig, pts, (0, 1), "from above (x right, y up), the dots",
+                       "rig-top"))
+    out.append(rig_svg(result.rig, pts, (0, 2), "from the side (x right, z up)", "rig-side"))
+    out.append("</div>")
+    return page(f"Extrinsic calibration {rig_name}: {n_cal} of {n_all} cameras placed",
+                "".join(out))
