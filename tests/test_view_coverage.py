@@ -110,3 +110,67 @@ def test_view_needs_a_capture(calibkit_cli, tmp_path):
         r = calibkit_cli("wand", "--out", tmp_path / "o.toml", "--intrinsics",
                          tmp_path / "i.toml", *extra)
         assert r.code == 2 and words in r.err and len(r.err.strip().splitlines()) == 1, r.err
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="needs Debian's chromium package "
+                    "(.ci/run installs it)")
+def test_intrinsic_views_page_shows_each_views_dots_and_the_coverage():
+    """`calibkit intrinsic --view`: after each view the page shows the views so far, their
+    dot counts, the coverage figure the solve reports and the cells it counts."""
+    from calibkit.calibrate.intrinsic import PlaneView, coverage
+    from calibkit.commands.coverage_view import IntrinsicView
+    from calibkit.synthetic import sim
+
+    cam = sim.make_rig(2, 4.0, seed=1)[0]
+    rng = np.random.default_rng(2)
+    views = []
+    for k, shift in enumerate((-0.35, 0.0, 0.35)):  # a grid held left, centre, right
+        g = np.stack(np.meshgrid(np.linspace(-0.3, 0.3, 12), np.linspace(-0.2, 0.2, 9)),
+                     -1).reshape(-1, 2)
+        pts = np.column_stack([g[:, 0] + shift, g[:, 1], np.full(len(g), 1.2)])
+        world = (pts - cam.t) @ cam.R  # camera frame -> world
+        uv, _ = cam.project(world)
+        uv = uv + rng.normal(0, 0.05, uv.shape)
+        views.append(PlaneView(np.column_stack([g, np.zeros(len(g))]), uv, f"view{k + 1}"))
+    port = _free_port()
+    page = IntrinsicView("127.0.0.1", port)
+    b = Browser(1200, 1000)
+    try:
+        b.open(f"http://127.0.0.1:{port}")
+        assert b.wait_for("document.body && document.body.innerText.includes('intrinsic')", 30)
+        for n in (1, 2, 3):
+            page.show(cam.name, cam.size, views[:n], 4)
+            uv = np.concatenate([v.uv for v in views[:n]])
+            want = (f"{cam.name}: {n} of 4 views, dots per view "
+                    + ", ".join(str(len(v.uv)) for v in views[:n])
+                    + f"; image coverage {100 * coverage(uv, cam.size):.0f} %")
+            assert b.wait_for(f"document.body.innerText.includes({want!r})", 15), b.text()
+        assert "next:" in b.text()  # what to do for the fourth view
+        cells = b.js("""(() => { const img = [...document.querySelectorAll('img')]
+            .find(i => i.complete && i.naturalWidth === 240);
+            const c = document.createElement('canvas');
+            c.width = img.naturalWidth; c.height = img.naturalHeight;
+            const g = c.getContext('2d'); g.drawImage(img, 0, 0);
+            const d = g.getImageData(0, 0, c.width, c.height).data, out = [];
+            for (let y = 0; y < 6; y++) { const row = [];
+                for (let x = 0; x < 8; x++) { let green = 0;
+                    for (let v = Math.floor(y * c.height / 6) + 2;
+                         v < Math.floor((y + 1) * c.height / 6) - 1; v++)
+                        for (let u = Math.floor(x * c.width / 8) + 2;
+                             u < Math.floor((x + 1) * c.width / 8) - 1; u++) {
+                            const i = 4 * (v * c.width + u);
+                            if (d[i] === 30 && d[i + 1] === 80 && d[i + 2] === 45) green++; }
+                    row.push(green > 0); }
+                out.push(row); }
+            return out; })()""")
+        uv = np.concatenate([v.uv for v in views])
+        want = np.zeros((6, 8), bool)
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & \
+            (uv[:, 1] < cam.height)
+        want[(uv[inside, 1] / cam.height * 6).astype(int),
+             (uv[inside, 0] / cam.width * 8).astype(int)] = True
+        assert np.array_equal(np.array(cells), want)
+        assert want.mean() == pytest.approx(coverage(uv[inside], cam.size))
+    finally:
+        b.close()
+        page.close()

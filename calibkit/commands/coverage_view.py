@@ -135,3 +135,73 @@ class ViewProgress:
     def finish(self, text: str = "") -> None:
         self.progress.finish(text)
         self.view.update(self.monitor, self.progress.done, final=True)
+
+
+def dots_image(size: tuple[int, int], views: list, width_px: int = THUMB_WIDTH_PX
+               ) -> np.ndarray:
+    """(h, w, 3) RGB: the decoded dots of `views` over the camera's image (the last view
+    bright, the ones before dim), on the 8 x 6 cells the coverage figure counts, those
+    holding a dot tinted green."""
+    w, h = size
+    s = width_px / w
+    th = max(1, round(h * s))
+    uv = np.concatenate([v.uv for v in views]) if views else np.zeros((0, 2))
+    cells = np.zeros((6, 8), bool)
+    if len(uv):
+        ix = np.clip((uv[:, 0] / w * 8).astype(int), 0, 7)
+        iy = np.clip((uv[:, 1] / h * 6).astype(int), 0, 5)
+        cells[iy, ix] = True
+    img = coverage_image(cells, size, False, width_px)
+    img[np.all(img == np.array(VISITED, np.uint8), axis=2)] = (30, 80, 45)
+    for k, v in enumerate(views):
+        colour = (255, 255, 255) if k == len(views) - 1 else (150, 150, 150)
+        for x, y in np.round(np.asarray(v.uv) * s).astype(int).tolist():
+            if 0 <= x < width_px and 0 <= y < th:
+                img[y, x] = colour
+    return img
+
+
+class IntrinsicView:
+    """`calibkit intrinsic --view`: per camera, the views taken so far (their decoded dots
+    over the image, the cells they cover) and what to do next; `show(name, size, views,
+    wanted)` after each view (live) or each camera (simulated)."""
+
+    def __init__(self, host: str, port: int) -> None:
+        import viser
+
+        with contextlib.redirect_stdout(io.StringIO()):
+            self.server = viser.ViserServer(host=host, port=port, label="calibkit intrinsic",
+                                            verbose=False)
+        self.server.request_share_url = lambda *args, **kwargs: None
+        if self.server.get_port() != port:
+            self.server.stop()
+            raise UserError(f"--view: port {port} on {host} is taken; choose another")
+        gui = self.server.gui
+        gui.configure_theme(control_width="large", dark_mode=True, show_logo=False,
+                            show_share_button=False)
+        gui.add_markdown("**intrinsic calibration**: each camera's views as they are taken; "
+                         "the monitor's dots each view decoded (the newest bright), the image "
+                         "cells they reached (green)")
+        self.cameras: dict[str, tuple] = {}
+        self.url = f"http://{host if ':' not in host else f'[{host}]'}:{port}"
+
+    def show(self, name: str, size: tuple[int, int], views: list, wanted: int) -> None:
+        from calibkit.calibrate.intrinsic import coverage, guidance
+
+        gui = self.server.gui
+        if name not in self.cameras:
+            img = gui.add_image(dots_image(size, []), label=name, format="png")
+            self.cameras[name] = (img, gui.add_markdown(f"`{name}`: no view yet"))
+        img, text = self.cameras[name]
+        uv = np.concatenate([v.uv for v in views]) if views else np.zeros((0, 2))
+        per_view = ", ".join(str(len(v.uv)) for v in views) or "-"
+        with self.server.atomic():
+            img.image = dots_image(size, views)
+            text.content = (f"`{name}`: {len(views)} of {wanted} views, dots per view "
+                            f"{per_view}; image coverage {100 * coverage(uv, size):.0f} %"
+                            + (f"  \nnext: {guidance(views, size, wanted)}"
+                               if len(views) < wanted else ""))
+
+    def close(self) -> None:
+        with contextlib.redirect_stdout(io.StringIO()):
+            self.server.stop()
