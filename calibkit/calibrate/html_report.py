@@ -206,7 +206,7 @@ def wand_page(report: dict, rig: Rig, points: np.ndarray | None,
     for w in report.get("warnings", []):
         out.append(f'<p class="warn">warning: {esc(w)}</p>')
     if report.get("left_out_cameras"):
-        out.append(f'<p class="warn">left out (too few wand sightings): '
+        out.append(f'<p class="warn">left out, not calibrated (see the warnings): '
                    f'{esc(", ".join(report["left_out_cameras"]))}</p>')
     out.append("<h2>Cameras</h2>")
     out.append(table(
