@@ -3,6 +3,8 @@ Chromium, against the capture monitor that decides when a camera has enough."""
 
 from __future__ import annotations
 
+import contextlib
+import json
 import re
 import socket
 import threading
@@ -174,3 +176,97 @@ def test_intrinsic_views_page_shows_each_views_dots_and_the_coverage():
     finally:
         b.close()
         page.close()
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="needs Debian's chromium package "
+                    "(.ci/run installs it)")
+def test_intrinsic_display_view_shows_the_views_before_each_prompt(calibkit_cli, monkeypatch,
+                                                                   tmp_path):
+    """`calibkit intrinsic --display --view PORT` end to end, the window and the camera
+    replaced by the simulator as in test_intrinsic: at each "hold the monitor" prompt a
+    browser on the page finds the views taken so far, and at the end all of them with the
+    coverage the command prints."""
+    import builtins
+
+    import calibkit.sources
+    import projector.display
+    import projector.screens
+    from calibkit.sources import Frame
+    from calibkit.synthetic.monitor import MonitorSimConfig, make_monitor_sim
+    from projector.screens import Screen
+
+    config = MonitorSimConfig(screen_px=(960, 540), pixel_pitch_mm=0.543)
+    sim = make_monitor_sim(3, (320, 240), 0, config)
+
+    class FakeCamera:
+        def __init__(self, device, camera=None):
+            self.camera = camera
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            sim.close()
+
+        def __iter__(self):
+            i = 0
+            while True:
+                yield Frame(self.camera, i, i, np.dstack([sim.grab()] * 3))
+                i += 1
+
+    class FakeWindow:
+        def __init__(self, monitor):
+            pass
+
+        def show(self, dots):
+            sim.show(dots)
+
+        def close(self):
+            pass
+
+    port = _free_port()
+    b = Browser(1200, 1000)
+    seen = []
+
+    def prompt(text=""):  # the user looks at the page, then tilts the monitor
+        v = len(seen)
+        if v == 0:
+            b.open(f"http://127.0.0.1:{port}")
+        ok = b.wait_for(f"document.body && document.body.innerText.includes("
+                        f"'cam0: {v} of 3 views')", 30)
+        seen.append(bool(ok))
+        sim.set_view(v)
+
+    screen = Screen(0, "sim", *config.screen_px, 0.0, 0.0)
+    monkeypatch.setattr(projector.screens, "require_display", lambda: None)
+    monkeypatch.setattr(projector.screens, "pick_screen",
+                        lambda index, pitch: (screen, config.pixel_pitch_mm))
+    monkeypatch.setattr(calibkit.sources, "DeviceSource", FakeCamera)
+    monkeypatch.setattr(projector.display, "WindowDisplay", FakeWindow)
+    monkeypatch.setattr(builtins, "input", prompt)
+    # the page closes with the command: keep it up to look at the last state
+    from calibkit.commands import coverage_view
+
+    monkeypatch.setattr(coverage_view.IntrinsicView, "close", lambda self: None)
+    pages = []
+    real_init = coverage_view.IntrinsicView.__init__
+
+    def init(self, host, port_):
+        real_init(self, host, port_)
+        pages.append(self)
+
+    monkeypatch.setattr(coverage_view.IntrinsicView, "__init__", init)
+    try:
+        r = calibkit_cli("intrinsic", "--display", "--views", 3, "--json",
+                         tmp_path / "i.json", "--view", port)
+        assert r.code == 0, r.err
+        assert seen == [True, True, True]  # 0, 1 and 2 views shown before each prompt
+        data = json.loads((tmp_path / "i.json").read_text())
+        assert b.wait_for("document.body.innerText.includes('cam0: 3 of 3 views')", 15)
+        assert f"image coverage {100 * data['coverage']:.0f} %" in b.text()
+        assert "next:" not in b.text()
+    finally:
+        b.close()
+        for p in pages:
+            with contextlib.suppress(Exception):
+                p.server.stop()
