@@ -22,7 +22,7 @@ opens. docs/daemon.md documents every key.
                 "basler:SERIAL", "genicam:SERIAL"), fps (set on the camera; default: its
                 own rate), threshold, min_area, max_area,
                 timestamps ("device": the camera's own stamps where it gives them, or
-                "arrival")
+                "arrival"), mask (a PNG, white where detection ignores pixels)
     [replay]    path (a .mcrec recording), realtime
     [[udp]]     address = "HOST:PORT", rate_hz, ttl, bodies, interface, markers
     [[serial]]  device, baud, rate_hz ("auto" or Hz), bodies
@@ -85,6 +85,7 @@ class CameraIn:
     min_area: float = 2.0
     max_area: float = 4000.0
     timestamps: str = "device"  # "arrival": ignore the camera's own timestamps and counter
+    mask: Path | None = None  # PNG of pixels detection ignores (white), as `calibkit mask` writes
 
 
 @dataclass(frozen=True)
@@ -450,7 +451,7 @@ def _bodies(w, data) -> list[BodyDef]:
 
 def _camera(w, t, p, base: Path) -> CameraIn:
     _check_keys(w, t, {"name", "source", "fps", "threshold", "min_area", "max_area",
-                       "timestamps"}, p)
+                       "timestamps", "mask"}, p)
     threshold = t.get("threshold", "auto")
     if threshold != "auto" and (isinstance(threshold, bool)
                                 or not isinstance(threshold, (int, float))
@@ -459,11 +460,17 @@ def _camera(w, t, p, base: Path) -> CameraIn:
     source = str(_string(w, t, "source", p))
     if not source.isdigit() and ":" not in source and (base / source).exists():
         source = str(base / source)  # files and folders are relative to the configuration
+    mask = None
+    if "mask" in t:
+        mask = base / _string(w, t, "mask", p)
+        if not mask.is_file():
+            w.fail(p + "mask", f"{mask} not found; make one with `calibkit mask SOURCE --out "
+                               f"{mask.name}` or from the live view")
     return CameraIn(_string(w, t, "name", p), source,
                     _number(w, t, "fps", p, None, lo=0.1, hi=10000), threshold,
                     _number(w, t, "min_area", p, 2.0, lo=0), _number(w, t, "max_area", p,
                                                                      4000.0, lo=1),
-                    _string(w, t, "timestamps", p, "device", ("device", "arrival")))
+                    _string(w, t, "timestamps", p, "device", ("device", "arrival")), mask)
 
 
 def _udp(w, t, p) -> UdpOut:

@@ -370,7 +370,6 @@ class Daemon:
         """Capture sources for the configured cameras; a camera whose plugin library is
         missing is reported and skipped, the rest run."""
         from calibkit.cameras import missing_plugins
-        from calibkit.vision.detect import DetectorConfig
 
         names = self.rig.names
         out = []
@@ -382,13 +381,34 @@ class Daemon:
             if missing:
                 log.error("%s: skipped: plugin %s is not installed", cam.name, missing[0])
                 continue
-            det = DetectorConfig(threshold=cam.threshold, min_area=cam.min_area,
-                                 max_area=cam.max_area)
-            out.append(DetectCamera(cam.name, names.index(cam.name), cam.source, det, cam.fps,
+            out.append(DetectCamera(cam.name, names.index(cam.name), cam.source,
+                                    self._detector(cam), cam.fps,
                                     device_stamps=cam.timestamps == "device"))
         if not out:
             raise UserError("no camera can be opened (see the messages above)")
         return out
+
+    def _detector(self, cam):
+        """A [[camera]] table's detection settings, its mask read and checked against the
+        camera's size (UserError for a bad one)."""
+        from calibkit.vision.detect import DetectorConfig
+        from calibkit.vision.masks import load_mask
+
+        mask = None if cam.mask is None else load_mask(cam.mask, self.rig[cam.name].size)
+        return DetectorConfig(threshold=cam.threshold, min_area=cam.min_area,
+                              max_area=cam.max_area, mask=mask)
+
+    def _reload_detectors(self, cfg: Config) -> list:
+        """(source, new settings) for each live camera whose detection settings changed (a
+        mask is read again: its file may have been redrawn under the same name); applied
+        by assigning them, which the capture thread reads each frame."""
+        if not self.live_sources:
+            return []
+        old = {c.name: c for c in self.config.cameras}
+        new = {c.name: c for c in cfg.cameras}
+        return [(src, self._detector(new[src.name])) for src in self.live_sources
+                if src.name in new and (new[src.name] != old.get(src.name)
+                                        or new[src.name].mask is not None)]  # redrawn?
 
     def _warm_up(self) -> None:
         """Run the correspondence once on a frame's blobs before READY: its compiled kernels
@@ -653,6 +673,7 @@ class Daemon:
             new = self.extend(load_config(self.config.path)) if self.config.path else self.config
             key = self._set_key(new)
             labelling = self._labeller(new) if key != self._markerset_key else self.labelling
+            detectors = self._reload_detectors(new)
         except UserError as exc:
             log.error("reload failed, keeping the running configuration: %s", exc)
             sd_notify("READY=1")
@@ -676,6 +697,8 @@ class Daemon:
             self.labelling.close()  # a start still searching on its thread stops
         self.labelling, self._markerset_key = labelling, key
         self.pipeline.replace(bodies=bodies, publishers=publishers, **changes)
+        for src, det in detectors:
+            src.detector = det
         self.config = new
         log.info("configuration reloaded: %d rigid bodies, %d outputs%s", len(bodies),
                  len(new.udp) + len(new.serial) + len(new.mavlink),
@@ -763,6 +786,7 @@ class Daemon:
         st = self.pipeline.stats
         cams = []
         by_camera = {c.source.camera: c for c in self.captures}
+        tables = {c.name: c for c in self.config.cameras}
         for i, name in enumerate(self.rig.names):
             cap = by_camera.get(i)
             if cap is None and self.captures:  # a camera that was skipped
@@ -778,6 +802,11 @@ class Daemon:
                    "failures": cap.failures if cap else 0}
             if mux is not None:  # its clock against the daemon's, frames its counter skipped
                 cam.update(mux.camera_status(i))
+            table = tables.get(name)
+            if table is not None:  # a [[camera]] of the configuration: how it detects
+                cam.update(threshold=table.threshold, min_area=table.min_area,
+                           max_area=table.max_area,
+                           mask=None if table.mask is None else str(table.mask))
             cams.append(cam)
         poses = getattr(self.pipeline, "last_result", None)
         bodies = self.pipeline.rigid.bodies

@@ -145,11 +145,12 @@ class DetectCamera:
         from calibkit.vision.detect import DetectorConfig, detect
 
         source = open_camera(self.spec, self.fps, self.name)
-        cfg = self.detector or DetectorConfig()
+        default = DetectorConfig()
         try:
             for frame in source:
                 arrival = time.monotonic_ns()
-                blobs = detect(frame.image, cfg)
+                # read each frame: a reload (or the live view) swaps in new settings
+                blobs = detect(frame.image, self.detector or default)
                 # a frame stamped by the camera: its time is on the camera's clock, and the
                 # multiplexer maps it; otherwise the source's time (a live device's read time,
                 # a file's own timeline)

@@ -49,6 +49,7 @@ class Browser:
         page = next(t for t in targets if t["type"] == "page")
         self.ws = connect(page["webSocketDebuggerUrl"], max_size=64 * 2**20)
         self._ids = itertools.count(1)
+        self.events: list[dict] = []  # the protocol's events, as they came (Network.*, ...)
         self.call("Page.enable")
         self.call("Runtime.enable")
 
@@ -57,7 +58,10 @@ class Browser:
         self.ws.send(json.dumps({"id": i, "method": method, "params": params}))
         while True:
             msg = json.loads(self.ws.recv(timeout=60))
-            if msg.get("id") == i:
+            if "method" in msg:
+                self.events.append(msg)
+                del self.events[:-5000]
+            elif msg.get("id") == i:
                 if "error" in msg:
                     raise RuntimeError(f"{method}: {msg['error']}")
                 return msg.get("result", {})
@@ -110,6 +114,37 @@ class Browser:
                        modifiers=modifiers)
             time.sleep(0.02)
         self.mouse("mouseReleased", x1, y1, buttons=0, modifiers=modifiers)
+
+    def click_text(self, selector: str, text: str) -> None:
+        """Click (as a user, with the mouse) the element matching selector whose text is
+        text."""
+        r = self.js(f"""(() => {{
+            const e = [...document.querySelectorAll({selector!r})]
+                .find(e => e.innerText.trim() === {text!r});
+            if (!e) return null;
+            const r = e.getBoundingClientRect();
+            return [r.left + r.width / 2, r.top + r.height / 2]; }})()""")
+        assert r is not None, f"no {selector} reading {text!r} on the page"
+        self.click(*r)
+
+    def type_into(self, label: str, text: str) -> None:
+        """Type into the text input labelled `label`, as a user would, and press Enter."""
+        r = self.js(f"""(() => {{
+            const l = [...document.querySelectorAll('label, div, span, p')]
+                .find(e => e.childElementCount === 0 && e.innerText.trim() === {label!r});
+            const i = l && [...document.querySelectorAll(
+                    'input[type=text], input:not([type])')]
+                .find(i => l.compareDocumentPosition(i) & Node.DOCUMENT_POSITION_FOLLOWING);
+            if (!i) return null;
+            const r = i.getBoundingClientRect();
+            return [r.left + r.width / 2, r.top + r.height / 2]; }})()""")
+        assert r is not None, f"no input labelled {label!r}"
+        self.click(*r)
+        self.js("document.activeElement.select && document.activeElement.select()")
+        self.call("Input.insertText", text=text)
+        for kind in ("keyDown", "keyUp"):
+            self.call("Input.dispatchKeyEvent", type=kind, key="Enter", code="Enter",
+                      windowsVirtualKeyCode=13)
 
     def close(self) -> None:
         try:

@@ -70,38 +70,6 @@ def live(tmp_path_factory):
         thread.join(15)
 
 
-def _click_text(b: Browser, selector: str, text: str) -> None:
-    """Click (as a user, with the mouse) the element matching selector whose text is text."""
-    r = b.js(f"""(() => {{
-        const e = [...document.querySelectorAll({selector!r})]
-            .find(e => e.innerText.trim() === {text!r});
-        if (!e) return null;
-        const r = e.getBoundingClientRect();
-        return [r.left + r.width / 2, r.top + r.height / 2]; }})()""")
-    assert r is not None, f"no {selector} reading {text!r} on the page"
-    b.click(*r)
-
-
-def _type_into(b: Browser, label: str, text: str) -> None:
-    """Type into the text input labelled `label`, as a user would."""
-    r = b.js(f"""(() => {{
-        const l = [...document.querySelectorAll('label, div, span, p')]
-            .find(e => e.childElementCount === 0 && e.innerText.trim() === {label!r});
-        const i = l && [...document.querySelectorAll('input[type=text], input:not([type])')]
-            .find(i => l.compareDocumentPosition(i) & Node.DOCUMENT_POSITION_FOLLOWING);
-        if (!i) return null;
-        const r = i.getBoundingClientRect();
-        return [r.left + r.width / 2, r.top + r.height / 2]; }})()""")
-    assert r is not None, f"no input labelled {label!r}"
-    b.click(*r)
-    b.js("document.activeElement.select && document.activeElement.select()")
-    b.call("Input.insertText", text=text)
-    b.call("Input.dispatchKeyEvent", type="keyDown", key="Enter", code="Enter",
-           windowsVirtualKeyCode=13)
-    b.call("Input.dispatchKeyEvent", type="keyUp", key="Enter", code="Enter",
-           windowsVirtualKeyCode=13)
-
-
 def _wait_status(live, test, timeout_s: float = 20.0):
     """`mocapd status` until test(answer); a request answered with the daemon's own
     error just after a reload (its status zips the new bodies with the last frame's
@@ -197,7 +165,7 @@ def test_body_from_markers_picked_in_the_page_then_renamed_and_removed(live):
     b.open(live["url"])
     assert b.wait_for("document.body && document.body.innerText.includes('4 markers')", 20)
     for _ in range(5):  # the panel may still be laying out: click until the tab shows
-        _click_text(b, "[role=tab]", "Bodies")
+        b.click_text("[role=tab]", "Bodies")
         if b.wait_for("document.body.innerText.includes('picked: none')", 2):
             break
     assert "picked: none" in b.text()
@@ -207,8 +175,8 @@ def test_body_from_markers_picked_in_the_page_then_renamed_and_removed(live):
                         "!== 'none' && document.body.innerText.match(/picked: ([^\\n]*)/)[1]",
                         5)
     assert picked and picked.count("marker") == 4, picked
-    _type_into(b, "Name", "probe")
-    _click_text(b, "button", "Create body from picked markers")
+    b.type_into("Name", "probe")
+    b.click_text("button", "Create body from picked markers")
     st = _wait_status(live, lambda s: [x["name"] for x in s["bodies"]] == ["probe"])
     assert [x["name"] for x in st["bodies"]] == ["probe"], b.text()[-300:]
     st = _wait_status(live, lambda s: s["bodies"][0]["valid"])
@@ -221,15 +189,15 @@ def test_body_from_markers_picked_in_the_page_then_renamed_and_removed(live):
         n = _scene_pixels(b, bgr, 90, 5, path=IMAGES / "view-body.png" if k == 0 else None)
         assert n >= 5, (bgr, n)
 
-    _type_into(b, "Rename to", "wand2")
-    _click_text(b, "button", "Rename")
+    b.type_into("Rename to", "wand2")
+    b.click_text("button", "Rename")
     st = _wait_status(live, lambda s: [x["name"] for x in s["bodies"]] == ["wand2"])
     assert [x["name"] for x in st["bodies"]] == ["wand2"]
     assert live["config"].read_text().startswith("# my rig")
 
     assert b.wait_for("document.body.innerText.includes('wand2 | ') || "
                       "document.body.innerText.includes('wand2')", 10)
-    _click_text(b, "button", "Remove")
+    b.click_text("button", "Remove")
     st = _wait_status(live, lambda s: s["bodies"] == [])
     assert st["bodies"] == []
     text = live["config"].read_text()

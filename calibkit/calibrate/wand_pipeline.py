@@ -89,17 +89,23 @@ class CaptureTargets:
 
 
 def record_capture(batches: Iterator[Observations], spec: WandSpec, intrinsics: Rig,
-                   targets: CaptureTargets, path: Path, fps: float | None, progress
+                   targets: CaptureTargets, path: Path, fps: float | None, progress,
+                   monitor: CaptureMonitor | None = None
                    ) -> tuple[Observations, CaptureMonitor]:
     """Capture into a recording at `path` (fps: the camera rate, if known) until every
-    camera has enough; the observations and the monitor with its coverage figures."""
-    monitor = CaptureMonitor(intrinsics.names, [c.size for c in intrinsics],
-                             targets.min_samples, targets.min_coverage)
+    camera has enough; the observations and the monitor with its coverage figures (the
+    one given, e.g. one a page shows as it fills, or a new one for `targets`)."""
+    monitor = monitor or new_monitor(intrinsics, targets)
     with RecordingWriter(path, intrinsics.names, [c.size for c in intrinsics], fps) as writer:
         obs = capture(batches, spec, intrinsics, monitor, writer, progress)
     if obs is None:
         raise UserError("nothing was captured")
     return obs, monitor
+
+
+def new_monitor(intrinsics: Rig, targets: CaptureTargets) -> CaptureMonitor:
+    return CaptureMonitor(intrinsics.names, [c.size for c in intrinsics],
+                          targets.min_samples, targets.min_coverage)
 
 
 def world_from_floor(path: Path, intrinsics: Rig, kind: str, spec: WandSpec) -> World:

@@ -351,6 +351,41 @@ def plot_residuals(rig: Rig, figures: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def coverage_png(rig: Rig, camera: np.ndarray, uv: np.ndarray, cells: int = 24) -> bytes:
+    """Per camera: where in its image the wand was seen (observations per cell of a
+    `cells`-wide grid; blank cells are where it never went), as PNG bytes."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = len(rig)
+    cols = min(4, n)
+    rows = (n + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3.2 * rows), squeeze=False)
+    for k, ax in enumerate(axes.ravel()):
+        if k >= n:
+            ax.axis("off")
+            continue
+        w, h = rig[k].size
+        ny = max(1, round(cells * h / w))
+        m = camera == k
+        hist, _, _ = np.histogram2d(uv[m, 1], uv[m, 0], bins=(ny, cells),
+                                    range=((0, h), (0, w)))
+        shown = np.where(hist > 0, hist, np.nan)
+        ax.imshow(shown, extent=(0, w, h, 0), cmap="viridis", interpolation="nearest")
+        filled = 100.0 * np.count_nonzero(hist) / hist.size
+        ax.set_title(f"{rig[k].name}: {filled:.0f} % of {cells}x{ny} cells, "
+                     f"{int(m.sum())} obs", fontsize=9)
+        ax.set_xlim(0, w)
+        ax.set_ylim(h, 0)
+        ax.set_aspect("equal")
+    fig.suptitle("wand coverage per camera")
+    data = _png(fig)
+    plt.close(fig)
+    return data
+
+
 def _png(fig) -> bytes:
     import io
 

@@ -158,6 +158,9 @@ def register(app: typer.Typer) -> None:
             "--height-sigma-mm", help="How well the table height was measured.")] = 2.0,
         json_path: Annotated[Path | None, typer.Option(
             "--json", help="Write the figures as JSON.")] = None,
+        report_path: Annotated[Path | None, typer.Option(
+            "--report", help="The report page to write (one self-contained HTML file; "
+                             "default NAME.report.html beside the rig file).")] = None,
         sim: Annotated[bool, typer.Option(
             "--sim", help="A simulated projector, table and rig, calibrated from the "
                           "--intrinsics file (calibkit intrinsic --sim); the true rig goes "
@@ -225,6 +228,10 @@ def register(app: typer.Typer) -> None:
         result = pipeline.solve(intr, names, captured, sessions, opts)
         _print(result)
         pipeline.write_outputs(result, intr, intrinsics, out)
+        from calibkit.calibrate.html_report import extrinsic_page, write_page
+
+        page = report_path or out.with_name(out.stem + ".report.html")
+        write_page(page, extrinsic_page(result, out.name))
         if run is not None:
             t = extrinsic_sim.score(run, result, out)
             typer.echo(f"against the simulator's truth: position error up to "
@@ -234,7 +241,8 @@ def register(app: typer.Typer) -> None:
             typer.echo(f"warning: {w}", err=True)
         if json_path is not None:
             write_json(json_path, result.report)
-        typer.echo(f"wrote {out}" + (f" (true rig in {truth_rig_path(out)})" if sim else ""))
+        typer.echo(f"wrote {out}" + (f" (true rig in {truth_rig_path(out)})" if sim else "")
+                   + f" and the report {page}")
         if result.report["not_calibrated"]:
             print(f"not calibrated: {', '.join(result.report['not_calibrated'])}",
                   file=sys.stderr)

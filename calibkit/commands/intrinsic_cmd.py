@@ -55,7 +55,7 @@ def _board_views(images: Path, board: str | None
 
 def _monitor_views(device: str, camera: str, monitor: int, pixel_pitch: float | None,
                    n_views: int, step: float, shifts: int, radius: float, raster: bool,
-                   samples: int) -> tuple[list[PlaneView], tuple[int, int], float]:
+                   samples: int, page=None) -> tuple[list[PlaneView], tuple[int, int], float]:
     """A live camera watching dots on a monitor: the views, the image size, the pitch."""
     from calibkit.cameras import open_camera
     from projector.display import WindowDisplay
@@ -72,6 +72,8 @@ def _monitor_views(device: str, camera: str, monitor: int, pixel_pitch: float | 
         size = (first.image.shape[1], first.image.shape[0])
 
         def next_view(v: int, done: list) -> None:
+            if page is not None:  # the views so far, and where to hold the monitor next
+                page.show(camera, size, done, n_views)
             input(f"view {v + 1}/{n_views}: hold the monitor in view, tilted, then press "
                   "Enter ")
 
@@ -82,6 +84,8 @@ def _monitor_views(device: str, camera: str, monitor: int, pixel_pitch: float | 
                                            Progress, _say)
         finally:
             window.close()
+    if page is not None:
+        page.show(camera, size, views, n_views)
     return views, size, pitch
 
 
@@ -136,6 +140,13 @@ def register(app: typer.Typer) -> None:
             "--skew", help="Estimate the skew too (0 otherwise).")] = False,
         rig: Annotated[Path | None, typer.Option(
             help="Write or update the camera in this rig file.")] = None,
+        view: Annotated[str | None, typer.Option(
+            "--view", help="Show each view's decoded dots and the image coverage on a web "
+                           "page at [HOST:]PORT as the views are taken (a bare port: this "
+                           "computer only); it closes when the command ends.")] = None,
+        report: Annotated[Path | None, typer.Option(
+            "--report", help="Write a one-page HTML report: figures, each view's dots over "
+                             "the image, the distortion plot.")] = None,
         plot: Annotated[Path | None, typer.Option(help="Write the distortion plot (PNG).")]
         = None,
         json_path: Annotated[Path | None, typer.Option(
@@ -168,18 +179,29 @@ def register(app: typer.Typer) -> None:
         """Calibrate one camera's intrinsics (focal lengths, principal point, distortion)."""
         _check_modes(display, images, sim, camera, views, samples)
         pixel_pitch = parse_pixel_pitch(pixel_pitch_text)
+        page = None  # viser stops its server at exit, whichever way the command ends
+        if view is not None:
+            from calibkit.commands.coverage_view import IntrinsicView, parse_view
+
+            page = IntrinsicView(*parse_view(view))
+            print(f"views at {page.url}")
         if sim:
             _sim_command(sim_rig, cameras, volume, size, seed, camera, views, fill, render,
                          noise_px, latency_ms, noise, pixel_pitch, step, shifts, radius,
-                         raster, samples, estimate_skew, fix_k3, rig, json_path, plot)
+                         raster, samples, estimate_skew, fix_k3, rig, json_path, plot, report,
+                         page)
+            if page is not None:
+                page.close()
             return
         dot_radius_m = 0.0
         if images is not None:
             target_views, img_size = _board_views(images, board)
+            if page is not None:
+                page.show(camera, img_size, target_views, len(target_views))
         else:
             target_views, img_size, pitch = _monitor_views(
                 device, camera, monitor, pixel_pitch, views, step, shifts, radius, raster,
-                samples)
+                samples, page)
             dot_radius_m = radius * pitch / 1000.0
         result = calibrate(target_views, img_size, camera, fix_skew=not estimate_skew,
                            fix_k3=fix_k3, dot_radius_m=dot_radius_m)
@@ -194,11 +216,23 @@ def register(app: typer.Typer) -> None:
             write_bytes_atomic(plot, distortion_plot_png(result, uv))
         if json_path is not None:
             write_json(json_path, figures)
+        if report is not None:
+            _write_report(report, [(camera, result, list(target_views))])
+        if page is not None:
+            page.close()
+
+
+def _write_report(path: Path, cameras: list) -> None:
+    from calibkit.calibrate.html_report import intrinsic_page, write_page
+
+    write_page(path, intrinsic_page(cameras))
+    print(f"report written to {path}")
 
 
 def _sim_command(sim_rig, cameras, volume, size, seed, camera, views, fill, render, noise_px,
                  latency_ms, noise, pixel_pitch, step, shifts, radius, raster, samples,
-                 estimate_skew, fix_k3, rig, json_path, plot) -> None:
+                 estimate_skew, fix_k3, rig, json_path, plot, report=None,
+                 page=None) -> None:
     """--sim: one camera of the simulated rig (or all of them) calibrated from simulated
     monitor views. The estimate sees only the captured dots; the truth goes to
     NAME.truth.toml beside --rig and to the figures, for scoring."""
@@ -216,6 +250,8 @@ def _sim_command(sim_rig, cameras, volume, size, seed, camera, views, fill, rend
             run, views, fill, render, noise_px, samples, not estimate_skew, fix_k3, radius,
             rig, Progress, _say)):
         done.append(cam)
+        if page is not None:  # a simulated camera's views come all at once
+            page.show(cam.name, cam.result.camera.size, cam.views, views)
         if len(run.names) == 1:
             _report(cam.result)
             e = intrinsic_sim.truth_error(cam.result, cam.truth)
@@ -236,6 +272,8 @@ def _sim_command(sim_rig, cameras, volume, size, seed, camera, views, fill, rend
         write_bytes_atomic(plot, distortion_plot_png(done[0].result, uv))
     if json_path is not None:
         write_json(json_path, intrinsic_sim.figures(done, render, noise_px))
+    if report is not None:
+        _write_report(report, [(r.name, r.result, list(r.views)) for r in done])
 
 
 def _sim_summary(done) -> None:

@@ -12,6 +12,7 @@ import typer
 from calibkit.calibrate import wand_pipeline as pipeline
 from calibkit.calibrate.wand import WandSpec
 from calibkit.clitools import Progress, parse_floats, print_table, write_json
+from calibkit.commands import coverage_view
 from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
 from calibkit.core.recording import load_observations
@@ -94,6 +95,13 @@ def register(app: typer.Typer) -> None:
             "--json", help="Write the figures as JSON.")] = None,
         plots: Annotated[bool, typer.Option(
             "--plots/--no-plots", help="Write NAME.layout.png and NAME.residuals.png.")] = True,
+        view: Annotated[str | None, typer.Option(
+            "--view", help="Live and --sim: show each camera's coverage filling in on a web "
+                           "page at [HOST:]PORT (a bare port: this computer only).")]
+        = None,
+        report_path: Annotated[Path | None, typer.Option(
+            "--report", help="The report page to write (one self-contained HTML file; "
+                             "default NAME.report.html beside the rig file).")] = None,
         cameras: Annotated[int | None, typer.Option(
             "--cameras", help="--sim without --sim-rig: cameras (default: as many as the "
                               "--intrinsics/--rig file has).")] = None,
@@ -112,11 +120,18 @@ def register(app: typer.Typer) -> None:
             raise UserError(f"--holdout must be in [0, 0.9), got {holdout}")
         targets = pipeline.CaptureTargets(min_samples, min_coverage)
         _check_sources(source, use_sim, camera, intrinsics, rig_path, dots, floor_rec)
+        if view is not None and source is not None:
+            raise UserError("--view shows a capture's coverage as it fills; --from reads a "
+                            "recording that is already made")
+        view_at = coverage_view.parse_view(view) if view is not None else None
+        page = report_path or out.with_name(out.stem + ".report.html")
+        if not page.resolve().parent.is_dir():
+            raise UserError(f"--report: the folder {page.parent} does not exist")
         extra = pipeline.dots_extra(dots) if dots is not None else None
         initial = Rig.load(rig_path) if rig_path is not None else None
         intr = initial or (Rig.load(intrinsics) if intrinsics is not None else None)
         intr_path = rig_path or intrinsics
-        world, run = None, None
+        world, run, coverage = None, None, None
         if use_sim:
             from calibkit.synthetic import wand_sim
 
@@ -135,9 +150,15 @@ def register(app: typer.Typer) -> None:
             obs, _ = load_observations(source, intr)
         else:
             capture_path = save_capture or out.with_name(out.stem + ".capture.mcrec")
+            monitor = pipeline.new_monitor(intr, targets)
+            progress = Progress("capture", frames if run else None)
+            if view_at is not None:
+                coverage = coverage_view.CoverageView(*view_at, monitor)
+                typer.echo(f"coverage at {coverage.url}", err=True)
+                progress = coverage_view.ViewProgress(progress, coverage, monitor)
             obs, monitor = pipeline.record_capture(
                 batches, spec, intr, targets, capture_path, wand_sim.FPS if run else None,
-                Progress("capture", frames if run else None))
+                progress, monitor)
             _print_capture(monitor, capture_path)
         if floor_rec is not None:
             world = pipeline.world_from_floor(floor_rec, intr, floor_kind, spec)
@@ -155,12 +176,18 @@ def register(app: typer.Typer) -> None:
                         extra=extra, target_views=views)
         progress.finish(f"{cal.report['solve']['time_s']:.1f} s in the solver")
         pipeline.write_outputs(cal, out, plots)
+        from calibkit.calibrate.html_report import write_wand_report
+
+        write_wand_report(page, cal, out, plots)
         if run is not None:
             run.truth.save(truth_rig_path(out))
         _print(cal.report)
         if json_path is not None:
             write_json(json_path, cal.report)
-        typer.echo(f"wrote {out}" + (f" (true rig in {truth_rig_path(out)})" if run else ""))
+        typer.echo(f"wrote {out}" + (f" (true rig in {truth_rig_path(out)})" if run else "")
+                   + f" and the report {page}")
+        if coverage is not None:
+            coverage.close()
 
 
 def _print(report: dict) -> None:

@@ -27,9 +27,13 @@ def register(app: typer.Typer) -> None:
                    f"{lat['median_ms'] or 0:.2f} ms, p99 {lat['p99_ms'] or 0:.2f} ms, "
                    f"{st['bodies_tracked']} of {len(st['bodies'])} bodies tracked, "
                    f"scheduling {st.get('scheduling', '?')}")
+        detects = any("threshold" in c for c in st["cameras"])  # [[camera]] tables
         print_table([[c["name"], "yes" if c["connected"] else "NO", round(c["rate_hz"], 1),
-                      c["frames"], c["dropped"]] for c in st["cameras"]],
-                    ["camera", "connected", "fps", "frames", "dropped"])
+                      c["frames"], c["dropped"]]
+                     + ([c.get("threshold", "-"), Path(c["mask"]).name if c.get("mask")
+                         else "-"] if detects else []) for c in st["cameras"]],
+                    ["camera", "connected", "fps", "frames", "dropped"]
+                    + (["threshold", "mask"] if detects else []))
         if st["outputs"]:
             print_table([[o["name"], "yes" if o["connected"] else "no", o["sent"], o["dropped"],
                           o["last_error"] or "-"] for o in st["outputs"]],

@@ -72,6 +72,7 @@ class LiveView:
         self.trails: dict[int, deque] = {}
         self.body_frames: dict[int, object] = {}
         self.thumbs: list = []
+        self.masks: dict = {}
         self.cam_md: list = []
         self.frames_drawn = 0
         self.thumbs_drawn = 0
@@ -146,10 +147,27 @@ class LiveView:
         """The rig's scene and the page's panels, once; the body list again after a reload."""
         first = self.desc is None
         self.desc = desc
+        self.masks = self._load_masks(desc)
         if first:
             self._build_scene(desc["rig"])
             self._build_gui(desc)
+        else:
+            self.detection.fill()
         self._build_bodies(desc["bodies"])
+
+    @staticmethod
+    def _load_masks(desc: dict) -> dict:
+        """camera name -> its detection mask (bool), drawn in blue on its thumbnail."""
+        from calibkit.vision.masks import load_mask
+
+        out = {}
+        for name, c in desc["cameras"].items():
+            if c.get("mask"):
+                try:
+                    out[name] = load_mask(c["mask"])
+                except Exception as exc:  # noqa: BLE001 - a mask the daemon refused too
+                    log.warning("mask of %s: %s", name, exc)
+        return out
 
     def _build_scene(self, rig) -> None:
         sc = self.server.scene
@@ -167,7 +185,8 @@ class LiveView:
         empty = np.zeros((1, 3), np.float32)
         self.clouds = {k: sc.add_point_cloud(f"/markers/{k}", empty, c, point_size=0.05
                                              if k == "picked" else 0.035,
-                                             point_shape="circle", visible=False)
+                                             point_shape="circle", precision="float32",
+                                             visible=False)
                        for k, c in COLOURS.items()}
         self.sticks = sc.add_line_segments("/markers/sticks", np.zeros((1, 2, 3), np.float32),
                                            COLOURS["labelled"], thickness=0.006,
@@ -198,6 +217,10 @@ class LiveView:
                 self.thumbs.append(gui.add_image(blank, label=cam.name, format="jpeg",
                                                  jpeg_quality=75))
                 self.cam_md.append(gui.add_markdown(f"`{cam.name}`: waiting"))
+        with tabs.add_tab("Detection", icon="adjustments"):
+            from daemon.view.detection_panel import DetectionPanel
+
+            self.detection = DetectionPanel(gui, self)
         bodies = tabs.add_tab("Bodies", icon="cube")
         with bodies:
             self.bodies_md = gui.add_markdown("no rigid bodies")
@@ -214,9 +237,9 @@ class LiveView:
             remove = gui.add_button("Remove", color="red")
             self.message = gui.add_markdown("")
         clear.on_click(lambda _: self._set_picked(set()))
-        create.on_click(lambda _: self._edit(self._create))
-        rename.on_click(lambda _: self._edit(self._rename))
-        remove.on_click(lambda _: self._edit(self._remove))
+        create.on_click(lambda _: self.run_edit(self._create, self.message))
+        rename.on_click(lambda _: self.run_edit(self._rename, self.message))
+        remove.on_click(lambda _: self.run_edit(self._remove, self.message))
 
     def _build_bodies(self, bodies: list) -> None:
         for handle in self.body_frames.values():
@@ -292,7 +315,8 @@ class LiveView:
         for c, cam in enumerate(rig):
             uv, area = self.blobs.get(c, (np.zeros((0, 2)), np.zeros(0)))
             t = thr.get(cam.name, {}).get("threshold")
-            self.thumbs[c].image = draw.thumbnail(cam.size, uv, area, threshold=t)
+            self.thumbs[c].image = draw.thumbnail(cam.size, uv, area, threshold=t,
+                                                  mask=self.masks.get(cam.name))
         self.thumbs_drawn += 1
 
     def draw_figures(self) -> None:
@@ -323,9 +347,11 @@ class LiveView:
             if s is None:
                 self.cam_md[c].content = f"`{cam.name}`: {n} blobs"
             else:
+                det = "" if "threshold" not in s else (
+                    f", threshold {s['threshold']}" + (", masked" if s.get("mask") else ""))
                 self.cam_md[c].content = (
                     f"`{cam.name}`: {s['rate_hz']:.0f} fps, {s['dropped']} dropped, "
-                    f"{n} blobs" + ("" if s["connected"] else ", **disconnected**"))
+                    f"{n} blobs{det}" + ("" if s["connected"] else ", **disconnected**"))
 
     # ---- picking and editing ----------------------------------------------------------------
 
@@ -354,29 +380,30 @@ class LiveView:
                                    event.screen_min, event.screen_max)
         self._set_picked(self.picked | {int(i) for i in ids[inside]})
 
-    def _edit(self, action) -> None:
-        """Body edits run on a thread of their own (a creation watches 30 frames) and one at
-        a time; their outcome, or the user's error, is written under the buttons."""
+    def run_edit(self, action, message) -> None:
+        """Edits of the configuration run on a thread of their own (a body's creation
+        watches 30 frames) and one at a time, then the daemon reloads; their outcome, or
+        the user's error, is written in `message` (a markdown under the buttons)."""
         from calibkit.core.errors import UserError
 
         def run():
             if not self._busy.acquire(blocking=False):
-                self.message.content = "busy with the last request"
+                message.content = "busy with the last request"
                 return
             try:
-                self.message.content = action() + "; the daemon is reloading"
+                message.content = action() + "; the daemon is reloading"
                 from daemon.service import request
 
                 request(self.desc["runtime_dir"], {"cmd": "reload"})
             except UserError as exc:
-                self.message.content = f"**not done**: {exc}"
+                message.content = f"**not done**: {exc}"
             except Exception as exc:  # noqa: BLE001 - the page must say, not die
-                log.exception("body edit failed")
-                self.message.content = f"**failed**: {exc}"
+                log.exception("edit failed")
+                message.content = f"**failed**: {exc}"
             finally:
                 self._busy.release()
 
-        self.message.content = "working..."
+        message.content = "working..."
         threading.Thread(target=run, name="view-edit", daemon=True).start()
 
     def _create(self) -> str:

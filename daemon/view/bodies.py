@@ -15,15 +15,13 @@ import re
 from pathlib import Path
 
 import numpy as np
-import tomllib
 
 from calibkit.core.errors import UserError
-from calibkit.core.fileio import write_text_atomic
 from daemon.commands.rigid_cmd import append_body, body_from_markers, capture_snapshots
-from daemon.config import load_config, parse_config
+from daemon.config import load_config
 from daemon.rigid_define import body_from_snapshots
+from daemon.view import tomledit
 
-HEADER = re.compile(r"^\[\[?\s*[A-Za-z0-9_.\-\" ]+\s*\]\]?\s*(#.*)?$")
 NAME_LINE = re.compile(r"^(\s*name\s*=\s*)(\"[^\"]*\"|'[^']*')(.*)$")
 
 
@@ -61,44 +59,22 @@ def add_picked(config, name: str, picked, ask, frames: int = 30) -> tuple[int, i
     return body_id, len(free)
 
 
-def _segments(text: str) -> list[tuple[str, list[str]]]:
-    """The file's lines cut at table headers: (header or "" for the top, lines)."""
-    out: list[tuple[str, list[str]]] = [("", [])]
-    for line in text.splitlines(keepends=True):
-        if HEADER.match(line.rstrip("\r\n")):
-            out.append((line.strip(), [line]))
-        else:
-            out[-1][1].append(line)
-    return out
-
-
 def _body_segment(text: str, name: str) -> tuple[list, int]:
-    segs = _segments(text)
-    for k, (head, lines) in enumerate(segs):
-        if head.replace(" ", "").startswith("[[rigid_body]]"):
-            try:
-                table = tomllib.loads("".join(lines[1:]))
-            except tomllib.TOMLDecodeError:
-                continue
-            if table.get("name") == name:
-                return segs, k
-    raise UserError(f"no rigid body called {name!r} in the configuration")
+    segs = tomledit.segments(text)
+    return segs, tomledit.find_table(segs, "rigid_body", name, "rigid body")
 
 
 def _write_checked(path: Path, old_text: str, new_text: str, expect) -> None:
-    """Write new_text only if it parses to the old configuration changed as `expect` says
-    (a function of the old body list): nothing else may have moved."""
-    old = tomllib.loads(old_text)
-    new = tomllib.loads(new_text)
-    want = dict(old)
-    want["rigid_body"] = expect(old.get("rigid_body", []))
-    if not want["rigid_body"]:
-        del want["rigid_body"]
-    if new != want:
-        raise UserError(f"{path}: could not edit the rigid body's table in place; edit the "
-                        "file by hand")
-    parse_config(new, path, path.parent)
-    write_text_atomic(path, new_text)
+    """Write new_text only if it parses to the old configuration with its body list changed
+    as `expect` (a function of the old body list) says: nothing else may have moved."""
+    def want(old: dict) -> dict:
+        out = dict(old)
+        out["rigid_body"] = expect(old.get("rigid_body", []))
+        if not out["rigid_body"]:
+            del out["rigid_body"]
+        return out
+
+    tomledit.write_checked(path, old_text, new_text, want)
 
 
 def remove_body(config, name: str) -> None:

@@ -92,9 +92,24 @@ def describe(daemon) -> dict:
             "bodies": [(int(b.id), b.name) for b in daemon.pipeline.rigid.bodies],
             "runtime_dir": str(cfg.runtime_dir or default_runtime_dir()),
             "config": None if cfg.path is None else str(cfg.path),
-            "cameras": {c.name: {"threshold": c.threshold} for c in cfg.cameras},
+            "cameras": {c.name: {"threshold": c.threshold, "min_area": c.min_area,
+                                 "max_area": c.max_area,
+                                 "mask": None if c.mask is None else str(c.mask)}
+                        for c in cfg.cameras},
             "simulated": cfg.sim is not None, "sticks": sticks,
             "fps": cfg.sim.fps if cfg.sim is not None else cfg.fps}
+
+
+def _mask_times(cameras) -> tuple:
+    """When each camera's mask file last changed: a mask redrawn under the same name is a
+    change the view shows too."""
+    out = []
+    for c in cameras:
+        try:
+            out.append(c.mask.stat().st_mtime_ns if c.mask is not None else 0)
+        except OSError:
+            out.append(-1)
+    return tuple(out)
 
 
 class ViewLink:
@@ -155,8 +170,9 @@ class ViewLink:
         last = None
         while not self._stop.wait(period):
             d = self._daemon
-            key = (tuple(b.name for b in d.pipeline.rigid.bodies), str(d.config.path))
-            if key != self._described:  # a reload changed the bodies: tell the view
+            key = (tuple(b.name for b in d.pipeline.rigid.bodies), str(d.config.path),
+                   d.config.cameras, _mask_times(d.config.cameras))
+            if key != self._described:  # a reload changed bodies or detection: tell the view
                 self._described = key
                 if not self._send({"setup": describe(d)}):
                     return
