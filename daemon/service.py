@@ -68,7 +68,9 @@ LEARNED_BODIES = "sim-bodies.toml"  # where (in the runtime directory) they are 
 # ---- systemd notify --------------------------------------------------------------------------
 
 def sd_notify(message: str) -> bool:
-    """Send one notify message; False when not under systemd (no NOTIFY_SOCKET)."""
+    """Send one notify message; False when not under systemd (no NOTIFY_SOCKET), or when
+    the socket would block: the frame loop sends its status every second and must never
+    wait for a manager that stopped reading."""
     address = os.environ.get("NOTIFY_SOCKET")
     if not address:
         return False
@@ -77,7 +79,7 @@ def sd_notify(message: str) -> bool:
     try:
         with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as s:
             s.connect(address)
-            s.sendall(message.encode())
+            s.send(message.encode(), socket.MSG_DONTWAIT)
         return True
     except OSError as exc:
         log.debug("sd_notify failed: %s", exc)

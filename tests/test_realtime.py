@@ -91,3 +91,25 @@ def test_a_live_run_tracks_real_time_reports_its_stages_and_returns_normal(tmp_p
     assert 0 < st["compute"]["median_ms"] < st["total"]["median_ms"]
     # the simulated cameras deliver 0.1-0.5 ms after capture
     assert 0.1 <= st["delivery"]["median_ms"] <= 5
+
+
+def test_a_notify_socket_nobody_reads_never_blocks_the_frame_loop(tmp_path, monkeypatch):
+    """sd_notify runs on the frame loop every second: when the manager stops reading and
+    the socket's queue fills, the message is dropped, not waited for."""
+    import socket
+    import time
+
+    from daemon.service import sd_notify
+
+    path = tmp_path / "notify"
+    rx = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    rx.bind(str(path))
+    monkeypatch.setenv("NOTIFY_SOCKET", str(path))
+    try:
+        started = time.monotonic()
+        sent = [sd_notify(f"STATUS={i} fps" + "x" * 200) for i in range(2000)]
+        took = time.monotonic() - started
+    finally:
+        rx.close()
+    assert sent[0] and not sent[-1]  # the first went, the queue filled and later ones dropped
+    assert took < 2.0  # a blocking send would hang here for good
