@@ -15,6 +15,7 @@ COMMAND_MODULES = (
     "markerset_cmd",
     "evaluate_cmd",
     "track_cmd",
+    "node_cmd",
 )
 
 app = build_app("mocapd", "Track markers and rigid bodies with a calibrated rig and serve "

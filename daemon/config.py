@@ -172,6 +172,7 @@ class Config:
     natnet: NatnetOut | None = None
     vrpn: tuple[VrpnOut, ...] = ()
     markerset: Path | None = None  # the marker set markers are labelled with live
+    zenoh: object | None = None  # [zenoh]: capture nodes and poses (daemon.nodes.settings)
 
 
 class _Where:
@@ -299,7 +300,8 @@ def parse_config(data: dict, path: Path | None = None, base: Path | None = None)
     """A Config from parsed TOML; relative paths are taken from `base` (the file's folder)."""
     w = _Where(path)
     top = {"rig", "runtime_dir", "markerset", "pipeline", "tracker", "rigid", "sim",
-           "rigid_body", "udp", "serial", "mavlink", "natnet", "vrpn", "camera", "replay"}
+           "rigid_body", "udp", "serial", "mavlink", "natnet", "vrpn", "camera", "replay",
+           "zenoh"}
     _check_keys(w, data, top, "")
     base = base or Path.cwd()
     cfg = Config(path=path)
@@ -350,6 +352,10 @@ def parse_config(data: dict, path: Path | None = None, base: Path | None = None)
                                           "body's id; the marker set needs an id of its own")
     changes["vrpn"] = tuple(_vrpn(w, t, f"vrpn[{i}].")
                             for i, t in enumerate(_list(w, data, "vrpn")))
+    if "zenoh" in data or any(c.source.startswith("zenoh:") for c in changes["cameras"]):
+        from daemon.nodes.settings import parse_daemon_zenoh
+
+        changes["zenoh"] = parse_daemon_zenoh(w, _table(w, data, "zenoh"))
     return replace(cfg, **changes)
 
 

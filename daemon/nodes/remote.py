@@ -1,0 +1,292 @@
+"""The daemon's side of the nodes: remote cameras whose blobs come over Zenoh.
+
+One NodeHub per daemon holds the Zenoh session: it pings the nodes for their clocks
+(daemon.nodes.clock), hears their announcements, and files every blobs message under its
+camera, its times mapped to the daemon's clock. Each remote camera is then read by a
+capture thread like any local one (RemoteCamera), so the multiplexer pairs, drops and
+re-joins it unchanged: a camera whose node has died goes silent and its open() fails after
+`timeout_ms`; a node that restarts (a new boot id) makes it fail at once, so the capture
+thread reopens it and the multiplexer starts its clock afresh; a node whose frames come
+later than `max_lag_ms` after it took them is behind, and its cameras are dropped until
+it catches up. Zenoh's callbacks only decode and queue (a bounded queue per camera, the
+oldest dropped): nothing the network does can hold up the frame loop.
+
+A sample's `arrival_ns` is when the node got the frame, mapped to the daemon's clock: the
+multiplexer's per-camera clock model (daemon.clocks) then learns the camera's clock
+against the node's arrivals (a USB or GigE transfer, tight), not against the network's
+jitter; what the node -> daemon hop adds is counted here, per node.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections import deque
+
+import numpy as np
+
+from calibkit.core.errors import UserError
+from daemon.nodes import wire
+from daemon.nodes.clock import NodeClock
+from daemon.nodes.session import all_blobs_key, check_name, ping_key
+from daemon.nodes.settings import DaemonZenoh, is_remote
+from daemon.sources import CameraSample
+
+log = logging.getLogger("mocapd.nodes")
+PING_HZ = 20.0
+QUEUE = 64  # samples waiting per camera (a quarter second at 240 fps)
+NODE_SILENT_S = 3.0  # a node not heard (announcements, pongs) for this long is gone
+
+
+class _Camera:
+    """A remote camera's queue and figures (filled on Zenoh's threads)."""
+
+    def __init__(self, name: str, index: int) -> None:
+        self.name, self.index = name, index
+        self.queue: deque = deque(maxlen=QUEUE)
+        self.cond = threading.Condition()
+        self.overflow = 0
+        self.node = ""  # the node last heard serving it
+        self.boot = -1
+
+
+class _Node:
+    """What the daemon knows of one node process (by its boot id)."""
+
+    def __init__(self, name: str, boot: int) -> None:
+        self.name, self.boot = name, boot
+        self.clock = NodeClock()
+        self.cameras: list[str] = []
+        self.last_heard = time.monotonic()
+        self.samples = 0
+        self.waiting_clock = 0  # samples that came before its clock was known
+        self.late = 0  # samples later than max_lag_ms
+        self.hop_ns: deque = deque(maxlen=4096)  # node arrival -> daemon has it, ns
+        self.lag_ns = 0  # the latest sample's node arrival -> daemon
+
+
+class NodeHub:
+    """The daemon's Zenoh session and every remote camera's samples (see the module)."""
+
+    def __init__(self, settings: DaemonZenoh, rig_names: list[str], remote: dict) -> None:
+        """`remote`: the node's name of each remote camera (its key) -> the rig's name."""
+        self.settings = settings
+        self.rig = settings.session.rig
+        self.cameras = {k: _Camera(n, rig_names.index(n)) for k, n in remote.items()}
+        self.nodes: dict[int, _Node] = {}  # by boot id
+        self.restarts: dict[str, int] = {}  # node name -> times it came back with a new boot
+        self.lock = threading.Lock()
+        self.session = None
+        self.unknown = 0  # blobs of cameras the daemon does not take
+        self.bad = 0  # messages that failed to decode
+        self.records: deque = deque(maxlen=200_000)  # (boot, node arrival, daemon has it)
+        self._stop = threading.Event()
+        self._seq = 0
+
+    # ---- lifecycle ---------------------------------------------------------------------------
+
+    def start(self) -> None:
+        import zenoh
+
+        s = self.settings.session
+        self.session = s.open()
+        self._ping = self.session.declare_publisher(
+            ping_key(self.rig), express=True, congestion_control=zenoh.CongestionControl.DROP,
+            priority=zenoh.Priority.REAL_TIME)
+        self._subs = [
+            self.session.declare_subscriber(all_blobs_key(self.rig), self._on_blobs),
+            self.session.declare_subscriber(f"mocap/{self.rig}/_nodes/*/clock", self._on_pong),
+            self.session.declare_subscriber(f"mocap/{self.rig}/_nodes/*/announce",
+                                            self._on_announce)]
+        self._pinger = threading.Thread(target=self._ping_loop, name="node-clocks",
+                                        daemon=True)
+        self._pinger.start()
+        log.info("zenoh: %d remote cameras on mocap/%s/ (%s)", len(self.cameras), self.rig,
+                 ", ".join(s.listen + s.connect))
+
+    def close(self) -> None:
+        self._stop.set()
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+
+    def _ping_loop(self) -> None:
+        while not self._stop.wait(1.0 / PING_HZ):
+            self._seq += 1
+            try:
+                self._ping.put(wire.encode_ping(self._seq, time.monotonic_ns()))
+            except Exception as exc:  # noqa: BLE001 - a closing session
+                log.debug("ping: %s", exc)
+
+    # ---- Zenoh's callbacks -------------------------------------------------------------------
+
+    def _node(self, name: str, boot: int) -> _Node:
+        node = self.nodes.get(boot)
+        if node is None:
+            with self.lock:
+                node = self.nodes.get(boot)
+                if node is None:
+                    old = [n for n in self.nodes.values() if n.name == name]
+                    if old:
+                        self.restarts[name] = self.restarts.get(name, 0) + 1
+                        log.warning("node %s restarted (boot %08x)", name, boot)
+                        for o in old:
+                            del self.nodes[o.boot]
+                    else:
+                        log.info("node %s joined (boot %08x)", name, boot)
+                    node = self.nodes[boot] = _Node(name, boot)
+        node.last_heard = time.monotonic()
+        return node
+
+    def _on_pong(self, sample) -> None:
+        t4 = time.monotonic_ns()
+        try:
+            boot, _, t1, t2, t3 = wire.decode_pong(sample.payload.to_bytes())
+        except wire.WireError:
+            self.bad += 1
+            return
+        name = str(sample.key_expr).split("/")[-2]
+        self._node(name, boot).clock.add(t1, t2, t3, t4)
+
+    def _on_announce(self, sample) -> None:
+        try:
+            msg = json.loads(sample.payload.to_bytes())
+            node = self._node(str(msg["node"]), int(msg["boot"]))
+            node.cameras = [str(c) for c in msg["cameras"]]
+        except (ValueError, KeyError, TypeError):
+            self.bad += 1
+
+    def _on_blobs(self, sample) -> None:
+        got = time.monotonic_ns()
+        name = str(sample.key_expr).split("/")[-2]
+        cam = self.cameras.get(name)
+        if cam is None:
+            self.unknown += 1
+            return
+        try:
+            m = wire.decode_blobs(sample.payload.to_bytes())
+        except wire.WireError:
+            self.bad += 1
+            return
+        node = self.nodes.get(m.boot)
+        if node is None or not node.clock.ready:
+            if node is not None:
+                node.waiting_clock += 1
+            return
+        node.samples += 1
+        to_daemon = node.clock.to_daemon
+        arrival = to_daemon(m.arrival_ns)
+        s = CameraSample(cam.index, m.index, to_daemon(m.t_ns), arrival, m.uv, m.area,
+                         m.peak, m.device_time_ns, m.device_frame_id)
+        with cam.cond:
+            if len(cam.queue) == cam.queue.maxlen:
+                cam.overflow += 1
+            cam.queue.append((s, node, m.arrival_ns, got))
+            cam.cond.notify()
+
+    # ---- figures -----------------------------------------------------------------------------
+
+    def status(self) -> list[dict]:
+        """Per node: its cameras, clock (offset, drift, round trip) and hop latency."""
+        now = time.monotonic()
+        out = []
+        for node in list(self.nodes.values()):
+            hop = np.asarray(node.hop_ns, dtype=np.float64) * 1e-6
+            st = node.clock.status()
+            out.append({
+                "name": node.name, "boot": f"{node.boot:08x}",
+                "alive": now - node.last_heard < NODE_SILENT_S,
+                "cameras": node.cameras, "restarts": self.restarts.get(node.name, 0),
+                "offset_ms": st["offset_ms"], "drift_ppm": st["drift_ppm"],
+                "rtt_ms": st["rtt_ms"], "rtt_min_ms": st["rtt_min_ms"],
+                "clock_exchanges": st["exchanges"], "samples": node.samples,
+                "late": node.late, "waiting_for_clock": node.waiting_clock,
+                "lag_ms": node.lag_ns * 1e-6,
+                "hop_median_ms": float(np.median(hop)) if len(hop) else None,
+                "hop_p99_ms": float(np.percentile(hop, 99)) if len(hop) else None})
+        return sorted(out, key=lambda n: n["name"])
+
+    def sources(self) -> list[RemoteCamera]:
+        """A capture source for every remote camera, in the rig's order."""
+        return sorted((RemoteCamera(self, k) for k in self.cameras), key=lambda s: s.camera)
+
+
+def make_hub(cfg, rig_names: list[str]) -> NodeHub | None:
+    """The daemon's hub for a configuration with [zenoh] (None without): the cameras whose
+    source is "zenoh:<camera>", and with `cameras = "announced"` every rig camera that has
+    no [[camera]] table (with [sim]: every simulated camera not served that way)."""
+    if cfg.zenoh is None:
+        return None
+    where = f"{cfg.path}: " if cfg.path else ""
+    if cfg.sim is not None and not cfg.sim.realtime:
+        raise UserError(f"{where}zenoh: cameras served by nodes run in real time; drop --fast")
+    remote = {}
+    for cam in cfg.cameras:
+        if not is_remote(cam.source):
+            continue
+        if cam.name not in rig_names:
+            raise UserError(f"{where}camera {cam.name!r} is not in the rig "
+                            f"({', '.join(rig_names)})")
+        key = cam.source.partition(":")[2] or cam.name
+        try:
+            check_name(key, "camera")
+        except ValueError as exc:
+            raise UserError(f"{where}camera {cam.name!r}: source: {exc}") from None
+        remote[key] = cam.name
+    if cfg.zenoh.cameras == "announced":
+        configured = set() if cfg.sim is not None else {c.name for c in cfg.cameras}
+        configured |= set(remote.values())
+        remote.update({n: n for n in rig_names if n not in configured})
+    return NodeHub(cfg.zenoh, rig_names, remote)
+
+
+class RemoteCamera:
+    """A camera served by a node, as a capture thread reads it (see the module docstring)."""
+
+    def __init__(self, hub: NodeHub, key: str) -> None:
+        self.hub, self.key = hub, key
+        self.cam = hub.cameras[key]
+        self.name, self.camera = self.cam.name, self.cam.index
+        self.timeout_ns = int(hub.settings.timeout_ms * 1e6)
+        self.max_lag_ns = int(hub.settings.max_lag_ms * 1e6)
+
+    def open(self):
+        cam, hub = self.cam, self.hub
+        with cam.cond:
+            cam.queue.clear()  # what came while it was closed is stale
+        boot = None
+        last_good = time.monotonic_ns()
+        while True:
+            with cam.cond:
+                while not cam.queue:
+                    now = time.monotonic_ns()
+                    if now - last_good >= self.timeout_ns:
+                        self._fail(boot, "no blobs", now - last_good)
+                    cam.cond.wait((self.timeout_ns - (now - last_good)) * 1e-9 + 1e-4)
+                s, node, node_arrival, _got = cam.queue.popleft()
+            if boot is None:
+                boot = node.boot
+                cam.node, cam.boot = node.name, boot
+            elif node.boot != boot:  # the node restarted: reopen on its new clock
+                with cam.cond:
+                    cam.queue.appendleft((s, node, node_arrival, _got))
+                raise OSError(f"node {node.name} restarted")
+            has = time.monotonic_ns()
+            lag = has - s.arrival_ns
+            node.lag_ns = lag
+            if lag > self.max_lag_ns:
+                node.late += 1
+                if has - last_good >= self.timeout_ns:
+                    self._fail(boot, "only late blobs", has - last_good,
+                               f" ({lag * 1e-6:.0f} ms behind)")
+                continue
+            last_good = has
+            node.hop_ns.append(lag)
+            hub.records.append((node.boot, node_arrival, has))
+            yield s
+
+    def _fail(self, boot, what: str, for_ns: int, extra: str = "") -> None:
+        node = self.cam.node or "no node"
+        raise OSError(f"{what} from {node} for {for_ns * 1e-6:.0f} ms{extra}")
