@@ -21,7 +21,8 @@ ROOT = Path(__file__).resolve().parents[1]
 # test modules that start mocapd and time what it does live
 LIVE_DAEMON_MODULES = {"test_daemon_e2e", "test_daemon_pipeline", "test_live_label",
                        "test_mavlink", "test_natnet", "test_natnet_protocol", "test_vrpn",
-                       "test_logs", "test_daemon_config", "test_examples"}
+                       "test_logs", "test_daemon_config", "test_examples", "test_nodes",
+                       "test_nodes_link"}
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -47,9 +47,10 @@ def register(app: typer.Typer) -> None:
         """Open cameras, detect blobs and publish them over Zenoh to a mocapd elsewhere."""
         from daemon.config import SimConfig
         from daemon.logs import setup_logging
-        from daemon.nodes.node import Node, NodeTime, live_sources, sim_sources
+        from daemon.nodes.node import Node, NodeTime, live_sources
         from daemon.nodes.session import ZenohSettings, check_endpoint, check_name
         from daemon.nodes.settings import load_node_config, parse_camera_list
+        from daemon.synthetic.node_sim import sim_sources
 
         setup_logging(verbose)
         cfg = load_node_config(config)

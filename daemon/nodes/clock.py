@@ -102,6 +102,7 @@ class NodeClock:
         fit = self.fit
         return {"exchanges": self._n, "ready": fit is not None,
                 "offset_ms": None if fit is None else fit[0] * 1e-6,
+                "at_ns": None if fit is None else fit[2],  # the daemon time of offset_ms
                 "drift_ppm": None if fit is None else fit[1] * 1e6,
                 "rtt_ms": float(np.median(rtt)) * 1e-6 if n else None,
                 "rtt_min_ms": float(rtt.min()) * 1e-6 if n else None}

@@ -8,12 +8,9 @@ clock pings and announces its cameras once a second. Publishing never blocks: a 
 the link cannot take is dropped (Zenoh's CongestionControl.DROP), so a slow link costs
 frames, never the cameras' pace.
 
-With `--sim` the node serves cameras of the simulated rig (daemon.synthetic): the same
-scene, seed and cameras as the daemon's [sim] makes, taken on one trigger grid (trigger 0
-at the machine's monotonic zero), so nodes started at different moments on one machine
-still take their frames together. The node's clock can be given an offset and a drift
-against the machine's, so the daemon's clock estimate has work to do; the simulator's
-truth stays in this process.
+With `--sim` the node serves cameras of the simulated rig (daemon.synthetic.node_sim), on
+a clock (NodeTime) that can be given an offset and a drift against the machine's, so the
+daemon's clock estimate has work to do.
 """
 
 from __future__ import annotations
@@ -144,23 +141,6 @@ class Node:
         if self.session is not None:
             self.session.close()
             self.session = None
-
-
-def sim_sources(cfg: NodeConfig):
-    """The simulated cameras this node serves, on the shared trigger grid."""
-    from daemon.synthetic.scene import SimCamera, SimScene
-
-    if cfg.sim is None:
-        raise UserError("--sim needs the simulated rig: a [sim] table in node.toml, or "
-                        "--sim-cameras")
-    scene = SimScene(cfg.sim)
-    names = scene.rig.names
-    serve = cfg.sim_cameras or tuple(names)
-    unknown = [c for c in serve if c not in names]
-    if unknown:
-        raise UserError(f"node_sim.cameras: {', '.join(unknown)} not in the simulated rig "
-                        f"({', '.join(names)})")
-    return [SimCamera(scene, names.index(c), 0) for c in serve]
 
 
 def live_sources(cfg: NodeConfig):
