@@ -257,8 +257,11 @@ def test_a_killed_node_is_dropped_and_its_cameras_rejoin_within_2_s_of_its_resta
         time.sleep(1.0)
         b.kill()
         b.wait(10)
+        killed = time.monotonic()
         assert d.wait_for(lambda dm: not any(cameras_live(dm, [n]) for n in names[4:]),
                           5.0), "node b's cameras were not dropped"
+        assert time.monotonic() - killed < 1.0
+        first_dead = time.monotonic()
         frames_a = {c.name: c.frames for c in d.daemon.captures}
         mux = d.daemon.mux
         sets_before = mux.last_index
@@ -266,8 +269,13 @@ def test_a_killed_node_is_dropped_and_its_cameras_rejoin_within_2_s_of_its_resta
         assert all(c.frames > frames_a[c.name] + 150 for c in d.daemon.captures
                    if c.name in names[:4]), "node a's cameras stalled"
         assert mux.last_index > sets_before + 150, "the frame loop stalled"
+        old = {n.boot for n in d.daemon.hub.nodes.values() if n.name == "b"}
+        assert d.wait_for(lambda dm: not {n["name"]: n for n in dm.hub.status()}["b"]["alive"],
+                          5.0), "node b was not reported gone"
+        assert time.monotonic() - first_dead < 4.0
         b2 = start_node("b", rig, ep, "4-7", -2.0, -20.0, seconds=60)
-        assert d.wait_for(lambda dm: any(n.name == "b" for n in dm.hub.nodes.values()), 30)
+        assert d.wait_for(lambda dm: any(n.name == "b" and n.boot not in old
+                                         for n in dm.hub.nodes.values()), 30)
         first = time.monotonic()
         assert d.wait_for(lambda dm: cameras_live(dm, names[4:]), 10.0)
         back = time.monotonic()
