@@ -23,8 +23,8 @@ import threading
 
 import numpy as np
 
-WINDOW = 200  # exchanges remembered (10 s at the daemon's 20 Hz)
-KEEP = 0.5  # the fraction of them, shortest round trips first, that the fit believes
+WINDOW = 400  # exchanges remembered (20 s at the daemon's 20 Hz)
+KEEP = 0.25  # the fraction of them, shortest round trips first, that the fit believes
 READY = 8  # exchanges before a node's times are mapped at all
 DRIFT_SPAN_NS = 2_000_000_000  # the drift is fitted once the exchanges span this long
 MAX_DRIFT = 1e-3  # 1000 ppm: beyond that no crystal, a clock being stepped

@@ -102,7 +102,13 @@ class Node:
             "frames": [c.frames for c in self.captures]}))
 
     def start(self) -> None:
+        import sys
+
         import zenoh
+
+        # a clock ping waits for the interpreter's lock before it is stamped; the default
+        # 5 ms switch interval would let a busy capture thread add that to one leg only
+        sys.setswitchinterval(1e-4)
 
         rig = self.cfg.session.rig
         self.session = self.cfg.session.open()

@@ -88,8 +88,15 @@ class NodeHub:
     # ---- lifecycle ---------------------------------------------------------------------------
 
     def start(self) -> None:
+        import sys
+
         import zenoh
 
+        # a clock exchange is stamped by Python on both ends: a thread stamping t1 or t4
+        # that then waits out the interpreter's 5 ms switch interval behind the frame loop
+        # makes one leg of the exchange longer than the other (an offset error of tens of
+        # us on a busy daemon); a short interval keeps the wait to a fraction of that
+        sys.setswitchinterval(min(sys.getswitchinterval(), 1e-4))
         s = self.settings.session
         self.session = s.open()
         self._ping = self.session.declare_publisher(
