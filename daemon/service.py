@@ -583,7 +583,9 @@ class Daemon:
             sources = [remote.get(c) or kind(scene, c, 0 if remote and kind is SimCamera else t0)
                        for c in range(len(self.rig))]
             fps = scene.fps
-        self.captures = [CaptureThread(src, None) for src in sources]
+        # a camera served by a node is its own capture (daemon.nodes.remote.RemoteCapture)
+        self.captures = [src if hasattr(src, "deliver") else CaptureThread(src, None)
+                         for src in sources]
         index = {src.camera: k for k, src in enumerate(sources)}  # rig camera -> thread
         n = len(self.rig)
         grace_ns = t0 + OPEN_GRACE_NS

@@ -1,15 +1,16 @@
 """The daemon's side of the nodes: remote cameras whose blobs come over Zenoh.
 
 One NodeHub per daemon holds the Zenoh session: it pings the nodes for their clocks
-(daemon.nodes.clock), hears their announcements, and files every blobs message under its
-camera, its times mapped to the daemon's clock. Each remote camera is then read by a
-capture thread like any local one (RemoteCamera), so the multiplexer pairs, drops and
-re-joins it unchanged: a camera whose node has died goes silent and its open() fails after
-`timeout_ms`; a node that restarts (a new boot id) makes it fail at once, so the capture
-thread reopens it and the multiplexer starts its clock afresh; a node whose frames come
-later than `max_lag_ms` after it took them is behind, and its cameras are dropped until
-it catches up. Zenoh's callbacks only decode and queue (a bounded queue per camera, the
-oldest dropped): nothing the network does can hold up the frame loop.
+(daemon.nodes.clock), hears their announcements, and hands every blobs message, its times
+mapped to the daemon's clock, to its camera's capture (RemoteCapture), which pushes it to
+the multiplexer as a local camera's capture thread does: the multiplexer pairs, drops and
+re-joins it unchanged. A camera whose node has died goes silent and the hub's watchdog
+drops it after `timeout_ms`; a node that restarts (a new boot id) ends the camera's
+session at its first message, and the multiplexer starts the camera's clock afresh; a node
+whose frames come more than `max_lag_ms` after it got them is behind: those frames are
+dropped, and a camera with only late frames for `timeout_ms` is dropped until it catches
+up. Zenoh's callbacks do no more than decode and push (the multiplexer's push never
+waits for the frame loop): nothing the network does can hold up the frame loop.
 
 A sample's `arrival_ns` is when the node got the frame, mapped to the daemon's clock: the
 multiplexer's per-camera clock model (daemon.clocks) then learns the camera's clock
@@ -36,18 +37,16 @@ from daemon.sources import CameraSample
 
 log = logging.getLogger("mocapd.nodes")
 PING_HZ = 20.0
-QUEUE = 64  # samples waiting per camera (a quarter second at 240 fps)
+WATCH_HZ = 100.0  # how often silent cameras are looked for
 NODE_SILENT_S = 3.0  # a node not heard (announcements, pongs) for this long is gone
 
 
 class _Camera:
-    """A remote camera's queue and figures (filled on Zenoh's threads)."""
+    """A remote camera: where its samples go (its capture, while the daemon runs)."""
 
     def __init__(self, name: str, index: int) -> None:
         self.name, self.index = name, index
-        self.queue: deque = deque(maxlen=QUEUE)
-        self.cond = threading.Condition()
-        self.overflow = 0
+        self.capture: RemoteCapture | None = None
         self.node = ""  # the node last heard serving it
         self.boot = -1
 
@@ -84,6 +83,7 @@ class NodeHub:
         self.records: deque = deque(maxlen=200_000)  # (boot, node arrival, daemon has it)
         self._stop = threading.Event()
         self._seq = 0
+        self._captures: list[RemoteCapture] | None = None
 
     # ---- lifecycle ---------------------------------------------------------------------------
 
@@ -120,7 +120,15 @@ class NodeHub:
             self.session = None
 
     def _ping_loop(self) -> None:
-        while not self._stop.wait(1.0 / PING_HZ):
+        """Clock pings at PING_HZ, and the remote cameras' watchdog at WATCH_HZ."""
+        k = 0
+        while not self._stop.wait(1.0 / WATCH_HZ):
+            now = time.monotonic_ns()
+            for cap in self._captures or ():
+                cap.check(now)
+            k += 1
+            if k % round(WATCH_HZ / PING_HZ):
+                continue
             self._seq += 1
             try:
                 self._ping.put(wire.encode_ping(self._seq, time.monotonic_ns()))
@@ -166,7 +174,6 @@ class NodeHub:
             self.bad += 1
 
     def _on_blobs(self, sample) -> None:
-        got = time.monotonic_ns()
         name = str(sample.key_expr).split("/")[-2]
         cam = self.cameras.get(name)
         if cam is None:
@@ -183,15 +190,13 @@ class NodeHub:
                 node.waiting_clock += 1
             return
         node.samples += 1
+        cap = cam.capture
+        if cap is None:
+            return
         to_daemon = node.clock.to_daemon
-        arrival = to_daemon(m.arrival_ns)
-        s = CameraSample(cam.index, m.index, to_daemon(m.t_ns), arrival, m.uv, m.area,
-                         m.peak, m.device_time_ns, m.device_frame_id)
-        with cam.cond:
-            if len(cam.queue) == cam.queue.maxlen:
-                cam.overflow += 1
-            cam.queue.append((s, node, m.arrival_ns, got))
-            cam.cond.notify()
+        cap.deliver(CameraSample(cam.index, m.index, to_daemon(m.t_ns), to_daemon(m.arrival_ns),
+                                 m.uv, m.area, m.peak, m.device_time_ns, m.device_frame_id),
+                    node, m.arrival_ns)
 
     # ---- figures -----------------------------------------------------------------------------
 
@@ -216,9 +221,13 @@ class NodeHub:
                 "hop_p99_ms": float(np.percentile(hop, 99)) if len(hop) else None})
         return sorted(out, key=lambda n: n["name"])
 
-    def sources(self) -> list[RemoteCamera]:
-        """A capture source for every remote camera, in the rig's order."""
-        return sorted((RemoteCamera(self, k) for k in self.cameras), key=lambda s: s.camera)
+    def sources(self) -> list[RemoteCapture]:
+        """A capture for every remote camera, in the rig's order (made once: each is the
+        camera's capture for the daemon's run)."""
+        if self._captures is None:
+            self._captures = sorted((RemoteCapture(self, k) for k in self.cameras),
+                                    key=lambda s: s.camera)
+        return self._captures
 
 
 def make_hub(cfg, rig_names: list[str]) -> NodeHub | None:
@@ -250,51 +259,104 @@ def make_hub(cfg, rig_names: list[str]) -> NodeHub | None:
     return NodeHub(cfg.zenoh, rig_names, remote)
 
 
-class RemoteCamera:
-    """A camera served by a node, as a capture thread reads it (see the module docstring)."""
+class _HubAlive:
+    """What the frame loop asks of a capture's thread: alive while the hub runs."""
+
+    def __init__(self, hub: NodeHub) -> None:
+        self.hub = hub
+
+    def is_alive(self) -> bool:
+        return not self.hub._stop.is_set()
+
+
+class RemoteCapture:
+    """A camera served by a node, in the daemon's capture-thread shape (see the module).
+
+    It has no thread of its own: a second thread per camera, woken for every frame, cost
+    the daemon's interpreter as much as the rest of a sample's way and added its wake-up
+    to every frame's latency. Zenoh's callback hands each sample to the multiplexer
+    itself, and the hub's watchdog drops a camera that has gone silent. To the daemon it
+    looks like daemon.pipeline.CaptureThread: `push` and `on_open` (called before the
+    first sample of every session, so the multiplexer starts the camera's clock afresh),
+    `connected`, `frames`, `failures`, `rate_hz()`."""
 
     def __init__(self, hub: NodeHub, key: str) -> None:
         self.hub, self.key = hub, key
         self.cam = hub.cameras[key]
         self.name, self.camera = self.cam.name, self.cam.index
+        self.source = self  # the daemon finds a capture's camera as capture.source.camera
+        self.thread = _HubAlive(hub)
         self.timeout_ns = int(hub.settings.timeout_ms * 1e6)
         self.max_lag_ns = int(hub.settings.max_lag_ms * 1e6)
+        self.push = None
+        self.on_open = None
+        self.connected = False
+        self.frames = 0
+        self.failures = 0
+        self.last_error = ""
+        self.times: deque = deque(maxlen=256)
+        self._boot: int | None = None  # the node process of the current session
+        self._last_good = 0
+        self._lock = threading.Lock()
 
-    def open(self):
-        cam, hub = self.cam, self.hub
-        with cam.cond:
-            cam.queue.clear()  # what came while it was closed is stale
-        boot = None
-        last_good = time.monotonic_ns()
-        while True:
-            with cam.cond:
-                while not cam.queue:
-                    now = time.monotonic_ns()
-                    if now - last_good >= self.timeout_ns:
-                        self._fail(boot, "no blobs", now - last_good)
-                    cam.cond.wait((self.timeout_ns - (now - last_good)) * 1e-9 + 1e-4)
-                s, node, node_arrival, _got = cam.queue.popleft()
-            if boot is None:
-                boot = node.boot
-                cam.node, cam.boot = node.name, boot
-            elif node.boot != boot:  # the node restarted: reopen on its new clock
-                with cam.cond:
-                    cam.queue.appendleft((s, node, node_arrival, _got))
-                raise OSError(f"node {node.name} restarted")
-            has = time.monotonic_ns()
-            lag = has - s.arrival_ns
-            node.lag_ns = lag
+    # ---- the capture-thread interface ---------------------------------------------------------
+
+    def start(self) -> None:
+        self.cam.capture = self
+
+    def stop(self) -> None:
+        self.cam.capture = None
+
+    def join(self, timeout: float = 1.0) -> None:
+        pass
+
+    def rate_hz(self) -> float:
+        t = list(self.times)
+        if len(t) < 2 or time.monotonic_ns() - t[-1] > 1e9:
+            return 0.0
+        return (len(t) - 1) / max((t[-1] - t[0]) * 1e-9, 1e-9)
+
+    # ---- driven by the hub --------------------------------------------------------------------
+
+    def deliver(self, s: CameraSample, node: _Node, node_arrival: int) -> None:
+        """One sample, on Zenoh's thread: to the multiplexer unless late."""
+        has = time.monotonic_ns()
+        lag = has - s.arrival_ns
+        node.lag_ns = lag
+        with self._lock:
+            if self._boot is not None and node.boot != self._boot:
+                self._drop(f"node {node.name} restarted")
             if lag > self.max_lag_ns:
                 node.late += 1
-                if has - last_good >= self.timeout_ns:
-                    self._fail(boot, "only late blobs", has - last_good,
-                               f" ({lag * 1e-6:.0f} ms behind)")
-                continue
-            last_good = has
-            node.hop_ns.append(lag)
-            hub.records.append((node.boot, node_arrival, has))
-            yield s
+                self.last_error = f"{node.name} is {lag * 1e-6:.0f} ms behind"
+                return
+            if self._boot is None:  # a new session: the camera's clock starts again
+                self._boot = node.boot
+                self.cam.node, self.cam.boot = node.name, node.boot
+                if self.on_open is not None:
+                    self.on_open(self.camera)
+                if self.failures:
+                    log.warning("%s: reconnected (%s)", self.name, node.name)
+            self.connected = True
+            self._last_good = has
+            self.frames += 1
+            self.times.append(s.arrival_ns)
+        node.hop_ns.append(lag)
+        self.hub.records.append((node.boot, node_arrival, has))
+        self.push(s)
 
-    def _fail(self, boot, what: str, for_ns: int, extra: str = "") -> None:
-        node = self.cam.node or "no node"
-        raise OSError(f"{what} from {node} for {for_ns * 1e-6:.0f} ms{extra}")
+    def check(self, now_ns: int) -> None:
+        """The watchdog: a camera with nothing on time for timeout_ms is dropped."""
+        with self._lock:
+            if self.connected and now_ns - self._last_good >= self.timeout_ns:
+                late = self.last_error if "behind" in self.last_error else ""
+                self._drop(late or f"no blobs from {self.cam.node or 'its node'} for "
+                                   f"{(now_ns - self._last_good) * 1e-6:.0f} ms")
+
+    def _drop(self, why: str) -> None:
+        if self.connected:
+            log.warning("%s: %s; dropped until it delivers again", self.name, why)
+            self.failures += 1
+        self.connected = False
+        self.last_error = why
+        self._boot = None
