@@ -63,6 +63,7 @@ class _Node:
         self.waiting_clock = 0  # samples that came before its clock was known
         self.late = 0  # samples later than max_lag_ms
         self.hop_ns: deque = deque(maxlen=4096)  # node arrival -> daemon has it, ns
+        self.in_node_ns: deque = deque(maxlen=4096)  # of which in the node: arrival -> sent
         self.lag_ns = 0  # the latest sample's node arrival -> daemon
 
 
@@ -190,6 +191,7 @@ class NodeHub:
                 node.waiting_clock += 1
             return
         node.samples += 1
+        node.in_node_ns.append(m.sent_ns - m.arrival_ns)
         cap = cam.capture
         if cap is None:
             return
@@ -206,6 +208,7 @@ class NodeHub:
         out = []
         for node in list(self.nodes.values()):
             hop = np.asarray(node.hop_ns, dtype=np.float64) * 1e-6
+            in_node = np.asarray(node.in_node_ns, dtype=np.float64) * 1e-6
             st = node.clock.status()
             out.append({
                 "name": node.name, "boot": f"{node.boot:08x}",
@@ -218,7 +221,10 @@ class NodeHub:
                 "late": node.late, "waiting_for_clock": node.waiting_clock,
                 "lag_ms": node.lag_ns * 1e-6,
                 "hop_median_ms": float(np.median(hop)) if len(hop) else None,
-                "hop_p99_ms": float(np.percentile(hop, 99)) if len(hop) else None})
+                "hop_p99_ms": float(np.percentile(hop, 99)) if len(hop) else None,
+                "in_node_median_ms": float(np.median(in_node)) if len(in_node) else None,
+                "in_node_p99_ms": float(np.percentile(in_node, 99)) if len(in_node)
+                else None})
         return sorted(out, key=lambda n: n["name"])
 
     def sources(self) -> list[RemoteCapture]:
