@@ -320,11 +320,18 @@ def test_poses_go_out_over_zenoh_to_a_subscriber_on_another_session(tmp_path):
         sub = session.declare_subscriber(f"mocap/{rig}/bodies/*", on_pose)
         time.sleep(3.0)
         sub.undeclare()
+        shown = subprocess.run([sys.executable, "-m", "daemon.cli", "status", "--runtime-dir",
+                                str(tmp_path / "run")], cwd=ROOT, capture_output=True,
+                               text=True, timeout=60, env=dict(os.environ,
+                                                               PYTHONPATH=str(ROOT)))
         d.thread.join(30)
     finally:
         if session is not None:
             session.close()
         stop([node])
+    # `mocapd status` lists the node: alive, its 8 cameras, its clock
+    row = [ln.split() for ln in shown.stdout.splitlines() if ln.split()[:1] == ["a"]]
+    assert "drift ppm" in shown.stdout and row and row[0][1:3] == ["yes", "8"], shown.stdout
     keys = sorted(got)
     assert keys == [f"mocap/{rig}/bodies/body{i}" for i in range(3)], keys
     for msgs in got.values():
