@@ -33,9 +33,10 @@ OFFSET_MS, DRIFT_PPM = 3700.0, 50.0
 ENV = dict(os.environ, PYTHONPATH=str(ROOT))
 
 
-def start_link(listen, to, netns=None, seconds=120):
+def start_link(listen, to, netns=None, seconds=120, delay_ms=1.0, jitter_ms=0.2):
     cmd = [sys.executable, "-m", "daemon.synthetic.link", "--listen", listen, "--to", to,
-           "--delay-ms", "1", "--jitter-ms", "0.2", "--seconds", str(seconds)]
+           "--delay-ms", str(delay_ms), "--jitter-ms", str(jitter_ms), "--seconds",
+           str(seconds)]
     if netns:
         cmd = ["ip", "netns", "exec", netns, *cmd]
     return subprocess.Popen(cmd, cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL,
@@ -76,6 +77,40 @@ def test_clock_offset_within_50_us_over_a_1_ms_jittery_link_and_50_ppm_followed(
     truth = d.figures["truth"]
     for name, b in truth["bodies"].items():
         assert b["valid_fraction"] > 0.7, (name, b)
+
+
+def test_a_node_behind_a_slow_link_is_reported_late_and_nothing_else_stalls(tmp_path):
+    """Node b reaches the daemon through a link that holds each direction 300 ms: its
+    clock is still estimated (the delay is symmetric), but every frame arrives 300 ms
+    after b got it, beyond max_lag_ms (100): b is reported behind (late frames, its lag),
+    its cameras are left out of the frame sets, and node a's cameras, on loopback, are
+    tracked at the full rate."""
+    port, link_port, rig = free_port(), free_port(), "slow"
+    d = DaemonThread(tmp_path, port, rig, 14.0).start()
+    link = start_link(f"127.0.0.1:{link_port}", f"127.0.0.1:{port}", delay_ms=300,
+                      jitter_ms=0)
+    a = start_node("a", rig, f"tcp/127.0.0.1:{port}", "0-3", 5.0, 10.0, seconds=60)
+    b = start_node("b", rig, f"tcp/127.0.0.1:{link_port}", "4-7", -5.0, -10.0, seconds=60)
+    try:
+        names = [f"cam{i}" for i in range(8)]
+        assert d.wait_for(lambda dm: cameras_live(dm, names[:4]), 90)
+        assert d.wait_for(lambda dm: {n["name"]: n for n in dm.hub.status()}.get("b", {})
+                          .get("late", 0) > 200, 60), "node b's frames never came late"
+        i0, t0 = d.daemon.mux.last_index, time.monotonic()
+        time.sleep(2.0)
+        rate = (d.daemon.mux.last_index - i0) / (time.monotonic() - t0)
+        st = {n["name"]: n for n in d.daemon.hub.status()}
+        caps = {c.name: c for c in d.daemon.captures}
+        d.daemon.stop_event.set()
+        d.thread.join(30)
+    finally:
+        stop([a, b, link])
+    assert st["b"]["lag_ms"] > 250 and st["b"]["late"] > 200 and st["b"]["samples"] > 200
+    assert st["b"]["rtt_ms"] > 500  # the clock exchanges took the slow link too
+    assert st["a"]["late"] < 0.05 * st["a"]["samples"]
+    assert not any(caps[n].connected for n in names[4:])
+    assert all(caps[n].connected for n in names[:4])
+    assert rate > 200, f"the frame loop made {rate:.0f} sets a second"
 
 
 # ---- network namespaces --------------------------------------------------------------------
