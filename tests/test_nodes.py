@@ -342,3 +342,32 @@ def test_poses_go_out_over_zenoh_to_a_subscriber_on_another_session(tmp_path):
         assert all(m["markers"] >= 3 for m in valid)
     out = {o["name"]: o for o in d.figures["outputs"]}
     assert out[f"zenoh:mocap/{rig}/bodies"]["sent"] > 300
+
+
+def test_a_node_serving_a_camera_the_daemon_does_not_take_is_warned_about(tmp_path, caplog):
+    """A node announcing a camera outside the daemon's rig gets one warning naming it."""
+    import logging
+
+    from daemon.nodes.remote import NodeHub
+    from daemon.nodes.session import ZenohSettings
+    from daemon.nodes.settings import DaemonZenoh
+
+    port = free_port()
+    hub = NodeHub(DaemonZenoh(ZenohSettings("warn", (f"tcp/127.0.0.1:{port}",), ())),
+                  ["cam0", "cam1"], {"cam0": "cam0", "cam1": "cam1"})
+    hub.start()
+    node = start_node("x", "warn", f"tcp/127.0.0.1:{port}", "cam1,cam5", n_cameras=8,
+                      seconds=30)
+    try:
+        with caplog.at_level(logging.WARNING, logger="mocapd.nodes"):
+            end = time.monotonic() + 60
+            while time.monotonic() < end and "cam5" not in caplog.text:
+                time.sleep(0.1)
+            time.sleep(1.5)  # a second announcement: still one warning
+    finally:
+        stop([node])
+        hub.close()
+    warned = [r for r in caplog.records if "cam5" in r.getMessage()]
+    assert len(warned) == 1 and "node x serves camera cam5" in warned[0].getMessage()
+    assert hub.unknown > 0  # its blobs were heard and left aside
+    assert not any("cam1" in r.getMessage() for r in caplog.records)

@@ -85,6 +85,7 @@ class NodeHub:
         self._stop = threading.Event()
         self._seq = 0
         self._captures: list[RemoteCapture] | None = None
+        self._warned: set = set()
 
     # ---- lifecycle ---------------------------------------------------------------------------
 
@@ -173,6 +174,24 @@ class NodeHub:
             node.cameras = [str(c) for c in msg["cameras"]]
         except (ValueError, KeyError, TypeError):
             self.bad += 1
+            return
+        now = time.monotonic()
+        for cam in node.cameras:
+            others = [n.name for n in list(self.nodes.values()) if n is not node
+                      and n.name != node.name and cam in n.cameras
+                      and now - n.last_heard < NODE_SILENT_S]
+            if cam not in self.cameras:
+                self._warn_once(("unknown", node.name, cam),
+                                "node %s serves camera %s, which this daemon does not take "
+                                "(not in the rig, or not a zenoh: camera)", node.name, cam)
+            elif others:
+                self._warn_once(("twice", cam), "camera %s is served by nodes %s and %s: "
+                                "give each camera one node", cam, node.name, others[0])
+
+    def _warn_once(self, key, message: str, *args) -> None:
+        if key not in self._warned:
+            self._warned.add(key)
+            log.warning(message, *args)
 
     def _on_blobs(self, sample) -> None:
         name = str(sample.key_expr).split("/")[-2]
