@@ -16,6 +16,7 @@ COMMAND_MODULES = (
     "evaluate_cmd",
     "track_cmd",
     "view_cmd",
+    "node_cmd",
 )
 
 app = build_app("mocapd", "Track markers and rigid bodies with a calibrated rig and serve "

@@ -45,6 +45,15 @@ import numpy as np
 import tomllib
 
 from calibkit.core.errors import UserError
+from daemon.config_check import (
+    _bool,
+    _check_keys,
+    _list,
+    _number,
+    _string,
+    _table,
+    _Where,
+)
 from daemon.publish.mavlink import MESSAGES, WORLD_TO_NED
 from daemon.rigid import BodyDef, RigidConfig
 from daemon.tracker import TrackerConfig
@@ -176,58 +185,7 @@ class Config:
     natnet: NatnetOut | None = None
     vrpn: tuple[VrpnOut, ...] = ()
     markerset: Path | None = None  # the marker set markers are labelled with live
-
-
-class _Where:
-    """Error messages that name the file and the key."""
-
-    def __init__(self, path: Path | None) -> None:
-        self.path = path
-
-    def fail(self, key: str, problem: str):
-        where = f"{self.path}: " if self.path else ""
-        raise UserError(f"{where}{key}: {problem}")
-
-
-def _check_keys(w: _Where, table: dict, allowed, prefix: str) -> None:
-    for key in table:
-        if key not in allowed:
-            w.fail(f"{prefix}{key}", "unknown key (allowed: " + ", ".join(sorted(allowed)) + ")")
-
-
-def _number(w, table, key, prefix, default, kind=float, lo=None, hi=None):
-    if key not in table:
-        return default
-    v = table[key]
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or (kind is int and
-                                                                  not isinstance(v, int)):
-        w.fail(prefix + key, f"expected {'an integer' if kind is int else 'a number'}, "
-                             f"got {v!r}")
-    if (lo is not None and v < lo) or (hi is not None and v > hi):
-        rng = f"between {lo} and {hi}" if hi is not None else f"at least {lo}"
-        w.fail(prefix + key, f"must be {rng}, got {v}")
-    return kind(v)
-
-
-def _string(w, table, key, prefix, default=None, choices=None):
-    if key not in table:
-        if default is None:
-            w.fail(prefix + key, "missing (required)")
-        return default
-    v = table[key]
-    if not isinstance(v, str) or not v:
-        w.fail(prefix + key, f"expected a non-empty string, got {v!r}")
-    if choices and v not in choices:
-        w.fail(prefix + key, f"must be one of {', '.join(choices)}; got {v!r}")
-    return v
-
-
-def _bool(w, table, key, prefix, default):
-    if key not in table:
-        return default
-    if not isinstance(table[key], bool):
-        w.fail(prefix + key, f"expected true or false, got {table[key]!r}")
-    return table[key]
+    zenoh: object | None = None  # [zenoh]: capture nodes and poses (daemon.nodes.settings)
 
 
 def _vectors(w, table, key, prefix, rows=None):
@@ -303,7 +261,8 @@ def parse_config(data: dict, path: Path | None = None, base: Path | None = None)
     """A Config from parsed TOML; relative paths are taken from `base` (the file's folder)."""
     w = _Where(path)
     top = {"rig", "runtime_dir", "markerset", "pipeline", "tracker", "rigid", "sim",
-           "rigid_body", "udp", "serial", "mavlink", "natnet", "vrpn", "camera", "replay"}
+           "rigid_body", "udp", "serial", "mavlink", "natnet", "vrpn", "camera", "replay",
+           "zenoh"}
     _check_keys(w, data, top, "")
     base = base or Path.cwd()
     cfg = Config(path=path)
@@ -357,6 +316,10 @@ def parse_config(data: dict, path: Path | None = None, base: Path | None = None)
                                           "body's id; the marker set needs an id of its own")
     changes["vrpn"] = tuple(_vrpn(w, t, f"vrpn[{i}].")
                             for i, t in enumerate(_list(w, data, "vrpn")))
+    if "zenoh" in data or any(c.source.startswith("zenoh:") for c in changes["cameras"]):
+        from daemon.nodes.zenoh_table import parse_daemon_zenoh
+
+        changes["zenoh"] = parse_daemon_zenoh(w, _table(w, data, "zenoh"))
     return replace(cfg, **changes)
 
 
@@ -396,22 +359,6 @@ def _sim_limits(w, sim: SimConfig) -> None:
     if sim.person and not 0.3 <= sim.person_radius_m <= sim.volume_m / 2 - 0.3:
         w.fail("sim.person_radius_m", f"must be between 0.3 and {sim.volume_m / 2 - 0.3:g} "
                                       f"(inside the volume), got {sim.person_radius_m}")
-
-
-def _table(w, data, key) -> dict:
-    v = data.get(key, {})
-    if not isinstance(v, dict):
-        w.fail(key, f"expected a table [{key}], got {v!r}")
-    return v
-
-
-def _list(w, data, key) -> list:
-    v = data.get(key, [])
-    if isinstance(v, dict):
-        v = [v]
-    if not isinstance(v, list) or not all(isinstance(t, dict) for t in v):
-        w.fail(key, f"expected tables [[{key}]], got {v!r}")
-    return v
 
 
 def _bodies(w, data) -> list[BodyDef]:

@@ -30,6 +30,8 @@ from calibkit.core.errors import UserError
 from calibkit.core.fileio import write_text_atomic
 from calibkit.vision.gates import correspondence_config, rig_residual, tracker_gates
 from daemon.config import Config, default_runtime_dir, load_config, parse_config
+from daemon.nodes.remote import make_hub
+from daemon.nodes.zenoh_table import is_remote
 from daemon.pipeline import (
     CaptureThread,
     FrameSet,
@@ -218,10 +220,11 @@ def _paced(cfg: Config) -> bool:
     return cfg.replay.realtime if cfg.replay is not None else True
 
 
-def make_publishers(config: Config, bodies=(), markerset=None, control=None) -> list:
+def make_publishers(config: Config, bodies=(), markerset=None, control=None, hub=None) -> list:
     """The configured outputs; `bodies` (BodyDef) name the trackers NatNet and VRPN serve,
     `markerset` (the live MarkerSet, if any) the labelled markers NatNet describes,
-    `control` (Daemon.handle) is how NatNet's StartRecording records."""
+    `control` (Daemon.handle) is how NatNet's StartRecording records, `hub` (the nodes'
+    Zenoh session) is where the poses go out over Zenoh."""
     pubs = []
     fps = config.sim.fps if config.sim is not None else config.fps
     for u in config.udp:
@@ -249,6 +252,10 @@ def make_publishers(config: Config, bodies=(), markerset=None, control=None) -> 
     for v in config.vrpn:
         pubs.append(VrpnPublisher(bodies, v.host, v.port, v.rate_hz, v.udp,
                                   name=f"vrpn:{v.host}:{v.port}"))
+    if hub is not None and config.zenoh.poses:
+        from daemon.publish.zenoh_poses import ZenohPosePublisher
+
+        pubs.append(ZenohPosePublisher(hub, bodies))
     return pubs
 
 
@@ -288,6 +295,7 @@ class Daemon:
         self._truth_rig = truth_rig
         self.control: ControlServer | None = None
         self.view = None  # the live web view (daemon.view.link.ViewLink), when asked for
+        self.hub = None  # capture nodes over Zenoh (daemon.nodes.remote), with [zenoh]
 
     @staticmethod
     def _rig(config: Config) -> Rig | None:
@@ -309,13 +317,17 @@ class Daemon:
         self.live_sources = None
         self.evaluator = None
         if cfg.sim is not None:
-            self.scene = SimScene(cfg.sim, self.rig, self._truth_rig, n_frames)
+            # nodes make the scene at its default length (n_frames shapes the motion):
+            # the daemon's must be the same one to score them
+            self.scene = SimScene(cfg.sim, self.rig, self._truth_rig,
+                                  n_frames if cfg.zenoh is None else None)
             self.rig = self.scene.rig
         elif cfg.replay is not None:
             self.scene = ReplayScene(cfg.replay.path, self.rig)
-        elif cfg.cameras:
+        self.hub = make_hub(cfg, self.rig.names)
+        if self.scene is None and (cfg.cameras or self.hub is not None):
             self.live_sources = self._cameras(cfg)
-        else:
+        elif self.scene is None:
             where = f"{cfg.path}: " if cfg.path else ""
             raise UserError(f"{where}camera: no input; add [[camera]] tables, a [replay] "
                             "recording, or use --sim")
@@ -324,16 +336,18 @@ class Daemon:
         self._warn_alike(bodies)
         if cfg.sim is not None and cfg.sim.score:  # against the scene's bodies, by shape
             # greedy sets mix instants by design (moved to one time): not checked
+            # (the ledger of cameras served by nodes is in the nodes: instants not checked)
             self.evaluator = Evaluator(self.scene, bodies=bodies,
-                                       check_instants=cfg.mode == "triggered"
-                                       or not cfg.sim.realtime)
+                                       check_instants=(cfg.mode == "triggered"
+                                                       or not cfg.sim.realtime)
+                                       and not (self.hub and self.hub.cameras))
         self.labelling, self._markerset_key = self._labeller(cfg), self._set_key(cfg)
         # with the simulated person: the labelled markers scored against its truth
         self.label_score = (LabelScore(self.scene) if getattr(self.scene, "person_labels", None)
                             else None)
         # the scorers read results only: run while the frame loop waits for a set
         scorers = [h for h in (self.evaluator, self.label_score) if h is not None]
-        publishers = make_publishers(cfg, bodies, self._markerset(), self.handle)
+        publishers = make_publishers(cfg, bodies, self._markerset(), self.handle, self.hub)
         self.pipeline = Pipeline(self.rig, self.tracker_config, cfg.rigid, bodies,
                                  publishers, labeller=self.labelling, idle_hooks=scorers)
         self._warm_up()
@@ -343,6 +357,8 @@ class Daemon:
         if self._learned is not None:
             log.info("%s", self._learn_note)
             self._write_learned(runtime)
+        if self.hub is not None:
+            self.hub.start()
         for p in self.pipeline.publishers:
             p.start()
         if self.view is not None:  # its own process, fed the newest result per hook call
@@ -376,6 +392,8 @@ class Daemon:
         names = self.rig.names
         out = []
         for cam in cfg.cameras:
+            if is_remote(cam.source):
+                continue  # served by a node: the hub's
             if cam.name not in names:
                 raise UserError(f"{cfg.path}: camera {cam.name!r} is not in the rig "
                                 f"({', '.join(names)})")
@@ -386,6 +404,7 @@ class Daemon:
             out.append(DetectCamera(cam.name, names.index(cam.name), cam.source,
                                     self._detector(cam), cam.fps,
                                     device_stamps=cam.timestamps == "device"))
+        out += self.hub.sources() if self.hub is not None else []
         if not out:
             raise UserError("no camera can be opened (see the messages above)")
         return out
@@ -434,7 +453,8 @@ class Daemon:
             image = np.full((64, 64), 10, np.uint8)
             image[30:34, 30:34] = 200
             for src in self.live_sources:
-                detect(image, src.detector)
+                if hasattr(src, "detector"):
+                    detect(image, src.detector)
             match_frame(self.rig, np.arange(len(self.rig)), np.zeros((len(self.rig), 2)) + 100.0)
             return
         samples = [self.scene.sample(c, 0, 0) for c in range(len(self.rig))]
@@ -595,9 +615,15 @@ class Daemon:
             sources, fps = self.live_sources, cfg.fps
         else:
             kind = ReplayCamera if isinstance(scene, ReplayScene) else SimCamera
-            sources = [kind(scene, c, t0) for c in range(len(self.rig))]
+            # cameras served by nodes take the simulated rig's frames on one trigger grid
+            # from the machine's monotonic zero (daemon.nodes.node); the local ones join it
+            remote = {s.camera: s for s in self.hub.sources()} if self.hub else {}
+            sources = [remote.get(c) or kind(scene, c, 0 if remote and kind is SimCamera else t0)
+                       for c in range(len(self.rig))]
             fps = scene.fps
-        self.captures = [CaptureThread(src, None) for src in sources]
+        # a camera served by a node is its own capture (daemon.nodes.remote.RemoteCapture)
+        self.captures = [src if hasattr(src, "deliver") else CaptureThread(src, None)
+                         for src in sources]
         index = {src.camera: k for k, src in enumerate(sources)}  # rig camera -> thread
         n = len(self.rig)
         grace_ns = t0 + OPEN_GRACE_NS
@@ -687,7 +713,7 @@ class Daemon:
             self.evaluator.set_bodies(bodies)
         try:
             publishers = make_publishers(new, bodies, labelling.ms if labelling else None,
-                                         self.handle)
+                                         self.handle, self.hub)
         except UserError as exc:
             log.error("reload failed, keeping the running configuration: %s", exc)
             if labelling is not self.labelling and labelling is not None:
@@ -726,6 +752,8 @@ class Daemon:
             self.control.close()
         if self.view is not None:
             self.view.close()
+        if self.hub is not None:
+            self.hub.close()
         if threading.current_thread() is threading.main_thread():
             self.restore_signals()
 
@@ -828,6 +856,7 @@ class Daemon:
             "recording": str(self.recorder.path) if self.recorder else None,
             "labelling": None if self.labelling is None else self.labelling.status(),
             "multiplexer": self.mux_stats(),
+            "nodes": self.hub.status() if self.hub is not None else None,
         }
 
     def figures(self) -> dict:
@@ -854,6 +883,8 @@ class Daemon:
             out["latency_stages"] = latency_stage_figures(st.stage_ns, skip=int(fps))
         if self.mux_stats():
             out["multiplexer"] = self.mux_stats()
+        if self.hub is not None:
+            out["nodes"] = self.hub.status()
         if self.evaluator is not None:
             out["truth"] = self.evaluator.figures()
             out["truth"]["tracking_rig"] = self.tracking_rig_note()

@@ -21,7 +21,8 @@ ROOT = Path(__file__).resolve().parents[1]
 # test modules that start mocapd and time what it does live
 LIVE_DAEMON_MODULES = {"test_daemon_e2e", "test_daemon_pipeline", "test_live_label",
                        "test_mavlink", "test_natnet", "test_natnet_protocol", "test_vrpn",
-                       "test_logs", "test_daemon_config", "test_examples"}
+                       "test_logs", "test_daemon_config", "test_examples", "test_nodes",
+                       "test_nodes_link"}
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -35,6 +36,20 @@ def _daemon_kernels_compiled(request):
         subprocess.run([sys.executable, "-m", "daemon.cli", "build-kernels", "--quiet"],
                        cwd=ROOT, capture_output=True, timeout=900, check=True,
                        env=dict(os.environ, PYTHONPATH=str(ROOT)))
+
+
+@pytest.fixture(autouse=True)
+def _mocapd_logger_restored():
+    """An in-process `mocapd start` points the "mocapd" logger at that test's captured
+    stderr and stops it propagating (daemon.logs.setup_logging): put it back after each
+    test, so later tests' caplog sees the daemon's records and nothing writes to a closed
+    capture."""
+    import logging
+
+    logger = logging.getLogger("mocapd")
+    saved = (list(logger.handlers), logger.propagate, logger.level)
+    yield
+    logger.handlers[:], logger.propagate, logger.level = saved[0], saved[1], saved[2]
 
 
 @dataclass

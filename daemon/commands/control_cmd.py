@@ -34,6 +34,15 @@ def register(app: typer.Typer) -> None:
                          else "-"] if detects else []) for c in st["cameras"]],
                     ["camera", "connected", "fps", "frames", "dropped"]
                     + (["threshold", "mask"] if detects else []))
+        if st.get("nodes"):  # capture nodes over Zenoh: their clocks and what they add
+            print_table([[n["name"], "yes" if n["alive"] else "NO", len(n["cameras"]),
+                          "-" if n["offset_ms"] is None else f"{n['offset_ms']:.3f}",
+                          "-" if n["drift_ppm"] is None else f"{n['drift_ppm']:.1f}",
+                          "-" if n["rtt_ms"] is None else f"{n['rtt_ms']:.2f}",
+                          "-" if n["hop_median_ms"] is None else f"{n['hop_median_ms']:.2f}",
+                          n["late"], n["restarts"]] for n in st["nodes"]],
+                        ["node", "alive", "cameras", "offset ms", "drift ppm", "rtt ms",
+                         "hop ms", "late", "restarts"])
         if st["outputs"]:
             print_table([[o["name"], "yes" if o["connected"] else "no", o["sent"], o["dropped"],
                           o["last_error"] or "-"] for o in st["outputs"]],

@@ -1,0 +1,96 @@
+"""`mocapd node`: a capture node that publishes its cameras' blobs over Zenoh."""
+
+from __future__ import annotations
+
+import signal
+from dataclasses import replace
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from calibkit.core.errors import UserError
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("node")
+    def node(
+        config: Annotated[Path | None, typer.Option(
+            "--config", "-c", help="node.toml: name, [zenoh], [[camera]], [sim], [node_sim] "
+                                   "(docs/nodes.md).")] = None,
+        sim: Annotated[bool, typer.Option("--sim", help="Serve cameras of the simulated "
+                                                        "rig.")] = False,
+        name: Annotated[str | None, typer.Option("--name", help="The node's name.")] = None,
+        rig: Annotated[str | None, typer.Option(
+            "--rig", help="Key prefix: mocap/RIG/... (the daemon's [zenoh] rig).")] = None,
+        connect: Annotated[list[str] | None, typer.Option(
+            "--connect", help="Zenoh endpoint of the daemon, e.g. tcp/192.168.1.10:7447 "
+                              "(repeatable).")] = None,
+        listen: Annotated[list[str] | None, typer.Option(
+            "--listen", help="Zenoh endpoint to listen on (repeatable).")] = None,
+        cameras: Annotated[str | None, typer.Option(
+            "--cameras", help="--sim: the rig's cameras this node serves: names or indices, "
+                              "e.g. 0-7 or cam0,cam3.")] = None,
+        sim_cameras: Annotated[int | None, typer.Option(
+            "--sim-cameras", help="--sim: cameras in the simulated rig.")] = None,
+        sim_fps: Annotated[float | None, typer.Option("--sim-fps")] = None,
+        sim_bodies: Annotated[int | None, typer.Option("--sim-bodies")] = None,
+        seed: Annotated[int | None, typer.Option("--seed")] = None,
+        clock_offset_ms: Annotated[float | None, typer.Option(
+            "--clock-offset-ms", help="--sim: the node's clock against this machine's.")] = None,
+        clock_drift_ppm: Annotated[float | None, typer.Option(
+            "--clock-drift-ppm", help="--sim: how fast the node's clock runs.")] = None,
+        duration: Annotated[float | None, typer.Option(
+            "--duration", help="Stop after this many seconds.")] = None,
+        verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Debug log.")] = False,
+    ) -> None:
+        """Open cameras, detect blobs and publish them over Zenoh to a mocapd elsewhere."""
+        from daemon.config import SimConfig
+        from daemon.logs import setup_logging
+        from daemon.nodes.node import Node, NodeTime, live_sources
+        from daemon.nodes.session import ZenohSettings, check_endpoint, check_name
+        from daemon.nodes.settings import load_node_config, parse_camera_list
+        from daemon.synthetic.node_sim import sim_sources
+
+        setup_logging(verbose)
+        cfg = load_node_config(config)
+        try:
+            if name is not None:
+                cfg = replace(cfg, name=check_name(name, "--name"))
+            s = cfg.session
+            if rig is not None or connect or listen:
+                s = ZenohSettings(check_name(rig, "--rig") if rig is not None else s.rig,
+                                  tuple(check_endpoint(e) for e in listen) if listen
+                                  else s.listen,
+                                  tuple(check_endpoint(e) for e in connect) if connect
+                                  else s.connect, s.multicast_scouting)
+            cfg = replace(cfg, session=s)
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
+        clock = NodeTime()
+        if sim:
+            sc = cfg.sim or SimConfig()
+            sc = replace(sc, **{k: v for k, v in (("cameras", sim_cameras), ("fps", sim_fps),
+                                                  ("bodies", sim_bodies), ("seed", seed))
+                                if v is not None})
+            if not 2 <= sc.cameras <= 32:
+                raise UserError(f"--sim-cameras must be between 2 and 32, got {sc.cameras}")
+            cfg = replace(cfg, sim=sc)
+            if cameras is not None:
+                try:
+                    cfg = replace(cfg, sim_cameras=parse_camera_list(
+                        cameras, [f"cam{i}" for i in range(sc.cameras)]))
+                except ValueError as exc:
+                    raise UserError(f"--cameras: {exc}") from None
+            offset = cfg.clock_offset_ms if clock_offset_ms is None else clock_offset_ms
+            drift = cfg.clock_drift_ppm if clock_drift_ppm is None else clock_drift_ppm
+            if abs(drift) > 1000:
+                raise UserError(f"--clock-drift-ppm must be within +-1000, got {drift}")
+            clock = NodeTime(round(offset * 1e6), drift)
+            sources = sim_sources(cfg)
+        else:
+            sources = live_sources(cfg)
+        n = Node(cfg, sources, clock)
+        signal.signal(signal.SIGTERM, lambda *_: n.stop_event.set())
+        signal.signal(signal.SIGINT, lambda *_: n.stop_event.set())
+        n.run(duration)

@@ -1,0 +1,1 @@
+"""Capture nodes on other machines: blobs and clocks over Zenoh (docs/nodes.md)."""

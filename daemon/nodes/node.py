@@ -1,0 +1,180 @@
+"""A capture node: opens its cameras, detects blobs and publishes them over Zenoh.
+
+Each camera runs on a capture thread as in the daemon (daemon.pipeline.CaptureThread: a
+camera that fails is reopened), with the daemon's detector and per-camera settings
+(daemon.sources.DetectCamera). Every frame's blobs go out at once, one message per camera
+frame, stamped on the node's clock (daemon.nodes.wire); the node answers the daemon's
+clock pings and announces its cameras once a second. Publishing never blocks: a message
+the link cannot take is dropped (Zenoh's CongestionControl.DROP), so a slow link costs
+frames, never the cameras' pace.
+
+With `--sim` the node serves cameras of the simulated rig (daemon.synthetic.node_sim), on
+a clock (NodeTime) that can be given an offset and a drift against the machine's, so the
+daemon's clock estimate has work to do.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import random
+import threading
+import time
+
+from calibkit.core.errors import UserError
+from daemon.nodes import wire
+from daemon.nodes.session import announce_key, blobs_key, ping_key, pong_key
+from daemon.nodes.settings import NodeConfig
+from daemon.pipeline import CaptureThread
+from daemon.realtime import raise_priority, restore_normal
+
+log = logging.getLogger("mocapd.node")
+ANNOUNCE_S = 1.0
+
+
+class NodeTime:
+    """The node's clock: the machine's monotonic clock, or (--sim) that clock with an
+    offset and a drift, as a second computer's would be."""
+
+    def __init__(self, offset_ns: int = 0, drift_ppm: float = 0.0) -> None:
+        self.offset_ns, self.rate = int(offset_ns), 1.0 + drift_ppm * 1e-6
+
+    def of(self, mono_ns: int) -> int:
+        """The node-clock time of machine time `mono_ns`."""
+        if self.rate == 1.0:
+            return mono_ns + self.offset_ns
+        return round(mono_ns * self.rate) + self.offset_ns
+
+    def now(self) -> int:
+        return self.of(time.monotonic_ns())
+
+
+class CapturePublisher:
+    """Pushes one camera's samples out as blobs messages (called on its capture thread)."""
+
+    def __init__(self, session, key: str, boot: int, clock: NodeTime) -> None:
+        import zenoh
+
+        self.pub = session.declare_publisher(
+            key, express=True, congestion_control=zenoh.CongestionControl.DROP,
+            priority=zenoh.Priority.INTERACTIVE_HIGH)
+        self.boot, self.clock = boot, clock
+        self.seq = 0
+        self.sent = 0
+
+    def __call__(self, s) -> None:
+        of = self.clock.of
+        data = wire.encode_blobs(self.boot, self.seq, s.index, of(s.t_ns), of(s.arrival_ns),
+                                 self.clock.now(), s.device_time_ns, s.device_frame_id, s.uv,
+                                 s.area, s.peak)
+        self.seq += 1
+        self.pub.put(data)
+        self.sent += 1
+
+
+class Node:
+    """The node's session, capture threads, clock answers and announcements."""
+
+    def __init__(self, cfg: NodeConfig, sources, clock: NodeTime | None = None) -> None:
+        self.cfg, self.sources = cfg, list(sources)
+        self.clock = clock or NodeTime()
+        self.boot = random.SystemRandom().getrandbits(32)
+        self.scheduling = "normal"  # what its threads run at, once started (daemon.realtime)
+        self.stop_event = threading.Event()
+        self.captures: list[CaptureThread] = []
+        self.session = None
+        self.pings = 0
+
+    def _on_ping(self, sample) -> None:
+        t2 = self.clock.now()
+        try:
+            seq, t1 = wire.decode_ping(sample.payload.to_bytes())
+        except wire.WireError:
+            return
+        self.pings += 1
+        self._pong.put(wire.encode_pong(self.boot, seq, t1, t2, self.clock.now()))
+
+    def _announce(self) -> None:
+        rig = self.cfg.session.rig
+        self.session.put(announce_key(rig, self.cfg.name), json.dumps({
+            "node": self.cfg.name, "boot": self.boot, "pid": os.getpid(),
+            "scheduling": self.scheduling,
+            "cameras": [s.name for s in self.sources],
+            "connected": [c.connected for c in self.captures],
+            "frames": [c.frames for c in self.captures]}))
+
+    def start(self) -> None:
+        import sys
+
+        import zenoh
+
+        # a clock ping waits for the interpreter's lock before it is stamped; the default
+        # 5 ms switch interval would let a busy capture thread add that to one leg only
+        sys.setswitchinterval(1e-4)
+        # ahead of ordinary work, as the daemon's threads (daemon.realtime): before the
+        # session and the capture threads start, so that theirs inherit it
+        self.scheduling = raise_priority(self.cfg.realtime_priority)
+
+        rig = self.cfg.session.rig
+        self.session = self.cfg.session.open()
+        self._pong = self.session.declare_publisher(
+            pong_key(rig, self.cfg.name), express=True,
+            congestion_control=zenoh.CongestionControl.DROP,
+            priority=zenoh.Priority.REAL_TIME)
+        self._ping_sub = self.session.declare_subscriber(ping_key(rig), self._on_ping)
+        for src in self.sources:
+            push = CapturePublisher(self.session, blobs_key(rig, src.name), self.boot,
+                                    self.clock)
+            self.captures.append(CaptureThread(src, push))
+        for cap in self.captures:
+            cap.start()
+        log.info("node %s (boot %08x): %d cameras on mocap/%s/ (%s)", self.cfg.name,
+                 self.boot, len(self.sources), rig,
+                 ", ".join(self.cfg.session.connect + self.cfg.session.listen))
+
+    def run(self, duration_s: float | None = None) -> None:
+        self.start()
+        end = None if duration_s is None else time.monotonic() + duration_s
+        try:
+            while not self.stop_event.is_set():
+                self._announce()
+                wait = ANNOUNCE_S if end is None else min(ANNOUNCE_S, end - time.monotonic())
+                if wait <= 0 or self.stop_event.wait(wait):
+                    break
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        for cap in self.captures:
+            cap.stop()
+        for cap in self.captures:
+            cap.join(0.5)
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+        restore_normal()
+
+
+def live_sources(cfg: NodeConfig):
+    """The node's own cameras, with the daemon's detector and per-camera settings."""
+    from calibkit.vision.detect import DetectorConfig
+    from daemon.sources import DetectCamera, missing_plugins
+
+    if not cfg.cameras:
+        where = f"{cfg.path}: " if cfg.path else ""
+        raise UserError(f"{where}camera: the node has no cameras; add [[camera]] tables or "
+                        "use --sim")
+    out = []
+    for i, cam in enumerate(cfg.cameras):
+        missing = missing_plugins([cam.source.partition(":")[0]])
+        if missing:
+            log.error("%s: skipped: plugin %s is not installed", cam.name, missing[0])
+            continue
+        det = DetectorConfig(threshold=cam.threshold, min_area=cam.min_area,
+                             max_area=cam.max_area)
+        out.append(DetectCamera(cam.name, i, cam.source, det, cam.fps,
+                                device_stamps=cam.timestamps == "device"))
+    if not out:
+        raise UserError("no camera can be opened (see the messages above)")
+    return out

@@ -1,0 +1,387 @@
+"""The daemon's side of the nodes: remote cameras whose blobs come over Zenoh.
+
+One NodeHub per daemon holds the Zenoh session: it pings the nodes for their clocks
+(daemon.nodes.clock), hears their announcements, and hands every blobs message, its times
+mapped to the daemon's clock, to its camera's capture (RemoteCapture), which pushes it to
+the multiplexer as a local camera's capture thread does: the multiplexer pairs, drops and
+re-joins it unchanged. A camera whose node has died goes silent and the hub's watchdog
+drops it after `timeout_ms`; a node that restarts (a new boot id) ends the camera's
+session at its first message, and the multiplexer starts the camera's clock afresh; a node
+whose frames come more than `max_lag_ms` after it got them is behind: those frames are
+dropped, and a camera with only late frames for `timeout_ms` is dropped until it catches
+up. Zenoh's callbacks do no more than decode and push (the multiplexer's push never
+waits for the frame loop): nothing the network does can hold up the frame loop.
+
+A sample's `arrival_ns` is when the node got the frame, mapped to the daemon's clock: the
+multiplexer's per-camera clock model (daemon.clocks) then learns the camera's clock
+against the node's arrivals (a USB or GigE transfer, tight), not against the network's
+jitter; what the node -> daemon hop adds is counted here, per node.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections import deque
+
+import numpy as np
+
+from calibkit.core.errors import UserError
+from daemon.nodes import wire
+from daemon.nodes.clock import NodeClock
+from daemon.nodes.session import all_blobs_key, check_name, ping_key
+from daemon.nodes.zenoh_table import DaemonZenoh, is_remote
+from daemon.sources import CameraSample
+
+log = logging.getLogger("mocapd.nodes")
+PING_HZ = 20.0
+WATCH_HZ = 100.0  # how often silent cameras are looked for
+NODE_SILENT_S = 3.0  # a node not heard (announcements, pongs) for this long is gone
+
+
+class _Camera:
+    """A remote camera: where its samples go (its capture, while the daemon runs)."""
+
+    def __init__(self, name: str, index: int) -> None:
+        self.name, self.index = name, index
+        self.capture: RemoteCapture | None = None
+        self.node = ""  # the node last heard serving it
+        self.boot = -1
+
+
+class _Node:
+    """What the daemon knows of one node process (by its boot id)."""
+
+    def __init__(self, name: str, boot: int) -> None:
+        self.name, self.boot = name, boot
+        self.clock = NodeClock()
+        self.cameras: list[str] = []
+        self.last_heard = time.monotonic()
+        self.samples = 0
+        self.waiting_clock = 0  # samples that came before its clock was known
+        self.late = 0  # samples later than max_lag_ms
+        self.hop_ns: deque = deque(maxlen=4096)  # node arrival -> daemon has it, ns
+        self.in_node_ns: deque = deque(maxlen=4096)  # of which in the node: arrival -> sent
+        self.lag_ns = 0  # the latest sample's node arrival -> daemon
+
+
+class NodeHub:
+    """The daemon's Zenoh session and every remote camera's samples (see the module)."""
+
+    def __init__(self, settings: DaemonZenoh, rig_names: list[str], remote: dict) -> None:
+        """`remote`: the node's name of each remote camera (its key) -> the rig's name."""
+        self.settings = settings
+        self.rig = settings.session.rig
+        self.cameras = {k: _Camera(n, rig_names.index(n)) for k, n in remote.items()}
+        self.nodes: dict[int, _Node] = {}  # by boot id
+        self.restarts: dict[str, int] = {}  # node name -> times it came back with a new boot
+        self.lock = threading.Lock()
+        self.session = None
+        self.unknown = 0  # blobs of cameras the daemon does not take
+        self.bad = 0  # messages that failed to decode
+        self.records: deque = deque(maxlen=200_000)  # (boot, node arrival, daemon has it)
+        self._stop = threading.Event()
+        self._seq = 0
+        self._captures: list[RemoteCapture] | None = None
+        self._warned: set = set()
+
+    # ---- lifecycle ---------------------------------------------------------------------------
+
+    def start(self) -> None:
+        import sys
+
+        import zenoh
+
+        # a clock exchange is stamped by Python on both ends: a thread stamping t1 or t4
+        # that then waits out the interpreter's 5 ms switch interval behind the frame loop
+        # makes one leg of the exchange longer than the other (an offset error of tens of
+        # us on a busy daemon); a short interval keeps the wait to a fraction of that
+        sys.setswitchinterval(min(sys.getswitchinterval(), 1e-4))
+        s = self.settings.session
+        self.session = s.open()
+        self._ping = self.session.declare_publisher(
+            ping_key(self.rig), express=True, congestion_control=zenoh.CongestionControl.DROP,
+            priority=zenoh.Priority.REAL_TIME)
+        self._subs = [
+            self.session.declare_subscriber(all_blobs_key(self.rig), self._on_blobs),
+            self.session.declare_subscriber(f"mocap/{self.rig}/_nodes/*/clock", self._on_pong),
+            self.session.declare_subscriber(f"mocap/{self.rig}/_nodes/*/announce",
+                                            self._on_announce)]
+        self._pinger = threading.Thread(target=self._ping_loop, name="node-clocks",
+                                        daemon=True)
+        self._pinger.start()
+        log.info("zenoh: %d remote cameras on mocap/%s/ (%s)", len(self.cameras), self.rig,
+                 ", ".join(s.listen + s.connect))
+
+    def close(self) -> None:
+        self._stop.set()
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+
+    def _ping_loop(self) -> None:
+        """Clock pings at PING_HZ, and the remote cameras' watchdog at WATCH_HZ."""
+        k = 0
+        while not self._stop.wait(1.0 / WATCH_HZ):
+            now = time.monotonic_ns()
+            for cap in self._captures or ():
+                cap.check(now)
+            k += 1
+            if k % round(WATCH_HZ / PING_HZ):
+                continue
+            self._seq += 1
+            try:
+                self._ping.put(wire.encode_ping(self._seq, time.monotonic_ns()))
+            except Exception as exc:  # noqa: BLE001 - a closing session
+                log.debug("ping: %s", exc)
+
+    # ---- Zenoh's callbacks -------------------------------------------------------------------
+
+    def _node(self, name: str, boot: int) -> _Node:
+        node = self.nodes.get(boot)
+        if node is None:
+            with self.lock:
+                node = self.nodes.get(boot)
+                if node is None:
+                    old = [n for n in self.nodes.values() if n.name == name]
+                    if old:
+                        self.restarts[name] = self.restarts.get(name, 0) + 1
+                        log.warning("node %s restarted (boot %08x)", name, boot)
+                        for o in old:
+                            del self.nodes[o.boot]
+                    else:
+                        log.info("node %s joined (boot %08x)", name, boot)
+                    node = self.nodes[boot] = _Node(name, boot)
+        node.last_heard = time.monotonic()
+        return node
+
+    def _on_pong(self, sample) -> None:
+        t4 = time.monotonic_ns()
+        try:
+            boot, _, t1, t2, t3 = wire.decode_pong(sample.payload.to_bytes())
+        except wire.WireError:
+            self.bad += 1
+            return
+        name = str(sample.key_expr).split("/")[-2]
+        self._node(name, boot).clock.add(t1, t2, t3, t4)
+
+    def _on_announce(self, sample) -> None:
+        try:
+            msg = json.loads(sample.payload.to_bytes())
+            node = self._node(str(msg["node"]), int(msg["boot"]))
+            node.cameras = [str(c) for c in msg["cameras"]]
+        except (ValueError, KeyError, TypeError):
+            self.bad += 1
+            return
+        now = time.monotonic()
+        for cam in node.cameras:
+            others = [n.name for n in list(self.nodes.values()) if n is not node
+                      and n.name != node.name and cam in n.cameras
+                      and now - n.last_heard < NODE_SILENT_S]
+            if cam not in self.cameras:
+                self._warn_once(("unknown", node.name, cam),
+                                "node %s serves camera %s, which this daemon does not take "
+                                "(not in the rig, or not a zenoh: camera)", node.name, cam)
+            elif others:
+                self._warn_once(("twice", cam), "camera %s is served by nodes %s and %s: "
+                                "give each camera one node", cam, node.name, others[0])
+
+    def _warn_once(self, key, message: str, *args) -> None:
+        if key not in self._warned:
+            self._warned.add(key)
+            log.warning(message, *args)
+
+    def _on_blobs(self, sample) -> None:
+        name = str(sample.key_expr).split("/")[-2]
+        cam = self.cameras.get(name)
+        if cam is None:
+            self.unknown += 1
+            return
+        try:
+            m = wire.decode_blobs(sample.payload.to_bytes())
+        except wire.WireError:
+            self.bad += 1
+            return
+        node = self.nodes.get(m.boot)
+        if node is None or not node.clock.ready:
+            if node is not None:
+                node.waiting_clock += 1
+            return
+        node.samples += 1
+        node.in_node_ns.append(m.sent_ns - m.arrival_ns)
+        cap = cam.capture
+        if cap is None:
+            return
+        to_daemon = node.clock.to_daemon
+        cap.deliver(CameraSample(cam.index, m.index, to_daemon(m.t_ns), to_daemon(m.arrival_ns),
+                                 m.uv, m.area, m.peak, m.device_time_ns, m.device_frame_id),
+                    node, m.arrival_ns)
+
+    # ---- figures -----------------------------------------------------------------------------
+
+    def status(self) -> list[dict]:
+        """Per node: its cameras, clock (offset, drift, round trip) and hop latency."""
+        now = time.monotonic()
+        out = []
+        for node in list(self.nodes.values()):
+            hop = np.asarray(node.hop_ns, dtype=np.float64) * 1e-6
+            in_node = np.asarray(node.in_node_ns, dtype=np.float64) * 1e-6
+            st = node.clock.status()
+            out.append({
+                "name": node.name, "boot": f"{node.boot:08x}",
+                "alive": now - node.last_heard < NODE_SILENT_S,
+                "cameras": node.cameras, "restarts": self.restarts.get(node.name, 0),
+                "offset_ms": st["offset_ms"], "offset_at_ns": st["at_ns"],
+                "drift_ppm": st["drift_ppm"],
+                "rtt_ms": st["rtt_ms"], "rtt_min_ms": st["rtt_min_ms"],
+                "clock_exchanges": st["exchanges"], "samples": node.samples,
+                "late": node.late, "waiting_for_clock": node.waiting_clock,
+                "lag_ms": node.lag_ns * 1e-6,
+                "hop_median_ms": float(np.median(hop)) if len(hop) else None,
+                "hop_p99_ms": float(np.percentile(hop, 99)) if len(hop) else None,
+                "in_node_median_ms": float(np.median(in_node)) if len(in_node) else None,
+                "in_node_p99_ms": float(np.percentile(in_node, 99)) if len(in_node)
+                else None})
+        return sorted(out, key=lambda n: n["name"])
+
+    def sources(self) -> list[RemoteCapture]:
+        """A capture for every remote camera, in the rig's order (made once: each is the
+        camera's capture for the daemon's run)."""
+        if self._captures is None:
+            self._captures = sorted((RemoteCapture(self, k) for k in self.cameras),
+                                    key=lambda s: s.camera)
+        return self._captures
+
+
+def make_hub(cfg, rig_names: list[str]) -> NodeHub | None:
+    """The daemon's hub for a configuration with [zenoh] (None without): the cameras whose
+    source is "zenoh:<camera>", and with `cameras = "announced"` every rig camera that has
+    no [[camera]] table (with [sim]: every simulated camera not served that way)."""
+    if cfg.zenoh is None:
+        return None
+    where = f"{cfg.path}: " if cfg.path else ""
+    if cfg.sim is not None and not cfg.sim.realtime:
+        raise UserError(f"{where}zenoh: cameras served by nodes run in real time; drop --fast")
+    remote = {}
+    for cam in cfg.cameras:
+        if not is_remote(cam.source):
+            continue
+        if cam.name not in rig_names:
+            raise UserError(f"{where}camera {cam.name!r} is not in the rig "
+                            f"({', '.join(rig_names)})")
+        key = cam.source.partition(":")[2] or cam.name
+        try:
+            check_name(key, "camera")
+        except ValueError as exc:
+            raise UserError(f"{where}camera {cam.name!r}: source: {exc}") from None
+        remote[key] = cam.name
+    if cfg.zenoh.cameras == "announced":
+        configured = set() if cfg.sim is not None else {c.name for c in cfg.cameras}
+        configured |= set(remote.values())
+        remote.update({n: n for n in rig_names if n not in configured})
+    return NodeHub(cfg.zenoh, rig_names, remote)
+
+
+class _HubAlive:
+    """What the frame loop asks of a capture's thread: alive while the hub runs."""
+
+    def __init__(self, hub: NodeHub) -> None:
+        self.hub = hub
+
+    def is_alive(self) -> bool:
+        return not self.hub._stop.is_set()
+
+
+class RemoteCapture:
+    """A camera served by a node, in the daemon's capture-thread shape (see the module).
+
+    It has no thread of its own: a second thread per camera, woken for every frame, cost
+    the daemon's interpreter as much as the rest of a sample's way and added its wake-up
+    to every frame's latency. Zenoh's callback hands each sample to the multiplexer
+    itself, and the hub's watchdog drops a camera that has gone silent. To the daemon it
+    looks like daemon.pipeline.CaptureThread: `push` and `on_open` (called before the
+    first sample of every session, so the multiplexer starts the camera's clock afresh),
+    `connected`, `frames`, `failures`, `rate_hz()`."""
+
+    def __init__(self, hub: NodeHub, key: str) -> None:
+        self.hub, self.key = hub, key
+        self.cam = hub.cameras[key]
+        self.name, self.camera = self.cam.name, self.cam.index
+        self.source = self  # the daemon finds a capture's camera as capture.source.camera
+        self.thread = _HubAlive(hub)
+        self.timeout_ns = int(hub.settings.timeout_ms * 1e6)
+        self.max_lag_ns = int(hub.settings.max_lag_ms * 1e6)
+        self.push = None
+        self.on_open = None
+        self.connected = False
+        self.frames = 0
+        self.failures = 0
+        self.last_error = ""
+        self.times: deque = deque(maxlen=256)
+        self._boot: int | None = None  # the node process of the current session
+        self._last_good = 0
+        self._lock = threading.Lock()
+
+    # ---- the capture-thread interface ---------------------------------------------------------
+
+    def start(self) -> None:
+        self.cam.capture = self
+
+    def stop(self) -> None:
+        self.cam.capture = None
+
+    def join(self, timeout: float = 1.0) -> None:
+        pass
+
+    def rate_hz(self) -> float:
+        t = list(self.times)
+        if len(t) < 2 or time.monotonic_ns() - t[-1] > 1e9:
+            return 0.0
+        return (len(t) - 1) / max((t[-1] - t[0]) * 1e-9, 1e-9)
+
+    # ---- driven by the hub --------------------------------------------------------------------
+
+    def deliver(self, s: CameraSample, node: _Node, node_arrival: int) -> None:
+        """One sample, on Zenoh's thread: to the multiplexer unless late."""
+        has = time.monotonic_ns()
+        lag = has - s.arrival_ns
+        node.lag_ns = lag
+        with self._lock:
+            if self._boot is not None and node.boot != self._boot:
+                self._drop(f"node {node.name} restarted")
+            if lag > self.max_lag_ns:
+                node.late += 1
+                self.last_error = f"{node.name} is {lag * 1e-6:.0f} ms behind"
+                return
+            if self._boot is None:  # a new session: the camera's clock starts again
+                self._boot = node.boot
+                self.cam.node, self.cam.boot = node.name, node.boot
+                if self.on_open is not None:
+                    self.on_open(self.camera)
+                if self.failures:
+                    log.warning("%s: reconnected (%s)", self.name, node.name)
+            self.connected = True
+            self._last_good = has
+            self.frames += 1
+            self.times.append(s.arrival_ns)
+        node.hop_ns.append(lag)
+        self.hub.records.append((node.boot, node_arrival, has))
+        self.push(s)
+
+    def check(self, now_ns: int) -> None:
+        """The watchdog: a camera with nothing on time for timeout_ms is dropped."""
+        with self._lock:
+            if self.connected and now_ns - self._last_good >= self.timeout_ns:
+                late = self.last_error if "behind" in self.last_error else ""
+                self._drop(late or f"no blobs from {self.cam.node or 'its node'} for "
+                                   f"{(now_ns - self._last_good) * 1e-6:.0f} ms")
+
+    def _drop(self, why: str) -> None:
+        if self.connected:
+            log.warning("%s: %s; dropped until it delivers again", self.name, why)
+            self.failures += 1
+        self.connected = False
+        self.last_error = why
+        self._boot = None

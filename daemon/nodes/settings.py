@@ -1,0 +1,109 @@
+"""A capture node's node.toml (mocapd.toml's [zenoh] table is daemon.nodes.zenoh_table).
+
+Checked up front as mocapd.toml is (daemon.config): one line naming the file, the key and
+the problem, before anything opens.
+
+    node.toml     name, realtime_priority, [zenoh] (rig, listen, connect, multicast_scouting),
+                  [[camera]] (as mocapd.toml's), [sim] (as mocapd.toml's),
+                  [node_sim] cameras, clock_offset_ms, clock_drift_ppm
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import tomllib
+
+from calibkit.core.errors import UserError
+from daemon.config import CameraIn, SimConfig, _camera, _dataclass_table, _sim_limits
+from daemon.config_check import _check_keys, _list, _number, _string, _table, _Where
+from daemon.nodes.session import ZenohSettings, check_name
+from daemon.nodes.zenoh_table import DEFAULT_PORT, _session
+
+
+@dataclass(frozen=True)
+class NodeConfig:
+    """A capture node: its name, its session, and the cameras it serves."""
+
+    name: str = "node"
+    path: Path | None = None
+    session: ZenohSettings = field(default_factory=lambda: ZenohSettings(
+        connect=(f"tcp/127.0.0.1:{DEFAULT_PORT}",)))
+    cameras: tuple[CameraIn, ...] = ()
+    sim: SimConfig | None = None
+    sim_cameras: tuple[str, ...] = ()  # which of the simulated rig's cameras it serves
+    clock_offset_ms: float = 0.0  # --sim: the node's own clock against the machine's
+    clock_drift_ppm: float = 0.0
+    realtime_priority: int = 10  # SCHED_RR of the node's threads, as the daemon's (0: normal)
+
+
+def parse_node_config(data: dict, path: Path | None = None,
+                      base: Path | None = None) -> NodeConfig:
+    w = _Where(path)
+    _check_keys(w, data, {"name", "realtime_priority", "zenoh", "camera", "sim", "node_sim"},
+                "")
+    name = _string(w, data, "name", "", "node")
+    priority = _number(w, data, "realtime_priority", "", 10, kind=int, lo=0, hi=99)
+    try:
+        check_name(name, "node name")
+    except ValueError as exc:
+        w.fail("name", str(exc))
+    session = _session(w, _table(w, data, "zenoh"), "zenoh.")
+    if not session.connect and not session.listen:
+        session = ZenohSettings(session.rig, (), (f"tcp/127.0.0.1:{DEFAULT_PORT}",),
+                                session.multicast_scouting)
+    cameras = tuple(_camera(w, t, f"camera[{i}].", base or Path.cwd())
+                    for i, t in enumerate(_list(w, data, "camera")))
+    for i, c in enumerate(cameras):
+        try:
+            check_name(c.name, "camera name")
+        except ValueError as exc:
+            w.fail(f"camera[{i}].name", str(exc))
+    sim = None
+    if "sim" in data:
+        sim = _dataclass_table(w, _table(w, data, "sim"), SimConfig, SimConfig(), "sim.")
+        _sim_limits(w, sim)
+    ns = _table(w, data, "node_sim")
+    _check_keys(w, ns, {"cameras", "clock_offset_ms", "clock_drift_ppm"}, "node_sim.")
+    serve = ns.get("cameras", [])
+    if not isinstance(serve, list) or not all(isinstance(c, str) for c in serve):
+        w.fail("node_sim.cameras", f"expected a list of camera names, got {serve!r}")
+    return NodeConfig(name, path, session, cameras, sim, tuple(serve),
+                      _number(w, ns, "clock_offset_ms", "node_sim.", 0.0, lo=-1e9, hi=1e9),
+                      _number(w, ns, "clock_drift_ppm", "node_sim.", 0.0, lo=-1000,
+                              hi=1000), priority)
+
+
+def load_node_config(path: str | Path | None) -> NodeConfig:
+    if path is None:
+        return NodeConfig()
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise UserError(f"{path}: no such node configuration file") from None
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read: {exc.strerror}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise UserError(f"{path}: not valid TOML: {exc}") from None
+    return parse_node_config(data, path, path.parent)
+
+
+def parse_camera_list(text: str, names: list[str]) -> tuple[str, ...]:
+    """"cam0,cam3" or "0-7" or "0,2,5" -> camera names of the rig; ValueError otherwise."""
+    out: list[str] = []
+    for part in (p.strip() for p in text.split(",") if p.strip()):
+        lo, dash, hi = part.partition("-")
+        if part in names:
+            out.append(part)
+        elif lo.isdigit() and (not dash or hi.isdigit()):
+            a, b = int(lo), int(hi) if dash else int(lo)
+            if not 0 <= a <= b < len(names):
+                raise ValueError(f"cameras {part!r}: the rig has cameras 0-{len(names) - 1}")
+            out.extend(names[a:b + 1])
+        else:
+            raise ValueError(f"no camera {part!r} in the rig ({', '.join(names)})")
+    if len(set(out)) < len(out):
+        raise ValueError(f"a camera is listed twice in {text!r}")
+    return tuple(out)

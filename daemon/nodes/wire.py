@@ -1,0 +1,134 @@
+"""The binary messages nodes and the daemon exchange over Zenoh (docs/protocol.md).
+
+Little-endian, fixed headers, no self-description: a 240 fps camera sends a message every
+4 ms and each byte and microsecond of decoding shows in the latency. Every message starts
+with a two-byte magic and a version, so a consumer can refuse what it does not know.
+
+Blobs (`mocap/<rig>/<camera>/blobs`): one message per camera frame, times in ns on the
+node's clock (the daemon maps them to its own, daemon.nodes.clock). Clock exchanges
+(`mocap/<rig>/_clock/ping`, `mocap/<rig>/_nodes/<node>/clock`): the four NTP-style stamps.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+import numpy as np
+
+VERSION = 1
+BLOBS_MAGIC = b"MB"
+PING_MAGIC = b"MQ"
+PONG_MAGIC = b"MR"
+POSE_MAGIC = b"MP"
+
+# magic, version, flags, boot, seq, index, t_ns, arrival_ns, sent_ns, device_time_ns,
+# device_frame_id, blob count
+BLOBS_HEAD = struct.Struct("<2sBBIIIqqqqqH")
+BLOB = np.dtype([("u", "<f4"), ("v", "<f4"), ("area", "<f4"), ("peak", "<f4")])
+PING = struct.Struct("<2sBBIq")  # magic, version, flags, seq, t1 (daemon clock)
+# magic, version, flags, boot, seq, t1 (daemon clock, echoed), t2, t3 (node clock)
+PONG = struct.Struct("<2sBBIIqqq")
+# magic, version, flags (bit 0: valid), body id, frame, t_ns, latency_ns, markers,
+# x y z (m), qx qy qz qw, error (m)
+POSE = struct.Struct("<2sBBHIqqH3f4ff")
+
+
+class WireError(ValueError):
+    """A message that is not what its key says (another version, cut short)."""
+
+
+@dataclass(frozen=True)
+class BlobsMessage:
+    """One camera frame's blobs as a node publishes them (times on the node's clock)."""
+
+    boot: int  # the node process's random id: a new one means it restarted
+    seq: int  # the node's count of messages for this camera
+    index: int  # the camera's frame count since it opened
+    t_ns: int  # the node's estimate of the capture time
+    arrival_ns: int  # when the node got the frame
+    sent_ns: int  # when the node published it
+    device_time_ns: int  # the camera's own timestamp (-1: none)
+    device_frame_id: int  # the camera's own counter (-1: none)
+    uv: np.ndarray  # (N, 2) float32 distorted pixels
+    area: np.ndarray
+    peak: np.ndarray
+
+
+def encode_blobs(boot: int, seq: int, index: int, t_ns: int, arrival_ns: int, sent_ns: int,
+                 device_time_ns: int, device_frame_id: int, uv, area, peak) -> bytes:
+    n = len(uv)
+    if n > 65535:
+        raise ValueError(f"{n} blobs in one frame: at most 65535 fit a message")
+    body = np.empty(n, BLOB)
+    uv = np.asarray(uv)
+    body["u"], body["v"] = uv[:, 0] if n else (), uv[:, 1] if n else ()
+    body["area"], body["peak"] = area, peak
+    head = BLOBS_HEAD.pack(BLOBS_MAGIC, VERSION, 0, boot & 0xFFFFFFFF, seq & 0xFFFFFFFF,
+                           index & 0xFFFFFFFF, t_ns, arrival_ns, sent_ns, device_time_ns,
+                           device_frame_id, n)
+    return head + body.tobytes()
+
+
+def decode_blobs(data: bytes) -> BlobsMessage:
+    if len(data) < BLOBS_HEAD.size:
+        raise WireError(f"a blobs message of {len(data)} bytes is shorter than its header")
+    (magic, version, _, boot, seq, index, t_ns, arrival, sent, device, fid,
+     n) = BLOBS_HEAD.unpack_from(data)
+    if magic != BLOBS_MAGIC or version != VERSION:
+        raise WireError(f"not a version {VERSION} blobs message ({magic!r} v{version})")
+    if len(data) != BLOBS_HEAD.size + n * BLOB.itemsize:
+        raise WireError(f"a blobs message says {n} blobs but has {len(data)} bytes")
+    body = np.frombuffer(data, BLOB, n, BLOBS_HEAD.size)
+    uv = np.empty((n, 2), np.float64)
+    uv[:, 0], uv[:, 1] = body["u"], body["v"]
+    return BlobsMessage(boot, seq, index, t_ns, arrival, sent, device, fid, uv,
+                        body["area"].astype(np.float64), body["peak"].astype(np.float64))
+
+
+def encode_ping(seq: int, t1_ns: int) -> bytes:
+    return PING.pack(PING_MAGIC, VERSION, 0, seq & 0xFFFFFFFF, t1_ns)
+
+
+def decode_ping(data: bytes) -> tuple[int, int]:
+    """(seq, t1) of a ping."""
+    if len(data) != PING.size:
+        raise WireError(f"a ping of {len(data)} bytes (want {PING.size})")
+    magic, version, _, seq, t1 = PING.unpack(data)
+    if magic != PING_MAGIC or version != VERSION:
+        raise WireError(f"not a version {VERSION} ping ({magic!r} v{version})")
+    return seq, t1
+
+
+def encode_pong(boot: int, seq: int, t1_ns: int, t2_ns: int, t3_ns: int) -> bytes:
+    return PONG.pack(PONG_MAGIC, VERSION, 0, boot & 0xFFFFFFFF, seq, t1_ns, t2_ns, t3_ns)
+
+
+def decode_pong(data: bytes) -> tuple[int, int, int, int, int]:
+    """(boot, seq, t1, t2, t3) of a pong."""
+    if len(data) != PONG.size:
+        raise WireError(f"a pong of {len(data)} bytes (want {PONG.size})")
+    magic, version, _, boot, seq, t1, t2, t3 = PONG.unpack(data)
+    if magic != PONG_MAGIC or version != VERSION:
+        raise WireError(f"not a version {VERSION} pong ({magic!r} v{version})")
+    return boot, seq, t1, t2, t3
+
+
+def encode_pose(body_id: int, frame: int, t_ns: int, latency_ns: int, valid: bool,
+                markers: int, position, quaternion, error_m: float) -> bytes:
+    return POSE.pack(POSE_MAGIC, VERSION, 1 if valid else 0, body_id, frame & 0xFFFFFFFF,
+                     t_ns, latency_ns, markers, *map(float, position),
+                     *map(float, quaternion), float(error_m))
+
+
+def decode_pose(data: bytes) -> dict:
+    """A pose message as a dict (what a Python consumer needs; docs/protocol.md)."""
+    if len(data) != POSE.size:
+        raise WireError(f"a pose message of {len(data)} bytes (want {POSE.size})")
+    (magic, version, flags, body, frame, t_ns, latency, markers, x, y, z, qx, qy, qz, qw,
+     err) = POSE.unpack(data)
+    if magic != POSE_MAGIC or version != VERSION:
+        raise WireError(f"not a version {VERSION} pose message ({magic!r} v{version})")
+    return {"id": body, "frame": frame, "t_ns": t_ns, "latency_ns": latency,
+            "valid": bool(flags & 1), "markers": markers, "position": (x, y, z),
+            "quaternion": (qx, qy, qz, qw), "error_m": err}

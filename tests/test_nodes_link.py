@@ -1,0 +1,233 @@
+"""The node clock estimate over a link that is not loopback: 1 ms +- 0.2 ms each way.
+
+On loopback a round trip takes a fraction of a millisecond and any estimate looks good.
+Here the node reaches the daemon through a delaying link: the kernel's netem between two
+network namespaces where the kernel has it, else daemon.synthetic.link (a TCP relay that
+holds each direction's bytes 1 ms +- 0.2 ms) on loopback or inside a namespace. The node's
+clock runs 50 ppm fast, seconds ahead of the machine's; the estimate is scored against
+that truth. No traffic leaves loopback or the namespaces made here.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_nodes import (
+    ROOT,
+    DaemonThread,
+    cameras_live,
+    free_port,
+    start_node,
+    stop,
+    true_offset_ns,
+)
+
+OFFSET_MS, DRIFT_PPM = 3700.0, 50.0
+ENV = dict(os.environ, PYTHONPATH=str(ROOT))
+
+
+def start_link(listen, to, netns=None, seconds=120, delay_ms=1.0, jitter_ms=0.2):
+    cmd = [sys.executable, "-m", "daemon.synthetic.link", "--listen", listen, "--to", to,
+           "--delay-ms", str(delay_ms), "--jitter-ms", str(jitter_ms), "--seconds",
+           str(seconds)]
+    if netns:
+        cmd = ["ip", "netns", "exec", netns, *cmd]
+    return subprocess.Popen(cmd, cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+
+
+def test_clock_offset_within_50_us_over_a_1_ms_jittery_link_and_50_ppm_followed(tmp_path):
+    """One node through the delaying link on loopback: from 10 s in (the estimate's
+    window full), the daemon's offset estimate is within 50 us of the truth (the median
+    of half-second samples; all within 100 us on a machine shared with other work) and
+    its drift within 3 ppm of 50 ppm (median; all within 10)."""
+    port, link_port, rig = free_port(), free_port(), "link"
+    d = DaemonThread(tmp_path, port, rig, 30.0, n_cameras=4).start()
+    link = start_link(f"127.0.0.1:{link_port}", f"127.0.0.1:{port}")
+    node = start_node("far", rig, f"tcp/127.0.0.1:{link_port}", "0-3", OFFSET_MS, DRIFT_PPM,
+                      n_cameras=4, seconds=60)
+    errors, drifts, rtts = [], [], []
+    try:
+        assert d.wait_for(lambda dm: cameras_live(dm, [f"cam{i}" for i in range(4)]), 90)
+        time.sleep(10.0)
+        for _ in range(24):
+            (n,) = d.daemon.hub.nodes.values()
+            t = time.monotonic_ns()
+            errors.append(n.clock.offset_ns(t) - true_offset_ns(OFFSET_MS, DRIFT_PPM, t))
+            st = n.clock.status()
+            drifts.append(st["drift_ppm"])
+            rtts.append(st["rtt_ms"])
+            time.sleep(0.5)
+        d.daemon.stop_event.set()
+        d.thread.join(30)
+    finally:
+        stop([node, link])
+    err_us = np.abs(errors) * 1e-3
+    assert np.median(rtts) > 1.8, "the link did not delay the round trips"
+    assert np.median(err_us) <= 50.0 and err_us.max() <= 100.0, err_us
+    drift_err = np.abs(np.array(drifts) - DRIFT_PPM)
+    assert np.median(drift_err) < 3.0 and drift_err.max() < 10.0, drifts
+    truth = d.figures["truth"]
+    for name, b in truth["bodies"].items():
+        assert b["valid_fraction"] > 0.7, (name, b)
+
+
+def test_a_node_behind_a_slow_link_is_reported_late_and_nothing_else_stalls(tmp_path):
+    """Node b reaches the daemon through a link that holds each direction 300 ms: its
+    clock is still estimated (the delay is symmetric), but every frame arrives 300 ms
+    after b got it, beyond max_lag_ms (100): b is reported behind (late frames, its lag),
+    its cameras are left out of the frame sets, and node a's cameras, on loopback, are
+    tracked at the full rate."""
+    port, link_port, rig = free_port(), free_port(), "slow"
+    d = DaemonThread(tmp_path, port, rig, 14.0).start()
+    link = start_link(f"127.0.0.1:{link_port}", f"127.0.0.1:{port}", delay_ms=300,
+                      jitter_ms=0)
+    a = start_node("a", rig, f"tcp/127.0.0.1:{port}", "0-3", 5.0, 10.0, seconds=60)
+    b = start_node("b", rig, f"tcp/127.0.0.1:{link_port}", "4-7", -5.0, -10.0, seconds=60)
+    try:
+        names = [f"cam{i}" for i in range(8)]
+        assert d.wait_for(lambda dm: cameras_live(dm, names[:4]), 90)
+        assert d.wait_for(lambda dm: {n["name"]: n for n in dm.hub.status()}.get("b", {})
+                          .get("late", 0) > 200, 60), "node b's frames never came late"
+        i0, t0 = d.daemon.mux.last_index, time.monotonic()
+        time.sleep(2.0)
+        rate = (d.daemon.mux.last_index - i0) / (time.monotonic() - t0)
+        st = {n["name"]: n for n in d.daemon.hub.status()}
+        caps = {c.name: c for c in d.daemon.captures}
+        d.daemon.stop_event.set()
+        d.thread.join(30)
+    finally:
+        stop([a, b, link])
+    assert st["b"]["lag_ms"] > 250 and st["b"]["late"] > 200 and st["b"]["samples"] > 200
+    assert st["b"]["rtt_ms"] > 500  # the clock exchanges took the slow link too
+    assert st["a"]["late"] < 0.05 * st["a"]["samples"]
+    assert not any(caps[n].connected for n in names[4:])
+    assert all(caps[n].connected for n in names[:4])
+    assert rate > 200, f"the frame loop made {rate:.0f} sets a second"
+
+
+# ---- network namespaces --------------------------------------------------------------------
+
+def _netem_available() -> bool:
+    try:
+        import gzip
+
+        with gzip.open("/proc/config.gz", "rt") as f:
+            config = f.read()
+        return "CONFIG_NET_SCH_NETEM=y" in config or "CONFIG_NET_SCH_NETEM=m" in config
+    except OSError:
+        return Path("/sys/module/sch_netem").exists()
+
+
+def _why_no_netns() -> str | None:
+    if os.geteuid() != 0:
+        return "network namespaces need root"
+    if shutil.which("ip") is None:
+        return "`ip` (iproute2) is not installed"
+    r = subprocess.run(["ip", "netns", "add", f"mcd-probe-{os.getpid()}"],
+                       capture_output=True, text=True)
+    if r.returncode != 0:
+        return f"cannot make a network namespace: {r.stderr.strip()}"
+    subprocess.run(["ip", "netns", "del", f"mcd-probe-{os.getpid()}"], capture_output=True)
+    return None
+
+
+@pytest.fixture
+def namespaces():
+    """Two namespaces joined by a veth pair, 10.213.77.1 (daemon) and .2 (node); removed
+    afterwards. Addresses exist only inside them."""
+    why = _why_no_netns()
+    if why:
+        pytest.skip(why)
+    a, b = f"mcd-d-{os.getpid()}", f"mcd-n-{os.getpid()}"
+    va, vb = f"mcdd{os.getpid() % 100000}", f"mcdn{os.getpid() % 100000}"
+    steps = [["ip", "netns", "add", a], ["ip", "netns", "add", b],
+             ["ip", "link", "add", va, "type", "veth", "peer", "name", vb],
+             ["ip", "link", "set", va, "netns", a], ["ip", "link", "set", vb, "netns", b],
+             ["ip", "-n", a, "addr", "add", "10.213.77.1/30", "dev", va],
+             ["ip", "-n", b, "addr", "add", "10.213.77.2/30", "dev", vb],
+             ["ip", "-n", a, "link", "set", va, "up"], ["ip", "-n", b, "link", "set", vb, "up"],
+             ["ip", "-n", a, "link", "set", "lo", "up"],
+             ["ip", "-n", b, "link", "set", "lo", "up"]]
+    try:
+        for cmd in steps:
+            subprocess.run(cmd, check=True, capture_output=True, text=True)
+        yield {"daemon": a, "node": b, "veth": (va, vb)}
+    finally:
+        for ns in (a, b):  # deleting a namespace deletes its end of the veth, and the pair
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+
+
+def test_node_in_a_network_namespace_over_a_delayed_link(namespaces, tmp_path):
+    """The daemon in one namespace, a node in another, 1 ms +- 0.2 ms each way between
+    them (netem on the veth where the kernel has it, else the delaying relay inside the
+    node's namespace): the daemon tracks the node's cameras and its status reports the
+    node's clock within 50 us of the truth (median; all within 100 us) and its drift
+    within 3 ppm (median; all within 10)."""
+    from daemon.service import request
+
+    a, b = namespaces["daemon"], namespaces["node"]
+    port = 17000 + os.getpid() % 1000
+    netem = _netem_available()
+    if netem:
+        for ns, dev in zip((a, b), namespaces["veth"], strict=True):
+            subprocess.run(["ip", "netns", "exec", ns, "tc", "qdisc", "add", "dev", dev, "root",
+                            "netem", "delay", "1ms", "0.2ms"], check=True)
+    runtime = tmp_path / "run"
+    conf = tmp_path / "mocapd.toml"
+    conf.write_text(f'runtime_dir = "{runtime}"\n[sim]\ncameras = 4\n'
+                    f'[zenoh]\nrig = "ns"\nlisten = ["tcp/10.213.77.1:{port}"]\n'
+                    'cameras = "announced"\n')
+    daemon = subprocess.Popen(["ip", "netns", "exec", a, sys.executable, "-m", "daemon.cli",
+                               "start", "--config", str(conf), "--duration", "40"],
+                              cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)
+    procs = [daemon]
+    endpoint = f"tcp/10.213.77.1:{port}"
+    if not netem:
+        link_port = port + 1
+        procs.append(start_link(f"127.0.0.1:{link_port}", f"10.213.77.1:{port}", netns=b))
+        endpoint = f"tcp/127.0.0.1:{link_port}"
+    node_cmd = ["ip", "netns", "exec", b, sys.executable, "-m", "daemon.cli", "node", "--sim",
+                "--sim-cameras", "4", "--name", "nsnode", "--rig", "ns", "--connect",
+                endpoint, "--clock-offset-ms", str(OFFSET_MS), "--clock-drift-ppm",
+                str(DRIFT_PPM), "--duration", "45"]
+    procs.append(subprocess.Popen(node_cmd, cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.DEVNULL))
+    errors, drifts, rtts, frames = [], [], [], 0
+    try:
+        end = time.monotonic() + 90
+        started = None
+        while time.monotonic() < end and len(errors) < 20:
+            time.sleep(0.5)
+            try:
+                st = request(runtime, {"cmd": "status"}, timeout_s=2.0)
+            except Exception:  # noqa: BLE001 - not up yet
+                continue
+            nodes = st.get("nodes") or []
+            if not nodes or nodes[0]["offset_ms"] is None:
+                continue
+            started = started or time.monotonic()
+            if time.monotonic() - started < 11.0:
+                continue
+            n = nodes[0]
+            want = true_offset_ns(OFFSET_MS, DRIFT_PPM, n["offset_at_ns"]) * 1e-6
+            errors.append((n["offset_ms"] - want) * 1e3)
+            drifts.append(n["drift_ppm"])
+            rtts.append(n["rtt_ms"])
+            frames = st["frames"]
+    finally:
+        stop(procs)
+    assert len(errors) == 20, "the daemon never reported the node's clock"
+    assert frames > 1000 and np.median(rtts) > 1.8
+    err_us = np.abs(errors)
+    assert np.median(err_us) <= 50.0 and err_us.max() <= 100.0, err_us
+    drift_err = np.abs(np.array(drifts) - DRIFT_PPM)
+    assert np.median(drift_err) < 3.0 and drift_err.max() < 10.0, drifts
