@@ -36,15 +36,11 @@ sys.path.insert(0, str(ROOT))
 
 from calibkit.clitools import print_table  # noqa: E402
 from daemon.markers.c3dio import read_c3d  # noqa: E402
-from daemon.markers.label import (  # noqa: E402
-    Labeller,
-    hide_spans,
-    initial_labels,
-    label_take,
-    points_with_ghosts,
-    score,
-)
+from daemon.markers.label import Labeller  # noqa: E402
+from daemon.markers.label_offline import label_take  # noqa: E402
+from daemon.markers.label_single import initial_labels  # noqa: E402
 from daemon.markers.markerset import MarkerSet, learn  # noqa: E402
+from daemon.synthetic.labelling import hide_spans, points_with_ghosts, score  # noqa: E402
 
 DATA = ROOT / "fixtures" / "cmu_c3d"
 

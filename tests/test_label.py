@@ -16,16 +16,11 @@ from daemon.markers.c3dio import (
     write_points_csv,
     write_take,
 )
-from daemon.markers.label import (
-    Labeller,
-    _chirality,
-    hide_spans,
-    initial_labels,
-    label_take,
-    points_with_ghosts,
-    score,
-)
+from daemon.markers.label import Labeller
+from daemon.markers.label_offline import label_take
+from daemon.markers.label_single import chirality_votes, initial_labels
 from daemon.markers.markerset import MarkerSet, learn
+from daemon.synthetic.labelling import hide_spans, points_with_ghosts, score
 
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT / "fixtures" / "cmu_c3d"
@@ -117,8 +112,8 @@ def test_initial_labels_and_handedness_votes(walk, cmu41):
                         if n[0] in flip and flip[n[0]] + n[1:] in names else i
                         for i, n in enumerate(names)])
     truth_point = np.argsort(perm)                  # marker -> point index
-    assert _chirality(x[perm], cmu41, truth_point) >= 0.9 * len(cmu41.chiral)
-    assert _chirality(x[perm], cmu41, truth_point[swapped]) <= -0.5 * len(cmu41.chiral)
+    assert chirality_votes(x[perm], cmu41, truth_point) >= 0.9 * len(cmu41.chiral)
+    assert chirality_votes(x[perm], cmu41, truth_point[swapped]) <= -0.5 * len(cmu41.chiral)
 
 
 def test_per_frame_api(walk, cmu41):
@@ -313,8 +308,9 @@ def test_kernels_match_their_numpy_twins(cmu41, acro):
     """Each compiled kernel (daemon/markers/label_kernels.py) against the numpy code it replaces,
     on a labeller's state in the middle of an occluded take with ghosts."""
     from daemon.markers import label_kernels as kern
-    from daemon.markers.label import _module_candidates, _swap_scores
     from daemon.markers.label_modules import rigid_residuals as _rigid_residuals
+    from daemon.markers.label_reid import module_candidates_numpy
+    from daemon.markers.label_repair import swap_scores_numpy
     hidden = hide_spans(acro, 0.2, seed=11)
     pts, _ = points_with_ghosts(hidden, 3, seed=11)
     _, per = pts.split()
@@ -352,7 +348,7 @@ def test_kernels_match_their_numpy_twins(cmu41, acro):
     witness = np.ones(len(cur), bool)
     witness[::5] = False                  # markers found again this frame witness nothing
     keep1, swap1 = kern.swap_scores(cur, i[both], j[both], ref.swap_w, ref.mean_all, witness)
-    keep2, swap2 = _swap_scores(cur, i[both], j[both], ref.swap_w, ref.mean_all, witness)
+    keep2, swap2 = swap_scores_numpy(cur, i[both], j[both], ref.swap_w, ref.mean_all, witness)
     assert np.allclose(keep1, keep2) and np.allclose(swap1, swap2)
     every = kern.swap_scores(cur, i[both], j[both], ref.swap_w, ref.mean_all,
                              np.ones(len(cur), bool))
@@ -362,8 +358,8 @@ def test_kernels_match_their_numpy_twins(cmu41, acro):
     start = np.zeros((len(mods), len(everything)), bool)
     start[:, ::3] = True
     args = (mods, ref.mates, cur, everything, ref.mean_all, ref.adapt_tol, start)
-    assert np.array_equal(kern.module_candidates(*args), _module_candidates(*args))
-    assert _module_candidates(*args).sum() > start.sum()
+    assert np.array_equal(kern.module_candidates(*args), module_candidates_numpy(*args))
+    assert module_candidates_numpy(*args).sum() > start.sum()
     rng = np.random.default_rng(0)
     S, X = rng.normal(size=(2, 40, 5, 3))
     w = (rng.random((40, 5)) > 0.3).astype(float)

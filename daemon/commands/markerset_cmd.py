@@ -107,7 +107,11 @@ def register(app: typer.Typer) -> None:
         import numpy as np
 
         from daemon.markers.c3dio import Points, read_points_csv, read_take, write_take
-        from daemon.markers.label import duplicate_trajectories, label_take, merged_points
+        from daemon.markers.label_offline import (
+            duplicate_trajectories,
+            label_take,
+            merged_points,
+        )
         from daemon.markers.markerset import open_set
 
         _check_out(out, [points])

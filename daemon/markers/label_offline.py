@@ -1,0 +1,101 @@
+"""Labelling a whole take: the start (labelled frames, or a window from the set alone),
+then the tracker forward to the end and backward to the first frame; and the take-level
+figures about duplicates."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from daemon.markers.c3dio import Points, Take
+from daemon.markers.label import Labeller
+from daemon.markers.label_start import window_start
+from daemon.markers.markerset import MarkerSet
+
+
+def label_take(points: Points, ms: MarkerSet, rate_hz: float = 120.0,
+               seed: Take | None = None, seed_frames: int = 0, progress=None,
+               options: dict | None = None, start_frames: int = 10
+               ) -> tuple[Take, np.ndarray, np.ndarray]:
+    """Label every frame of `points`. Returns the labelled take, per-frame confidence
+    (mean over labelled markers) and the per-point labels (aligned with points rows after
+    sorting by frame, see `Points.split`)."""
+    frames, per_frame = points.split()
+    lab = Labeller(ms, rate_hz, **(options or {}))
+    n_frames = int(frames[-1] - frames[0] + 1) if len(frames) else 0
+    first = int(frames[0]) if len(frames) else 0
+    xyz = np.full((n_frames, ms.n, 3), np.nan)
+    conf = np.zeros(n_frames)
+    labels_out = []
+    start = 0
+    if seed is not None and seed_frames > 0:
+        s = seed.select(ms.labels)
+        use = min(seed_frames, s.n_frames)
+        sx = s.xyz_m[:use]
+        lab.seed_take(sx)
+        fidx = np.arange(use) + s.first_frame - first
+        keep = (fidx >= 0) & (fidx < n_frames)
+        xyz[fidx[keep]] = sx[keep]
+        conf[fidx[keep]] = 1.0
+        start = int(np.searchsorted(frames, s.first_frame + use))
+        for f in range(start):
+            labels_out.append(np.full(len(per_frame[f]), -2))
+    order = list(range(start, len(frames)))
+    out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    if start == 0 and len(frames) and start_frames > 1:
+        # from the marker set alone: one global assignment on a window of frames
+        # (daemon/markers/label_start.py), handed to the tracker as labelled start frames, then
+        # tracked forward from the window's end and backward from its start
+        w0, wl, wx = window_start(per_frame, ms, noise_m=lab.noise_m,
+                                  merge_m=lab.merge_m)
+        # the tracker learns this body's distances and shapes from the whole window,
+        # then labels the window itself from its first two frames (markers the start
+        # left out, e.g. hidden for most of the window, are found on the way)
+        lab.seed_take(wx)
+        S = min(2, len(wl))
+        lab.seed(wx[0])
+        if S > 1:
+            lab.update_labelled(wx[1])
+        for w in range(S):
+            out[w0 + w] = (wl[w], np.where(wl[w] >= 0, 0.5, 0.0))
+        order = list(range(w0 + S, len(frames)))
+        if w0 > 0:
+            back = Labeller(ms, rate_hz, **(options or {}))
+            back.seed_take(wx[::-1])
+            for i in range(w0 - 1, -1, -1):
+                out[i] = back.update(per_frame[i])
+    for n_done, i in enumerate(order):
+        out[i] = lab.update(per_frame[i])
+        if progress is not None and n_done % 200 == 0:
+            progress.update(n_done)
+    for i in range(start, len(frames)):
+        P = per_frame[i]
+        m, c = out[i]
+        fi = int(frames[i] - first)
+        got = m >= 0
+        xyz[fi, m[got][::-1]] = P[got][::-1]      # a duplicate: its first point
+        conf[fi] = float(c[got].mean()) if got.any() else 0.0
+        labels_out.append(m)
+    take = Take(list(ms.labels), xyz, rate_hz, first)
+    return take, conf, labels_out
+
+
+def duplicate_trajectories(take: Take, within_m: float = 0.006, share: float = 0.9
+                           ) -> list[tuple[str, str, int]]:
+    """Pairs of a file's trajectories that are one marker stored twice: within
+    `within_m` of each other in at least `share` of the frames both are seen (and in at
+    least 3 frames). Returns (name, twin, frames together) for each pair."""
+    x = take.xyz_m
+    out = []
+    for i in range(len(take.labels)):
+        d = np.linalg.norm(x[:, i + 1:] - x[:, i:i + 1], axis=2)       # (F, n - i - 1)
+        both = np.isfinite(d).sum(0)
+        close = (d < within_m).sum(0)
+        for j in np.nonzero((both >= 3) & (close >= share * np.maximum(both, 1)))[0]:
+            out.append((take.labels[i], take.labels[i + 1 + j], int(both[j])))
+    return out
+
+
+def merged_points(labels_per_frame: list[np.ndarray]) -> int:
+    """Points labelled as a marker another point of their frame already is (duplicates
+    taken as one)."""
+    return int(sum(int((m >= 0).sum()) - len(np.unique(m[m >= 0])) for m in labels_per_frame))
