@@ -47,9 +47,9 @@ def acro(cmu41):
     return _excerpt("85_02.c3d", cmu41.labels, start=300)
 
 
-def test_gap_free_with_seed_frames_is_exact(acro, cmu41):
+def test_gap_free_with_labelled_start_frames_is_exact(acro, cmu41):
     pts, truth = points_with_ghosts(acro, 0, seed=1)
-    _, _, labels = label_take(pts, cmu41, seed=acro, seed_frames=10)
+    _, _, labels = label_take(pts, cmu41, start_labels=acro, start_frames=10)
     s = score(pts, truth, labels, 10)
     assert s["correct"] == 1.0
 
@@ -60,12 +60,12 @@ def test_gap_free_from_the_template_alone(walk, cmu41):
     assert score(pts, truth, labels)["correct"] >= 0.99
 
 
-def test_other_subjects_marker_set_with_seed_frames(walk, acro):
+def test_other_subjects_marker_set_with_labelled_start_frames(walk, acro):
     """A marker set learned on 85_02 only labels 01_01 (another person) given a labelled
     start: the distances are re-learned from the seed frames."""
     ms = learn([read_c3d(DATA / "85_02.c3d")])
     pts, truth = points_with_ghosts(walk, 0, seed=3)
-    _, _, labels = label_take(pts, ms, seed=walk, seed_frames=10)
+    _, _, labels = label_take(pts, ms, start_labels=walk, start_frames=10)
     assert score(pts, truth, labels, 10)["correct"] >= 0.999
 
 
@@ -87,7 +87,7 @@ def test_hidden_spans_and_ghosts(which, walk, acro, cmu41):
     take = walk if which == "walk" else acro
     hidden = hide_spans(take, 0.2, seed=5)
     pts, truth = points_with_ghosts(hidden, 3, seed=5)
-    out, conf, labels = label_take(pts, cmu41, seed=hidden, seed_frames=10)
+    out, conf, labels = label_take(pts, cmu41, start_labels=hidden, start_frames=10)
     s = score(pts, truth, labels, 10)
     assert s["correct"] >= 0.95, s
     assert s["ghosts_rejected"] >= 0.95, s
@@ -118,7 +118,7 @@ def test_initial_labels_and_handedness_votes(walk, cmu41):
 
 def test_per_frame_api(walk, cmu41):
     lab = Labeller(cmu41, rate_hz=walk.rate_hz)
-    lab.seed(walk.xyz_m[0])
+    lab.start_from_labelled(walk.xyz_m[0])
     rng = np.random.default_rng(4)
     for f in range(1, 30):
         ghosts = rng.uniform(-1, 1, (2, 3)) + np.nanmean(walk.xyz_m[f], axis=0)
@@ -147,8 +147,34 @@ def test_cli_label_csv(tmp_path, mocapd_cli, walk, cmu41):
     assert r.code == 2 and "does not exist" in r.err
     r = mocapd_cli("label", tmp_path / "pts.csv", "--markerset",
                    ROOT / "daemon" / "markers" / "sets" / "cmu41.toml", "--out", tmp_path / "x.csv",
-                   "--seed-frames", "5")
-    assert r.code == 2 and "--seed" in r.err
+                   "--start-frames", "5")
+    assert r.code == 2 and "--start-labels" in r.err
+
+
+def test_cli_label_from_labelled_start_frames(tmp_path, mocapd_cli, acro):
+    """`--start-labels TAKE --start-frames N` takes the first N frames' labels from TAKE
+    and labels the rest against the truth; the shipped set is named as `cmu41`; the
+    former names of the two options (--seed, --seed-frames) still do the same."""
+    hidden = hide_spans(Take(acro.labels, acro.xyz_m[:240], acro.rate_hz, 0), 0.1, seed=3)
+    pts, truth = points_with_ghosts(hidden, 2, seed=3)
+    write_points_csv(tmp_path / "pts.csv", pts)
+    write_take(tmp_path / "start.c3d", hidden)
+    outs = []
+    for opts in (("--start-labels", "--start-frames"), ("--seed", "--seed-frames")):
+        out = tmp_path / f"lab{len(outs)}.csv"
+        r = mocapd_cli("label", tmp_path / "pts.csv", "--markerset", "cmu41", "--out", out,
+                       opts[0], tmp_path / "start.c3d", opts[1], "10", "--rate", "120")
+        assert r.code == 0, r.err
+        back = read_labelled_csv(out).select(acro.labels)
+        outs.append(back.xyz_m)
+    assert np.array_equal(outs[0], outs[1], equal_nan=True)
+    # nearly every point is at its true marker's place in the labelled take
+    f0 = back.first_frame
+    got = outs[0][10 - f0:]
+    want = hidden.xyz_m[10:10 - f0 + len(outs[0])]
+    seen = np.isfinite(want).all(2)
+    right = np.isfinite(got).all(2) & seen & (np.linalg.norm(got - want, axis=2) < 1e-5)
+    assert right.sum() >= 0.97 * seen.sum()
 
 
 # ---------------------------------------------------------------------- rigid modules
@@ -186,7 +212,7 @@ def test_modules_found_again_after_long_occlusions(cmu41, pattern):
     hidden = hide_spans(full, 0.2, seed=pattern)
     part = Take(hidden.labels, hidden.xyz_m[:600], hidden.rate_hz, hidden.first_frame)
     pts, truth = points_with_ghosts(part, 3, seed=pattern)
-    _, _, labels = label_take(pts, cmu41, seed=part, seed_frames=10)
+    _, _, labels = label_take(pts, cmu41, start_labels=part, start_frames=10)
     assert score(pts, truth, labels, 10)["correct"] >= 0.988
 
 
@@ -204,7 +230,7 @@ def test_hard_occlusion_patterns(cmu41, name, pattern, before):
     full = read_c3d(DATA / name).select(cmu41.labels)
     hidden = hide_spans(full, 0.2, seed=pattern)
     pts, truth = points_with_ghosts(hidden, 3, seed=pattern)
-    _, _, labels = label_take(pts, cmu41, full.rate_hz, seed=hidden, seed_frames=10)
+    _, _, labels = label_take(pts, cmu41, full.rate_hz, start_labels=hidden, start_frames=10)
     assert score(pts, truth, labels, 10)["correct"] >= 0.98
 
 
@@ -219,7 +245,7 @@ def test_forearm_hidden_whole_is_found_again(cmu41):
     xyz[600:672, arm] = np.nan
     take = Take(full.labels, xyz, full.rate_hz, full.first_frame)
     pts, truth = points_with_ghosts(take, 3, seed=5)
-    _, _, labels = label_take(pts, cmu41, full.rate_hz, seed=take, seed_frames=10)
+    _, _, labels = label_take(pts, cmu41, full.rate_hz, start_labels=take, start_frames=10)
     order = np.argsort(pts.frame, kind="stable")
     per_truth = np.split(truth[order], np.unique(pts.frame[order], return_index=True)[1][1:])
     for f in range(677, 732):
@@ -237,7 +263,7 @@ def test_wrist_markers_taken_for_each_other_are_set_right(cmu41):
     hidden = hide_spans(full, 0.2, seed=23)
     part = Take(hidden.labels, hidden.xyz_m[:600], hidden.rate_hz, hidden.first_frame)
     pts, truth = points_with_ghosts(part, 3, seed=23)
-    _, _, labels = label_take(pts, cmu41, full.rate_hz, seed=part, seed_frames=10)
+    _, _, labels = label_take(pts, cmu41, full.rate_hz, start_labels=part, start_frames=10)
     order = np.argsort(pts.frame, kind="stable")
     per_truth = np.split(truth[order], np.unique(pts.frame[order], return_index=True)[1][1:])
     wrist = [cmu41.labels.index(x) for x in ("LWRA", "LWRB")]
@@ -293,7 +319,7 @@ def test_skipped_frames_are_predicted_over(cmu41, acro):
     right = {}
     for steps in (1, 2):
         lab = Labeller(cmu41, acro.rate_hz)
-        lab.seed_take(acro.xyz_m[:10])
+        lab.start_from_labelled_frames(acro.xyz_m[:10])
         good = total = 0
         for i in range(10, len(per), 2):
             got, _ = lab.update(per[i], steps)
@@ -317,7 +343,7 @@ def test_kernels_match_their_numpy_twins(cmu41, acro):
     fast = Labeller(cmu41, rate_hz=acro.rate_hz)
     ref = Labeller(cmu41, rate_hz=acro.rate_hz, compiled=False)
     for lab in (fast, ref):
-        lab.seed_take(hidden.xyz_m[:10])
+        lab.start_from_labelled_frames(hidden.xyz_m[:10])
     for i, p in enumerate(per[10:150]):
         steps = 1 + (i % 7 == 3)          # now and then a frame skipped (a live stage)
         got_fast, conf_fast = fast.update(p, steps)
@@ -396,7 +422,7 @@ def test_markers_stored_twice_are_labelled_as_one(cmu41, walk, merge):
     hidden = hide_spans(walk, 0.1, seed=7)
     pts, truth = _with_duplicates(hidden, names, seed=7)
     options = None if merge else {"merge_m": 0.0}
-    _, _, labels = label_take(pts, cmu41, seed=hidden, seed_frames=10, options=options)
+    _, _, labels = label_take(pts, cmu41, start_labels=hidden, start_frames=10, options=options)
     order = np.argsort(pts.frame, kind="stable")
     after = pts.frame[order] >= hidden.first_frame + 10          # after the seed frames
     got = np.concatenate(labels)[after]

@@ -95,11 +95,13 @@ def register(app: typer.Typer) -> None:
         out: Annotated[Path, typer.Option("--out", help="Labelled take (.c3d or .csv).")],
         rig_path: Annotated[Path | None, typer.Option(
             "--rig", help="The calibrated rig, to triangulate a .mcrec recording.")] = None,
-        seed_frames: Annotated[int, typer.Option(
-            "--seed-frames", help="Use the first N frames' labels from --seed (or from a "
-                                  "labelled C3D given as POINTS).")] = 0,
-        seed: Annotated[Path | None, typer.Option(
-            "--seed", help="Labelled take holding the first frames' labels.")] = None,
+        start_frames: Annotated[int, typer.Option(
+            "--start-frames", help="Use the first N frames' labels from --start-labels (or "
+                                   "from a labelled C3D given as POINTS).")] = 0,
+        start_labels: Annotated[Path | None, typer.Option(
+            "--start-labels", help="Labelled take holding the first frames' labels.")] = None,
+        old_frames: Annotated[int | None, typer.Option("--seed-frames", hidden=True)] = None,
+        old_labels: Annotated[Path | None, typer.Option("--seed", hidden=True)] = None,
         rate: RateOpt = None,
         json_path: JsonOpt = None,
     ) -> None:
@@ -115,21 +117,24 @@ def register(app: typer.Typer) -> None:
         from daemon.markers.markerset import open_set
 
         _check_out(out, [points])
-        if seed_frames < 0:
-            raise UserError("--seed-frames must be >= 0")
+        # --seed and --seed-frames: the names these options had before
+        start_frames = start_frames if old_frames is None else old_frames
+        start_labels = start_labels if old_labels is None else old_labels
+        if start_frames < 0:
+            raise UserError("--start-frames must be >= 0")
         ms = open_set(markerset)
         if not points.exists():
             raise UserError(f"{points} does not exist")
         rate_hz = rate
-        seed_take = None
+        first_labels = None
         twins: list = []
         if points.suffix.lower() == ".c3d":
             labelled = read_take(points)
             pts = Points.from_take(labelled)
             twins = duplicate_trajectories(labelled)
             rate_hz = rate_hz or labelled.rate_hz
-            if seed_frames and seed is None:
-                seed_take = labelled
+            if start_frames and start_labels is None:
+                first_labels = labelled
         elif points.suffix.lower() == ".csv":
             pts = read_points_csv(points)
         elif points.suffix.lower() == ".mcrec":
@@ -140,21 +145,22 @@ def register(app: typer.Typer) -> None:
                             f".mcrec recording")
         if rig_path is not None and points.suffix.lower() != ".mcrec":
             raise UserError("--rig is for a .mcrec recording; these points are 3D already")
-        if seed is not None:
-            seed_take = read_take(seed, rate_hz)
-        if seed_frames and seed_take is None:
-            raise UserError("--seed-frames needs --seed LABELLED.c3d|csv with those frames")
-        if seed_take is not None:
-            missing = [n for n in ms.labels if n not in seed_take.labels]
+        if start_labels is not None:
+            first_labels = read_take(start_labels, rate_hz)
+        if start_frames and first_labels is None:
+            raise UserError("--start-frames needs --start-labels LABELLED.c3d|csv with those "
+                            "frames")
+        if first_labels is not None:
+            missing = [n for n in ms.labels if n not in first_labels.labels]
             if missing:
-                raise UserError(f"the seed take lacks marker(s) {', '.join(missing[:5])} of "
-                                f"the marker set")
+                raise UserError(f"the --start-labels take lacks marker(s) "
+                                f"{', '.join(missing[:5])} of the marker set")
         if not len(pts.frame):
             raise UserError(f"{points} holds no points")
         rate_hz = rate_hz or 120.0
         n_frames = len(np.unique(pts.frame))
         progress = Progress("label", n_frames)
-        take, conf, labels = label_take(pts, ms, rate_hz, seed_take, seed_frames, progress)
+        take, conf, labels = label_take(pts, ms, rate_hz, first_labels, start_frames, progress)
         progress.update(n_frames)
         progress.finish()
         write_take(out, take)

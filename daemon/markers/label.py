@@ -16,7 +16,7 @@ checks and swap repairs (label_repair), a frame labelled from the set alone
 Live use (one frame at a time, e.g. in the daemon's pipeline):
 
     lab = Labeller(markerset, rate_hz=120)
-    lab.seed(first_frame_xyz)          # optional: a labelled frame (n, 3), NaN = unseen
+    lab.start_from_labelled(xyz)       # optional: a labelled frame (n, 3), NaN = unseen
     labels, confidence = lab.update(points_xyz)   # (k,) marker index or -1, (k,) 0..1
     lab.positions                      # (n, 3) current labelled positions, NaN = not seen
 
@@ -165,7 +165,7 @@ class Labeller(NeighbourEvidence, ModuleReidentification, StructureRepair):
         noise and, until the take's own distances are learned, the spread between
         subjects."""
         if self._tol_cache is not None and self._tol_frames == self.frames:
-            return self._tol_cache          # known_frames only change in _commit/seed
+            return self._tol_cache          # known_frames only change in _commit/start_*
         self._tol_frames = self.frames
         known = self.known_frames >= 30
         if self._tol_known is not None and np.array_equal(known, self._tol_known):
@@ -177,7 +177,7 @@ class Labeller(NeighbourEvidence, ModuleReidentification, StructureRepair):
                                         + 2 * self.noise_m ** 2) + 0.004
         return self._tol_cache
 
-    def seed(self, xyz: np.ndarray) -> None:
+    def start_from_labelled(self, xyz: np.ndarray) -> None:
         """Start from a labelled frame (n, 3), NaN for markers not seen in it."""
         xyz = np.asarray(xyz, float)
         ok = np.isfinite(xyz).all(1)
@@ -190,7 +190,7 @@ class Labeller(NeighbourEvidence, ModuleReidentification, StructureRepair):
         self._tol_frames = -1
         self.adapted = True
 
-    def seed_take(self, xyz: np.ndarray) -> None:
+    def start_from_labelled_frames(self, xyz: np.ndarray) -> None:
         """Start from several labelled frames (f, n, 3): distances from all of them."""
         d = np.linalg.norm(xyz[:, :, None] - xyz[:, None], axis=3)  # (f, n, n)
         with warnings.catch_warnings():
@@ -200,7 +200,7 @@ class Labeller(NeighbourEvidence, ModuleReidentification, StructureRepair):
         seen = np.isfinite(xyz).all(2).any(0)
         self.known_frames[seen] = 10 ** 6
         self._tol_frames = -1
-        # pairs seen in the seed frames: this body's distances, known; pairs not seen
+        # pairs seen in the labelled frames: this body's distances, known; pairs not seen
         # (a marker hidden throughout): the set's, as loose as another subject's
         self.adapt_tol = np.where(np.isfinite(med), 3.0 * np.sqrt(
             self.ms.sd_m ** 2 + 2 * self.noise_m ** 2) + 0.004,
@@ -213,10 +213,10 @@ class Labeller(NeighbourEvidence, ModuleReidentification, StructureRepair):
                 shape = xyz[np.nonzero(full)[0][-1]][idx]
                 self.seg_checks[k] = (idx, shape - shape.mean(0), perms)
         if len(xyz) >= 2:
-            self.seed(xyz[-2])
+            self.start_from_labelled(xyz[-2])
             self.update_labelled(xyz[-1])
         else:
-            self.seed(xyz[-1])
+            self.start_from_labelled(xyz[-1])
 
     def start(self, points: np.ndarray, labels: np.ndarray) -> None:
         """Start from one frame's points and their labels (-1 = none)."""
@@ -227,7 +227,7 @@ class Labeller(NeighbourEvidence, ModuleReidentification, StructureRepair):
         self._commit(cur, np.isfinite(cur).all(1))
 
     def update_labelled(self, xyz: np.ndarray) -> None:
-        """Advance the tracker with a frame whose labels are known (seed frames)."""
+        """Advance the tracker with a frame whose labels are known (labelled start frames)."""
         ok = np.isfinite(xyz).all(1)
         self._commit(np.where(ok[:, None], xyz, np.nan), ok)
 

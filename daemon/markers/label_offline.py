@@ -13,12 +13,15 @@ from daemon.markers.markerset import MarkerSet
 
 
 def label_take(points: Points, ms: MarkerSet, rate_hz: float = 120.0,
-               seed: Take | None = None, seed_frames: int = 0, progress=None,
-               options: dict | None = None, start_frames: int = 10
+               start_labels: Take | None = None, start_frames: int = 0, progress=None,
+               options: dict | None = None, from_window: bool = True
                ) -> tuple[Take, np.ndarray, np.ndarray]:
-    """Label every frame of `points`. Returns the labelled take, per-frame confidence
-    (mean over labelled markers) and the per-point labels (aligned with points rows after
-    sorting by frame, see `Points.split`)."""
+    """Label every frame of `points`. With `start_labels` (a labelled take) its first
+    `start_frames` frames are taken as they are and tracking starts after them; without,
+    a window of frames is labelled from the marker set alone (`from_window`; otherwise
+    the first frame, as the live labeller does). Returns the labelled take, per-frame
+    confidence (mean over labelled markers) and the per-point labels (aligned with points
+    rows after sorting by frame, see `Points.split`)."""
     frames, per_frame = points.split()
     lab = Labeller(ms, rate_hz, **(options or {}))
     n_frames = int(frames[-1] - frames[0] + 1) if len(frames) else 0
@@ -27,11 +30,11 @@ def label_take(points: Points, ms: MarkerSet, rate_hz: float = 120.0,
     conf = np.zeros(n_frames)
     labels_out = []
     start = 0
-    if seed is not None and seed_frames > 0:
-        s = seed.select(ms.labels)
-        use = min(seed_frames, s.n_frames)
+    if start_labels is not None and start_frames > 0:
+        s = start_labels.select(ms.labels)
+        use = min(start_frames, s.n_frames)
         sx = s.xyz_m[:use]
-        lab.seed_take(sx)
+        lab.start_from_labelled_frames(sx)
         fidx = np.arange(use) + s.first_frame - first
         keep = (fidx >= 0) & (fidx < n_frames)
         xyz[fidx[keep]] = sx[keep]
@@ -41,7 +44,7 @@ def label_take(points: Points, ms: MarkerSet, rate_hz: float = 120.0,
             labels_out.append(np.full(len(per_frame[f]), -2))
     order = list(range(start, len(frames)))
     out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-    if start == 0 and len(frames) and start_frames > 1:
+    if start == 0 and len(frames) and from_window:
         # from the marker set alone: one global assignment on a window of frames
         # (daemon/markers/label_start.py), handed to the tracker as labelled start frames, then
         # tracked forward from the window's end and backward from its start
@@ -50,9 +53,9 @@ def label_take(points: Points, ms: MarkerSet, rate_hz: float = 120.0,
         # the tracker learns this body's distances and shapes from the whole window,
         # then labels the window itself from its first two frames (markers the start
         # left out, e.g. hidden for most of the window, are found on the way)
-        lab.seed_take(wx)
+        lab.start_from_labelled_frames(wx)
         S = min(2, len(wl))
-        lab.seed(wx[0])
+        lab.start_from_labelled(wx[0])
         if S > 1:
             lab.update_labelled(wx[1])
         for w in range(S):
@@ -60,7 +63,7 @@ def label_take(points: Points, ms: MarkerSet, rate_hz: float = 120.0,
         order = list(range(w0 + S, len(frames)))
         if w0 > 0:
             back = Labeller(ms, rate_hz, **(options or {}))
-            back.seed_take(wx[::-1])
+            back.start_from_labelled_frames(wx[::-1])
             for i in range(w0 - 1, -1, -1):
                 out[i] = back.update(per_frame[i])
     for n_done, i in enumerate(order):
