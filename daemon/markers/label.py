@@ -231,6 +231,39 @@ class Labeller(NeighbourEvidence, ModuleReidentification, StructureRepair):
         ok = np.isfinite(xyz).all(1)
         self._commit(np.where(ok[:, None], xyz, np.nan), ok)
 
+    def relabel(self, perm: np.ndarray) -> None:
+        """Rename the tracked markers: marker i becomes perm[i] (-1: it is dropped), with
+        everything the tracker learned about it (its motion, its snapshot, the take's
+        distances to the others), when a verification found the labels wrong. Modules
+        whose members changed learn their shape again."""
+        n = self.n
+        src = np.full(n, -1)
+        keep = perm >= 0
+        src[perm[keep]] = np.nonzero(keep)[0]
+        has = src >= 0
+        s0 = np.maximum(src, 0)
+        self.pos = np.where(has[:, None], self.pos[s0], np.nan)
+        self.vel = np.where(has[:, None], self.vel[s0], 0.0)
+        self.age = np.where(has, self.age[s0], 10 ** 6)
+        snap = self.snap[s0][:, s0]
+        snap[~has] = np.nan
+        snap[:, ~has] = np.nan
+        self.snap = np.ascontiguousarray(snap)
+        changed = src != np.arange(n)
+        self.since_reacquired = np.where(changed, 0, self.since_reacquired)
+        pair = has[:, None] & has[None]
+        self.mean_all = np.where(pair, self.mean_all[s0][:, s0], self.ms.mean_m)
+        self.adapt_tol = np.where(pair, self.adapt_tol[s0][:, s0],
+                                  template_tolerance(self.ms, self.noise_m))
+        self.known_frames = np.where(has, self.known_frames[s0], 0)
+        self.nb_mean = self.mean_all[np.arange(n)[:, None], self.nb]
+        if len(self.modules):
+            hit = (changed[self.mod_idx] & self.mod_mask).any(1)
+            self.mod_shape[hit] = np.nan
+            self.mod_shape_first[hit] = np.nan
+        self._tol_frames = -1
+        self._tol_known = None
+
     def _learn_distances(self, cur: np.ndarray, rate: float) -> None:
         """Follow this take's own marker distances (another subject, other placement)."""
         seen = np.isfinite(cur).all(1)

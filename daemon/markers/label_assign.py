@@ -82,21 +82,27 @@ class Compat:
         tol = np.sqrt(ms.sd_m ** 2 + sub ** 2 + PLACEMENT_M ** 2 + 2 * noise_m ** 2)
         known = np.isfinite(D)
         Dz = np.where(known, D, 0.0)
-        e = (Dz[:, None, :, None] - M[None, :, None, :]) / tol[None, :, None, :]
-        C = np.exp(-0.5 * e * e)
-        # a pair the set says is rigid must stay rigid in the window
+        # C = exp(-e^2 / 2), e = (D[a, b] - M[i, j]) / tol[i, j], in place: the (T, n, T, n)
+        # table is the cost of the start (and of every verification)
+        C = Dz[:, None, :, None] - M[None, :, None, :]
+        C /= tol[None, :, None, :]
+        C *= C
+        C *= -0.5
+        np.exp(C, out=C)
+        # a pair the set says is rigid must stay rigid in the window ...
         allow = 3.0 * ms.sd_m + 2.0 * noise_m + 0.004
-        rigid = ms.sd_m < RIGID_SD_M
+        ri, rj = np.nonzero(ms.sd_m < RIGID_SD_M)
         Sz = np.where(known, S, 0.0)
-        bad = (Sz[:, None, :, None] > allow[None, :, None, :]) & rigid[None, :, None, :]
-        C[bad] *= 0.05
+        sub = C[:, ri, :, rj]                                           # (K, T, T)
+        bad = Sz[None] > allow[ri, rj][:, None, None]
+        sub[bad] *= 0.05
         # ... and one that does keeps it, wherever its markers sit on the segment: a
         # rigid pair within a loose allowance scores at least RIGID_REWARD
-        steady = (Sz[:, None, :, None] <= allow[None, :, None, :]) & rigid[None, :, None, :]
-        loose = (RIGID_REL * M + 0.02)[None, :, None, :]
-        e2 = (Dz[:, None, :, None] - M[None, :, None, :]) / loose
+        loose = (RIGID_REL * M + 0.02)[ri, rj][:, None, None]
+        e2 = (Dz[None] - M[ri, rj][:, None, None]) / loose
         near = np.exp(-0.5 * e2 * e2)
-        C = np.where(steady, np.maximum(C, RIGID_REWARD * near) + RIGID_BONUS * near, C)
+        C[:, ri, :, rj] = np.where(~bad, np.maximum(sub, RIGID_REWARD * near)
+                                   + RIGID_BONUS * near, sub)
         C *= known[:, None, :, None]
         ia, ib = np.arange(T), np.arange(n)
         C[ia, :, ia, :] = 0.0
@@ -453,3 +459,36 @@ def assign(X: np.ndarray, ms: MarkerSet, restarts: int = 6, seed: int = 0,
     r, c = np.nonzero(best[1])
     lab[r] = c
     return lab, best[0]
+
+
+def score_labels(X: np.ndarray, ms: MarkerSet, lab: np.ndarray, noise_m: float = 0.003
+                 ) -> float:
+    """The whole-body score (as `assign` maximises it) of a given labelling `lab` (T,)
+    of tracks X (T, W, 3), -1 for a track left unlabelled."""
+    D, S = pair_stats(X)
+    judge = Compat(ms, D, S, body_scale(D, ms), noise_m)
+    P = np.zeros((len(X), ms.n))
+    got = np.nonzero(lab >= 0)[0]
+    P[got, lab[got]] = 1.0
+    return judge.score(P) + BodyTerms(X, ms, noise_m=noise_m)(_to_marker_track(P))
+
+
+def improve(X: np.ndarray, ms: MarkerSet, lab: np.ndarray, noise_m: float = 0.003
+            ) -> tuple[np.ndarray, float]:
+    """The labelling `lab` (T,) of tracks X (T, W, 3) improved by the local search of
+    `assign` (swaps, mirror moves of a part of the body, reorderings inside a module),
+    and how much its whole-body score rose: the cheap check of labels that tracking
+    gave, which are right nearly always."""
+    D, S = pair_stats(X)
+    judge = Compat(ms, D, S, body_scale(D, ms), noise_m)
+    terms = BodyTerms(X, ms, noise_m=noise_m)
+    moves = [(p, -1) for p in mirror_moves(ms, mirror_map(ms.labels))] + _module_moves(terms)
+    P = np.zeros((len(X), ms.n))
+    got = np.nonzero(lab >= 0)[0]
+    P[got, lab[got]] = 1.0
+    before = judge.score(P) + terms(_to_marker_track(P))
+    Q, after = polish(judge, P, terms, moves)
+    out = np.full(len(X), -1)
+    r, c = np.nonzero(Q)
+    out[r] = c
+    return out, after - before

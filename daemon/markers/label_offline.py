@@ -9,17 +9,20 @@ import numpy as np
 from daemon.markers.c3dio import Points, Take
 from daemon.markers.label import Labeller
 from daemon.markers.label_start import window_start
+from daemon.markers.label_verify import Verification, verify_labels
 from daemon.markers.markerset import MarkerSet
 
 
 def label_take(points: Points, ms: MarkerSet, rate_hz: float = 120.0,
                start_labels: Take | None = None, start_frames: int = 0, progress=None,
-               options: dict | None = None, from_window: bool = True
-               ) -> tuple[Take, np.ndarray, np.ndarray]:
+               options: dict | None = None, from_window: bool = True,
+               verify: bool = True) -> tuple[Take, np.ndarray, np.ndarray]:
     """Label every frame of `points`. With `start_labels` (a labelled take) its first
     `start_frames` frames are taken as they are and tracking starts after them; without,
     a window of frames is labelled from the marker set alone (`from_window`; otherwise
-    the first frame, as the live labeller does). Returns the labelled take, per-frame
+    the first frame, as the live labeller does). With `verify` the labels are then
+    checked against the set window by window, and a window whose labels went wrong is
+    labelled again (daemon/markers/label_verify.py). Returns the labelled take, per-frame
     confidence (mean over labelled markers) and the per-point labels (aligned with points
     rows after sorting by frame, see `Points.split`)."""
     frames, per_frame = points.split()
@@ -66,10 +69,17 @@ def label_take(points: Points, ms: MarkerSet, rate_hz: float = 120.0,
             back.start_from_labelled_frames(wx[::-1])
             for i in range(w0 - 1, -1, -1):
                 out[i] = back.update(per_frame[i])
+    check = Verification(ms, per_frame, out, noise_m=lab.noise_m) if verify else None
     for n_done, i in enumerate(order):
         out[i] = lab.update(per_frame[i])
+        if check is not None:
+            check.after(lab, order, n_done)
         if progress is not None and n_done % 200 == 0:
             progress.update(n_done)
+    if check is not None:
+        check.finish(lab, order)
+        if order and order[0] > start:      # the frames before the window, labelled backward
+            verify_labels(per_frame, out, range(start, order[0]), ms, noise_m=lab.noise_m)
     for i in range(start, len(frames)):
         P = per_frame[i]
         m, c = out[i]
