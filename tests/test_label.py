@@ -495,10 +495,9 @@ def test_verification_repairs_a_wrong_start(cmu41, name, cycles, hidden):
     """Labelled start frames with a leg's labels shifted by one marker, or left and right
     swapped at the pelvis: tracking carries them on (the take's own distances, learned
     from the start frames, agree with them), and the verification against the marker set
-    relabels them. After the first window (1 s) the points are named right against the
-    truth nearly as often as with a right start (within 0.6 %: points the tracker left
-    unlabelled under the wrong labels stay so; 99 % on the clean takes), where
-    without it the wrong labels stay."""
+    relabels them and renames the tracker. After the first window (1 s) the points are
+    named right against the truth as often as with a right start (within 0.3 %; 99 % on
+    the clean takes), where without it the wrong labels stay."""
     take = _excerpt(name, cmu41.labels)
     start = _relabelled(take, cycles)
     t = hide_spans(take, hidden, seed=1) if hidden else take
@@ -510,5 +509,5 @@ def test_verification_repairs_a_wrong_start(cmu41, name, cycles, hidden):
         _, _, labels = label_take(pts, cmu41, take.rate_hz, first, 10, verify=verify)
         got[case] = score(pts, truth, labels, first_window)["correct"]
     assert got["wrong"] < got["right"] - 0.05            # the wrong start is carried on
-    assert got["repaired"] >= got["right"] - 0.006
+    assert got["repaired"] >= got["right"] - 0.003
     assert got["repaired"] >= (0.95 if hidden else 0.99)

@@ -109,13 +109,38 @@ class Compat:
         C[:, ib, :, ib] = 0.0
         self.C = C.reshape(T * n, T * n)
         self.T, self.n = T, n
+        self._C32: np.ndarray | None = None
 
     def gain(self, P: np.ndarray) -> np.ndarray:
         """The gradient (T, n) of the summed compatibility at (soft) assignment P."""
+        k = _matched(P)
+        if k is not None:          # a 0/1 assignment: the sum of its rows of C (C = C^T)
+            return self.C[k].sum(0).reshape(self.T, self.n)
         return (self.C @ P.reshape(-1)).reshape(self.T, self.n)
 
+    def soft_gain(self, P: np.ndarray) -> np.ndarray:
+        """`gain` in single precision, for softassign's soft matches (which are only
+        steered by it; the discrete assignments are judged in double)."""
+        if self._C32 is None:
+            self._C32 = self.C.astype(np.float32)
+        G = self._C32 @ P.reshape(-1).astype(np.float32)
+        return G.astype(np.float64).reshape(self.T, self.n)
+
     def score(self, P: np.ndarray) -> float:
+        k = _matched(P)
+        if k is not None:
+            return 0.5 * float(self.C[np.ix_(k, k)].sum())
         return 0.5 * float(P.reshape(-1) @ (self.C @ P.reshape(-1)))
+
+
+def _matched(P: np.ndarray) -> np.ndarray | None:
+    """The flat indices of a 0/1 assignment's matches, or None for a soft one (the
+    product with the whole table is the start's cost; a 0/1 one needs T of its rows)."""
+    flat = P.reshape(-1)
+    k = np.flatnonzero(flat)
+    if len(k) > P.shape[0] or not (flat[k] == 1.0).all():
+        return None
+    return k
 
 
 def _discrete(G: np.ndarray) -> np.ndarray:
@@ -149,7 +174,7 @@ def softassign(cp: Compat, P0: np.ndarray, betas=(0.5, 1, 2, 4, 8, 16, 32),
     P = P0
     for beta in betas:
         for _ in range(inner):
-            G = cp.gain(P)
+            G = cp.soft_gain(P)
             G = G / max(G.max(), 1e-12)
             Q = np.ones((T + 1, n + 1))
             Q[:T, :n] = np.exp(beta * 4.0 * (G - 1.0))
