@@ -302,7 +302,7 @@ def _sparse_delta(cp: Compat, G: np.ndarray, rem: tuple, add: tuple) -> float:
     return float(u @ G.reshape(-1)[k] + 0.5 * u @ cp.C[np.ix_(k, k)] @ u)
 
 
-def _to_marker_track(P: np.ndarray) -> np.ndarray:
+def to_marker_track(P: np.ndarray) -> np.ndarray:
     mt = np.full(P.shape[1], -1)
     r, c = np.nonzero(P)
     mt[c] = r
@@ -342,7 +342,7 @@ def mirror_moves(ms: MarkerSet, twin: np.ndarray) -> list[np.ndarray]:
     return moves
 
 
-def _module_moves(terms: BodyTerms) -> list[tuple[np.ndarray, int]]:
+def module_moves(terms: BodyTerms) -> list[tuple[np.ndarray, int]]:
     """Reorderings inside each rigid module of 4-5 markers (all its permutations), with
     the module's index in `terms`."""
     from itertools import permutations
@@ -367,7 +367,7 @@ def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
     T, n = cp.T, cp.n
     C4 = cp.C.reshape(T, n, T, n)
     base = cp.score(P)
-    mt = _to_marker_track(P)
+    mt = to_marker_track(P)
     cur = base + terms(mt)
     for _ in range(rounds):
         G = cp.gain(P)
@@ -422,9 +422,9 @@ def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
         got = arg >= 0
         Q[arg[got], np.nonzero(got)[0]] = 1.0
         R = refine(cp, Q)                 # the compatibility alone may undo the move:
-        r = cp.score(R) + terms(_to_marker_track(R))
+        r = cp.score(R) + terms(to_marker_track(R))
         P = R if r > best else Q          # keep its refinement only if the whole gains
-        mt = _to_marker_track(P)
+        mt = to_marker_track(P)
         base = cp.score(P)
         cur = base + terms(mt)
     return P, cur
@@ -454,7 +454,7 @@ def assign(X: np.ndarray, ms: MarkerSet, restarts: int = 6, seed: int = 0,
     size = body_scale(D, ms)
     twin = mirror_map(ms.labels)
     terms = BodyTerms(X, ms, noise_m=noise_m)
-    moves = [(p, -1) for p in mirror_moves(ms, twin)] + _module_moves(terms)
+    moves = [(p, -1) for p in mirror_moves(ms, twin)] + module_moves(terms)
     rng = np.random.default_rng(seed)
     judge = Compat(ms, D, S, size, noise_m)
     found: list[tuple[float, int, np.ndarray]] = []
@@ -471,7 +471,7 @@ def assign(X: np.ndarray, ms: MarkerSet, restarts: int = 6, seed: int = 0,
                 if key in seen:
                     continue
                 seen.add(key)
-                total = judge.score(Q) + terms(_to_marker_track(Q))
+                total = judge.score(Q) + terms(to_marker_track(Q))
                 found.append((total, len(found), Q))
     found.sort(key=lambda f: -f[0])
     best = None
@@ -484,36 +484,3 @@ def assign(X: np.ndarray, ms: MarkerSet, restarts: int = 6, seed: int = 0,
     r, c = np.nonzero(best[1])
     lab[r] = c
     return lab, best[0]
-
-
-def score_labels(X: np.ndarray, ms: MarkerSet, lab: np.ndarray, noise_m: float = 0.003
-                 ) -> float:
-    """The whole-body score (as `assign` maximises it) of a given labelling `lab` (T,)
-    of tracks X (T, W, 3), -1 for a track left unlabelled."""
-    D, S = pair_stats(X)
-    judge = Compat(ms, D, S, body_scale(D, ms), noise_m)
-    P = np.zeros((len(X), ms.n))
-    got = np.nonzero(lab >= 0)[0]
-    P[got, lab[got]] = 1.0
-    return judge.score(P) + BodyTerms(X, ms, noise_m=noise_m)(_to_marker_track(P))
-
-
-def improve(X: np.ndarray, ms: MarkerSet, lab: np.ndarray, noise_m: float = 0.003
-            ) -> tuple[np.ndarray, float]:
-    """The labelling `lab` (T,) of tracks X (T, W, 3) improved by the local search of
-    `assign` (swaps, mirror moves of a part of the body, reorderings inside a module),
-    and how much its whole-body score rose: the cheap check of labels that tracking
-    gave, which are right nearly always."""
-    D, S = pair_stats(X)
-    judge = Compat(ms, D, S, body_scale(D, ms), noise_m)
-    terms = BodyTerms(X, ms, noise_m=noise_m)
-    moves = [(p, -1) for p in mirror_moves(ms, mirror_map(ms.labels))] + _module_moves(terms)
-    P = np.zeros((len(X), ms.n))
-    got = np.nonzero(lab >= 0)[0]
-    P[got, lab[got]] = 1.0
-    before = judge.score(P) + terms(_to_marker_track(P))
-    Q, after = polish(judge, P, terms, moves)
-    out = np.full(len(X), -1)
-    r, c = np.nonzero(Q)
-    out[r] = c
-    return out, after - before

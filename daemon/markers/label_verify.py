@@ -19,7 +19,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from daemon.markers.label_assign import assign, improve, score_labels
+from daemon.markers.label_assign import (
+    BodyTerms,
+    Compat,
+    assign,
+    body_scale,
+    mirror_map,
+    mirror_moves,
+    module_moves,
+    pair_stats,
+    polish,
+    to_marker_track,
+)
 from daemon.markers.markerset import MarkerSet, signed_volume
 from daemon.markers.markerset_fit import check_fit
 
@@ -71,6 +82,39 @@ def relabel_window(xyz: np.ndarray, ms: MarkerSet, noise_m: float = 0.003
     perm[taken] = -1              # a marker not in the window loses a label now taken
     perm[tracks] = lab
     return perm
+
+
+def score_labels(X: np.ndarray, ms: MarkerSet, lab: np.ndarray, noise_m: float = 0.003
+                 ) -> float:
+    """The whole-body score (as `assign` maximises it) of a given labelling `lab` (T,)
+    of tracks X (T, W, 3), -1 for a track left unlabelled."""
+    D, S = pair_stats(X)
+    judge = Compat(ms, D, S, body_scale(D, ms), noise_m)
+    P = np.zeros((len(X), ms.n))
+    got = np.nonzero(lab >= 0)[0]
+    P[got, lab[got]] = 1.0
+    return judge.score(P) + BodyTerms(X, ms, noise_m=noise_m)(to_marker_track(P))
+
+
+def improve(X: np.ndarray, ms: MarkerSet, lab: np.ndarray, noise_m: float = 0.003
+            ) -> tuple[np.ndarray, float]:
+    """The labelling `lab` (T,) of tracks X (T, W, 3) improved by the local search of
+    `assign` (swaps, mirror moves of a part of the body, reorderings inside a module),
+    and how much its whole-body score rose: the cheap check of labels that tracking
+    gave, which are right nearly always."""
+    D, S = pair_stats(X)
+    judge = Compat(ms, D, S, body_scale(D, ms), noise_m)
+    terms = BodyTerms(X, ms, noise_m=noise_m)
+    moves = [(p, -1) for p in mirror_moves(ms, mirror_map(ms.labels))] + module_moves(terms)
+    P = np.zeros((len(X), ms.n))
+    got = np.nonzero(lab >= 0)[0]
+    P[got, lab[got]] = 1.0
+    before = judge.score(P) + terms(to_marker_track(P))
+    Q, after = polish(judge, P, terms, moves)
+    out = np.full(len(X), -1)
+    r, c = np.nonzero(Q)
+    out[r] = c
+    return out, after - before
 
 
 def _reordered(lab: np.ndarray, tracks: np.ndarray) -> bool:
