@@ -2,18 +2,19 @@
 
 For each take: gap-free, and with 20 % of marker-frames hidden in spans of 0.1-1 s plus
 3 ghost points per frame (uniform in the body's bounding box grown by 0.1 m). Started
-from 10 labelled frames (--seed-frames 10) or from the marker set alone. Marker sets:
+from 10 labelled frames (--start-frames 10) or from the marker set alone. Marker sets:
 the shipped cmu41 (learned from both takes, so the same subjects) and one learned from
 the *other* take only (another person: a harder, cross-subject case). The baseline is
-the third seed's approach, every frame labelled from scratch by matching segments by
-their distances (our `initial_labels`), on every 20th frame because it is slow.
+every frame labelled from scratch by matching segments by their distances (our
+`initial_labels`, the per-frame method tracking replaced), on every 20th frame because
+it is slow.
 
     python benchmarks/bench_label.py [--repeats 5] [--speed-only] [--sweep 30]
-        [--hidden 0.1 --ghosts 2] [--seed-frames 10]
+        [--hidden 0.1 --ghosts 2] [--start-frames 10]
 
 --sweep N: only one occlusion case (cmu41, --hidden/--ghosts, default 20 %/3, with
---seed-frames, default 10; 0: from the marker set alone) over N occlusion/ghost patterns
-per take (seeds 0..N-1): median, worst and how many fall below 97 %, since five patterns
+--start-frames, default 10; 0: from the marker set alone) over N occlusion/ghost patterns
+per take (RNG seeds 0..N-1): median, worst and how many fall below 97 %, since five patterns
 say little about the worst. fps_cpu in the tables is the whole labelling (label_take,
 the start from the set alone included), per CPU second.
 
@@ -36,31 +37,27 @@ sys.path.insert(0, str(ROOT))
 
 from calibkit.clitools import print_table  # noqa: E402
 from daemon.markers.c3dio import read_c3d  # noqa: E402
-from daemon.markers.label import (  # noqa: E402
-    Labeller,
-    hide_spans,
-    initial_labels,
-    label_take,
-    points_with_ghosts,
-    score,
-)
+from daemon.markers.label import Labeller  # noqa: E402
+from daemon.markers.label_offline import label_take  # noqa: E402
+from daemon.markers.label_single import initial_labels  # noqa: E402
 from daemon.markers.markerset import MarkerSet, learn  # noqa: E402
+from daemon.synthetic.labelling import hide_spans, points_with_ghosts, score  # noqa: E402
 
 DATA = ROOT / "fixtures" / "cmu_c3d"
 
 
-def run(take, ms, hidden, ghosts, seed_frames, seed):
+def run(take, ms, hidden, ghosts, start_frames, seed):
     t = hide_spans(take, hidden, seed=seed) if hidden else take
     pts, truth = points_with_ghosts(t, ghosts, seed=seed)
     c0 = time.process_time()
-    _, _, labels = label_take(pts, ms, take.rate_hz, t if seed_frames else None, seed_frames)
+    _, _, labels = label_take(pts, ms, take.rate_hz, t if start_frames else None, start_frames)
     cpu = time.process_time() - c0
-    s = score(pts, truth, labels, seed_frames)
-    return s["correct"], s["ghosts_rejected"], (take.n_frames - seed_frames) / cpu
+    s = score(pts, truth, labels, start_frames)
+    return s["correct"], s["ghosts_rejected"], (take.n_frames - start_frames) / cpu
 
 
 def baseline(take, ms, hidden, ghosts, seed, every=20):
-    """Every frame from scratch (the third seed's per-frame module matching)."""
+    """Every frame from scratch (per-frame module matching, no tracking)."""
     t = hide_spans(take, hidden, seed=seed) if hidden else take
     pts, truth = points_with_ghosts(t, ghosts, seed=seed)
     frames, per = pts.split()
@@ -80,13 +77,13 @@ def baseline(take, ms, hidden, ghosts, seed, every=20):
 
 
 def speed(take, ms, hidden=0.0, ghosts=0, seed=0, compiled=True):
-    """Frames per second of CPU time of Labeller.update alone (after 10 seed frames);
+    """Frames per second of CPU time of Labeller.update alone (after 10 labelled start frames);
     compiled=False runs the numpy twins of the compiled kernels (the baseline)."""
     t = hide_spans(take, hidden, seed=seed) if hidden else take
     pts, _ = points_with_ghosts(t, ghosts, seed=seed)
     _, per = pts.split()
     lab = Labeller(ms, take.rate_hz, compiled=compiled)
-    lab.seed_take(t.xyz_m[:10])
+    lab.start_from_labelled_frames(t.xyz_m[:10])
     c0 = time.process_time()
     for p in per[10:]:
         lab.update(p)
@@ -100,7 +97,7 @@ def main() -> None:
     ap.add_argument("--sweep", type=int, default=0, metavar="N")
     ap.add_argument("--hidden", type=float, default=0.2)
     ap.add_argument("--ghosts", type=int, default=3)
-    ap.add_argument("--seed-frames", type=int, default=10)
+    ap.add_argument("--start-frames", type=int, default=10)
     args = ap.parse_args()
     warnings.simplefilter("ignore")
     shipped = MarkerSet.load(ROOT / "daemon" / "markers" / "sets" / "cmu41.toml")
@@ -109,22 +106,22 @@ def main() -> None:
         return speed_table(takes, shipped, args.repeats)
     if args.sweep:
         return sweep_table(takes, shipped, args.sweep, args.hidden, args.ghosts,
-                           args.seed_frames)
+                           args.start_frames)
     other = {"85_02": learn([takes["01_01"]]), "01_01": learn([takes["85_02"]])}
     rows = []
     for name, take in takes.items():
         for set_name, ms in (("cmu41", shipped), ("other", other[name])):
             for hidden, ghosts in ((0.0, 0), (0.2, 3)):
-                for seed_frames in (10, 0):
-                    res = [run(take, ms, hidden, ghosts, seed_frames, s)
+                for start_frames in (10, 0):
+                    res = [run(take, ms, hidden, ghosts, start_frames, s)
                            for s in range(args.repeats)]
                     c, g, fps = (np.median([r[i] for r in res]) for i in range(3))
                     worst = min(r[0] for r in res)
                     rows.append([name, set_name, f"{int(hidden * 100)}%/{ghosts}",
-                                 seed_frames, round(100 * c, 2), round(100 * worst, 2),
+                                 start_frames, round(100 * c, 2), round(100 * worst, 2),
                                  round(100 * g, 1), round(fps)])
                     print(*rows[-1], flush=True, file=sys.stderr)
-    print_table(rows, ["take", "markerset", "hidden/ghosts", "seed_frames", "correct_%",
+    print_table(rows, ["take", "markerset", "hidden/ghosts", "start_frames", "correct_%",
                        "worst_%", "ghosts_rejected_%", "fps_cpu"])
     print()
     rows = []
@@ -135,20 +132,20 @@ def main() -> None:
             rows.append([name, f"{int(hidden * 100)}%/{ghosts}", round(100 * acc, 2),
                          round(fps_b, 1), round(100 * ours[0], 2), round(ours[2]),
                          round(ours[2] / fps_b, 1)])
-    print("baseline: every frame from scratch (seed's method) vs tracking, cmu41, no seed")
+    print("baseline: every frame from scratch vs tracking, cmu41, no labelled frame")
     print_table(rows, ["take", "hidden/ghosts", "baseline_%", "baseline_fps", "ours_%",
                        "ours_fps", "speedup"])
     print()
     speed_table(takes, shipped, args.repeats)
 
 
-def sweep_table(takes, ms, n, hidden=0.2, ghosts=3, seed_frames=10):
+def sweep_table(takes, ms, n, hidden=0.2, ghosts=3, start_frames=10):
     """One occlusion case over n patterns per take."""
     rows = []
     for name, take in takes.items():
         got, fps = [], []
         for s in range(n):
-            c, _, f = run(take, ms, hidden, ghosts, seed_frames, s)
+            c, _, f = run(take, ms, hidden, ghosts, start_frames, s)
             got.append(100 * c)
             fps.append(f)
             print(name, s, round(got[-1], 2), round(f), flush=True, file=sys.stderr)
@@ -157,8 +154,8 @@ def sweep_table(takes, ms, n, hidden=0.2, ghosts=3, seed_frames=10):
         rows.append([name, n, round(float(np.median(got)), 2), round(float(got.min()), 2),
                      int((got < 97).sum()), low or "-", round(float(np.median(fps))),
                      round(float(np.min(fps)))])
-    print(f"cmu41, {round(100 * hidden)} % hidden + {ghosts} ghosts, {seed_frames} seed "
-          f"frames, one row per take")
+    print(f"cmu41, {round(100 * hidden)} % hidden + {ghosts} ghosts, {start_frames} labelled "
+          f"start frames, one row per take")
     print_table(rows, ["take", "patterns", "correct_%_median", "worst_%", "below_97",
                        "patterns_below_97", "fps_cpu_median", "fps_cpu_worst"])
 

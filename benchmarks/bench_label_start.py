@@ -31,8 +31,9 @@ from label_people import BODIES, Body, walk  # noqa: E402
 
 from calibkit.clitools import print_table  # noqa: E402
 from daemon.markers.c3dio import Take, read_c3d  # noqa: E402
-from daemon.markers.label import hide_spans, label_take, points_with_ghosts, score  # noqa: E402
+from daemon.markers.label_offline import label_take  # noqa: E402
 from daemon.markers.markerset import learn, open_set  # noqa: E402
+from daemon.synthetic.labelling import hide_spans, points_with_ghosts, score  # noqa: E402
 
 DATA = ROOT / "fixtures" / "cmu_c3d"
 

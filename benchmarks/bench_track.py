@@ -31,7 +31,6 @@ import tomli_w
 
 from calibkit.synthetic import sim
 from daemon.markers.c3dio import Points, Take, write_points_csv
-from daemon.markers.label import hide_spans
 from daemon.markers.offline_track import (
     MarkerCloud,
     cloud_from_points,
@@ -40,6 +39,7 @@ from daemon.markers.offline_track import (
 )
 from daemon.markers.point_tracks import associate
 from daemon.rigid import BodyDef, quaternion_xyzw
+from daemon.synthetic.labelling import hide_spans
 
 RATE = 120.0
 

@@ -19,7 +19,7 @@ instead, so the labels are the same on every run. A start (`_Start`) keeps its r
 track id, which the tracker keeps through the frames a search takes: it is accepted when
 a second search a quarter second later names the tracks both named alike (a start from
 the set alone can mistake a mirrored pair, and tracking would carry the mistake along),
-and the accepted labels seed the labeller on the current frame's tracks, so nothing is
+and the accepted labels start the labeller on the current frame's tracks, so nothing is
 replayed and a busy machine only delays the start. Searches wait for a frame showing
 most of the set (`start_fraction` of its markers, or any after `settle_s`). A start is
 made again when the labeller has named nothing for `lost_s` while markers are seen (the
@@ -81,7 +81,7 @@ class _Start:
     half the set); at a disagreement the newer search is checked in its turn (after
     `max_tries` searches the newest is taken). Searches are made on frames showing most
     of the set (`start_points`), or on any frame with points after `settle_frames`.
-    Nothing is replayed: the accepted labels seed a labeller on the current frame's
+    Nothing is replayed: the accepted labels start a labeller on the current frame's
     tracks, so a start costs two searches however busy the machine is."""
 
     def __init__(self, ms: MarkerSet, rate_hz: float, check_frames: int, start_points: int,
@@ -125,12 +125,12 @@ class _Start:
         self.accepted |= self.tries >= self.max_tries
 
     def labeller(self, xyz: np.ndarray, ids: np.ndarray) -> Labeller:
-        """A labeller seeded with the accepted labels at this frame's tracks."""
-        seed = np.full((self.ms.n, 3), np.nan)
+        """A labeller started from the accepted labels at this frame's tracks."""
+        labelled = np.full((self.ms.n, 3), np.nan)
         _, a, b = np.intersect1d(ids, self.ids, return_indices=True)
-        seed[self.labels[b]] = xyz[a]
+        labelled[self.labels[b]] = xyz[a]
         lab = Labeller(self.ms, rate_hz=self.rate_hz)
-        lab.seed(seed)
+        lab.start_from_labelled(labelled)
         return lab
 
 

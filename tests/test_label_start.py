@@ -11,9 +11,11 @@ import pytest
 from label_people import BODIES, walk
 
 from daemon.markers.c3dio import Take, read_c3d
-from daemon.markers.label import hide_spans, label_take, points_with_ghosts, score
-from daemon.markers.label_start import link_window, mirror_map, window_start
+from daemon.markers.label_assign import mirror_map
+from daemon.markers.label_offline import label_take
+from daemon.markers.label_start import link_window, window_start
 from daemon.markers.markerset import MarkerSet, learn
+from daemon.synthetic.labelling import hide_spans, points_with_ghosts, score
 
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT / "fixtures" / "cmu_c3d"

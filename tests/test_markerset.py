@@ -115,3 +115,66 @@ def test_cli_learn(tmp_path, mocapd_cli):
     assert MarkerSet.load(tmp_path / "s.toml").n == 41
     r = mocapd_cli("markerset", "learn", DATA / "85_02.c3d", "--out", tmp_path / "s.txt")
     assert r.code == 2 and "toml" in r.err and "Traceback" not in r.err
+
+
+# ---------------------------------------------------------------------- fit check
+
+
+@pytest.fixture(scope="module")
+def cmu41():
+    from daemon.markers.markerset import open_set
+    return open_set("cmu41")
+
+
+def test_fit_check_judges_a_set_on_a_take(cmu41, takes):
+    """The shipped set on a take it was learned from fits; the same take 20 % larger
+    fits as well at scale 1.2; a thigh marker stuck 8 cm higher and a wrist marker 6 cm
+    along the forearm are named and spoil the verdict; a marker the take
+    never shows is listed."""
+    from daemon.markers.markerset_fit import check_fit
+    x = takes[1].select(cmu41.labels).xyz_m[:600]
+    fit = check_fit(cmu41, x)
+    assert fit.verdict.startswith("good fit") and abs(fit.scale - 1) < 0.05
+    assert fit.missing == [] and fit.misplaced == [] and fit.bent == []
+    big = check_fit(cmu41, 1.2 * x)
+    assert big.scale / fit.scale == pytest.approx(1.2, abs=1e-3)      # rounded to 4 digits
+    assert big.verdict.startswith("good fit") and f"{big.scale:.2f}x" in big.verdict
+    assert [s.relative for s in big.segments] == pytest.approx(
+        [s.relative for s in fit.segments], abs=1e-3)
+    moved = x.copy()
+    moved[:, cmu41.labels.index("LTHI"), 2] += 0.08
+    fore = [cmu41.labels.index(n) for n in ("RWRA", "RELB")]
+    along = moved[:, fore[1]] - moved[:, fore[0]]
+    moved[:, fore[0]] += 0.06 * along / np.linalg.norm(along, axis=1, keepdims=True)
+    moved[:, cmu41.labels.index("RFHD")] = np.nan
+    bad = check_fit(cmu41, moved)
+    assert set(bad.misplaced) == {"LTHI", "RWRA"}
+    assert bad.missing == ["RFHD"] and not bad.verdict.startswith("good fit")
+    assert "RFHD" in bad.verdict and "LTHI" in bad.verdict
+
+
+def test_cli_markerset_check(tmp_path, mocapd_cli, takes, cmu41):
+    """`mocapd markerset check`: by the take's labels, and on its points alone (the start
+    from the set, as labelling would do) the same scale and verdict; --json; a file that
+    is not a take is one line and exit 2."""
+    import json
+
+    from daemon.markers.c3dio import Points, Take, write_points_csv, write_take
+    t = takes[1].select(cmu41.labels)
+    short = Take(t.labels, t.xyz_m[:240], t.rate_hz, 0)
+    write_take(tmp_path / "t.c3d", short)
+    write_points_csv(tmp_path / "p.csv", Points.from_take(short, seed=2))
+    figs = []
+    for args in ((tmp_path / "t.c3d",), (tmp_path / "p.csv",)):
+        out = tmp_path / f"fit{len(figs)}.json"
+        r = mocapd_cli("markerset", "check", *args, "--markerset", "cmu41", "--json", out)
+        assert r.code == 0, r.err
+        assert "good fit" in r.out
+        figs.append(json.loads(out.read_text()))
+    assert [f["labelled_by"] for f in figs] == ["labels", "start"]
+    # (the start looks at a window of 120 frames: another posture, a little another scale)
+    assert figs[1]["scale"] == pytest.approx(figs[0]["scale"], rel=0.02)
+    assert figs[1]["missing"] == []
+    (tmp_path / "x.txt").write_text("hello")
+    r = mocapd_cli("markerset", "check", tmp_path / "x.txt", "--markerset", "cmu41")
+    assert r.code == 2 and len(r.err.strip().splitlines()) == 1

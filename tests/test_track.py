@@ -11,7 +11,6 @@ import tomli_w
 
 from calibkit.synthetic import sim
 from daemon.markers.c3dio import Points, Take, read_points_csv, write_points_csv
-from daemon.markers.label import hide_spans
 from daemon.markers.motive_csv import read_motive_csv
 from daemon.markers.offline_track import (
     cloud_from_points,
@@ -21,6 +20,7 @@ from daemon.markers.offline_track import (
 from daemon.markers.point_tracks import PointTrackConfig, associate
 from daemon.markers.trajectory_io import read_poses_csv, read_trajectory
 from daemon.rigid import BodyDef, RigidConfig, RigidTracker, quaternion_xyzw
+from daemon.synthetic.labelling import hide_spans
 
 DATA = Path(__file__).resolve().parent.parent / "fixtures" / "optitrack_rigidbody_csv"
 RATE = 120.0

@@ -1,4 +1,4 @@
-"""`mocapd markerset learn`, `mocapd label`, `mocapd fill`, `mocapd skeleton`: marker sets."""
+"""`mocapd markerset learn|check`, `mocapd label`, `mocapd fill`, `mocapd skeleton`: marker sets."""
 
 from __future__ import annotations
 
@@ -47,8 +47,20 @@ def _triangulated(path: Path, rig_path: Path | None):
                                                               else None)
 
 
+def _csv_columns(path: Path) -> list[str]:
+    """The column names of a CSV file (its first line that is not a # comment)."""
+    try:
+        with open(path, encoding="utf-8") as handle:
+            for line in handle:
+                if line.strip() and not line.startswith("#"):
+                    return [c.strip().lower() for c in line.split(",")]
+    except (OSError, UnicodeDecodeError):
+        raise UserError(f"cannot read {path} as a text CSV file") from None
+    raise UserError(f"{path} is empty")
+
+
 def register(app: typer.Typer) -> None:
-    ms_app = typer.Typer(help="Marker sets: learn one from a labelled take.",
+    ms_app = typer.Typer(help="Marker sets: learn one from labelled takes; check one on a take.",
                          no_args_is_help=True)
     app.add_typer(ms_app, name="markerset")
 
@@ -84,6 +96,67 @@ def register(app: typer.Typer) -> None:
                 {"name": s.name, "markers": [ms.labels[i] for i in s.markers],
                  "spread_mm": 1000 * s.spread_m} for s in ms.segments]})
 
+    @ms_app.command("check")
+    def check_cmd(
+        take_path: Annotated[Path, typer.Argument(
+            help="A take: labelled (.c3d, or CSV frame,label,x,y,z) or unlabelled points "
+                 "(CSV frame,x,y,z, or --unlabelled).")],
+        markerset: Annotated[str, typer.Option(
+            "--markerset", help="Marker set: a .toml file or a shipped set's name (cmu41, "
+                                "sim_person).")],
+        unlabelled: Annotated[bool, typer.Option(
+            "--unlabelled", help="Ignore the take's labels: judge the set as labelling "
+                                 "will use it, from its start on a window of frames.")] = False,
+        json_path: JsonOpt = None,
+    ) -> None:
+        """How well a marker set fits a take, before labelling it: the body's scale, each
+        segment's proportions, markers placed otherwise or missing, and a verdict."""
+        import numpy as np
+
+        from daemon.markers.c3dio import Points, read_points_csv, read_take
+        from daemon.markers.markerset import open_set
+        from daemon.markers.markerset_fit import check_fit, check_points
+
+        ms = open_set(markerset)
+        if not take_path.exists():
+            raise UserError(f"{take_path} does not exist")
+        suffix = take_path.suffix.lower()
+        if suffix not in (".c3d", ".csv"):
+            raise UserError(f"{take_path}: a take is a .c3d or .csv file")
+        labelled = suffix == ".c3d" or "label" in _csv_columns(take_path)
+        if labelled:
+            take = read_take(take_path)
+            shared = [n for n in ms.labels if n in take.labels]
+            if not unlabelled and len(shared) < 3:
+                raise UserError(f"{take_path}: its labels share {len(shared)} marker(s) with "
+                                f"the set {ms.name}; give --unlabelled to judge it from "
+                                f"its points")
+        if labelled and not unlabelled:
+            xyz = np.full((take.n_frames, ms.n, 3), np.nan)
+            idx = [take.labels.index(n) for n in shared]
+            xyz[:, [ms.labels.index(n) for n in shared]] = take.xyz_m[:, idx]
+            extra = [n for n in take.labels if n not in ms.labels]
+            fit = check_fit(ms, xyz, "labels", extra)
+        else:
+            pts = Points.from_take(take) if labelled else read_points_csv(take_path)
+            if not len(pts.frame):
+                raise UserError(f"{take_path} holds no points")
+            fit = check_points(ms, pts.split()[1])
+        rows = [[s.name, s.markers, s.seen, s.length_ratio, s.relative, s.misfit,
+                 s.spread_mm, s.set_spread_mm] for s in fit.segments]
+        print_table(rows, ["segment", "markers", "seen", "length_ratio", "relative",
+                           "misfit", "spread_mm", "set_spread_mm"])
+        worst = ", ".join(f"{k} {fit.misfit[k]:.2f}" for k in
+                          sorted(fit.misfit, key=lambda k: -fit.misfit[k])[:5])
+        source = "its labels" if fit.labelled_by == "labels" else \
+            "a start from the set alone on a window of frames"
+        typer.echo(f"{take_path.name} against {ms.name} ({fit.frames} frames, labelled by "
+                   f"{source}): scale {fit.scale:.3f}; misfit (allowances for another "
+                   f"subject) median {fit.misfit_median:.2f}, worst {worst}")
+        typer.echo(fit.verdict)
+        if json_path is not None:
+            write_json(json_path, fit.to_json())
+
     @app.command("label")
     def label_cmd(
         points: Annotated[Path, typer.Argument(
@@ -95,11 +168,13 @@ def register(app: typer.Typer) -> None:
         out: Annotated[Path, typer.Option("--out", help="Labelled take (.c3d or .csv).")],
         rig_path: Annotated[Path | None, typer.Option(
             "--rig", help="The calibrated rig, to triangulate a .mcrec recording.")] = None,
-        seed_frames: Annotated[int, typer.Option(
-            "--seed-frames", help="Use the first N frames' labels from --seed (or from a "
-                                  "labelled C3D given as POINTS).")] = 0,
-        seed: Annotated[Path | None, typer.Option(
-            "--seed", help="Labelled take holding the first frames' labels.")] = None,
+        start_frames: Annotated[int, typer.Option(
+            "--start-frames", help="Use the first N frames' labels from --start-labels (or "
+                                   "from a labelled C3D given as POINTS).")] = 0,
+        start_labels: Annotated[Path | None, typer.Option(
+            "--start-labels", help="Labelled take holding the first frames' labels.")] = None,
+        old_frames: Annotated[int | None, typer.Option("--seed-frames", hidden=True)] = None,
+        old_labels: Annotated[Path | None, typer.Option("--seed", hidden=True)] = None,
         rate: RateOpt = None,
         json_path: JsonOpt = None,
     ) -> None:
@@ -107,25 +182,32 @@ def register(app: typer.Typer) -> None:
         import numpy as np
 
         from daemon.markers.c3dio import Points, read_points_csv, read_take, write_take
-        from daemon.markers.label import duplicate_trajectories, label_take, merged_points
+        from daemon.markers.label_offline import (
+            duplicate_trajectories,
+            label_take,
+            merged_points,
+        )
         from daemon.markers.markerset import open_set
 
         _check_out(out, [points])
-        if seed_frames < 0:
-            raise UserError("--seed-frames must be >= 0")
+        # --seed and --seed-frames: the names these options had before
+        start_frames = start_frames if old_frames is None else old_frames
+        start_labels = start_labels if old_labels is None else old_labels
+        if start_frames < 0:
+            raise UserError("--start-frames must be >= 0")
         ms = open_set(markerset)
         if not points.exists():
             raise UserError(f"{points} does not exist")
         rate_hz = rate
-        seed_take = None
+        first_labels = None
         twins: list = []
         if points.suffix.lower() == ".c3d":
             labelled = read_take(points)
             pts = Points.from_take(labelled)
             twins = duplicate_trajectories(labelled)
             rate_hz = rate_hz or labelled.rate_hz
-            if seed_frames and seed is None:
-                seed_take = labelled
+            if start_frames and start_labels is None:
+                first_labels = labelled
         elif points.suffix.lower() == ".csv":
             pts = read_points_csv(points)
         elif points.suffix.lower() == ".mcrec":
@@ -136,21 +218,22 @@ def register(app: typer.Typer) -> None:
                             f".mcrec recording")
         if rig_path is not None and points.suffix.lower() != ".mcrec":
             raise UserError("--rig is for a .mcrec recording; these points are 3D already")
-        if seed is not None:
-            seed_take = read_take(seed, rate_hz)
-        if seed_frames and seed_take is None:
-            raise UserError("--seed-frames needs --seed LABELLED.c3d|csv with those frames")
-        if seed_take is not None:
-            missing = [n for n in ms.labels if n not in seed_take.labels]
+        if start_labels is not None:
+            first_labels = read_take(start_labels, rate_hz)
+        if start_frames and first_labels is None:
+            raise UserError("--start-frames needs --start-labels LABELLED.c3d|csv with those "
+                            "frames")
+        if first_labels is not None:
+            missing = [n for n in ms.labels if n not in first_labels.labels]
             if missing:
-                raise UserError(f"the seed take lacks marker(s) {', '.join(missing[:5])} of "
-                                f"the marker set")
+                raise UserError(f"the --start-labels take lacks marker(s) "
+                                f"{', '.join(missing[:5])} of the marker set")
         if not len(pts.frame):
             raise UserError(f"{points} holds no points")
         rate_hz = rate_hz or 120.0
         n_frames = len(np.unique(pts.frame))
         progress = Progress("label", n_frames)
-        take, conf, labels = label_take(pts, ms, rate_hz, seed_take, seed_frames, progress)
+        take, conf, labels = label_take(pts, ms, rate_hz, first_labels, start_frames, progress)
         progress.update(n_frames)
         progress.finish()
         write_take(out, take)

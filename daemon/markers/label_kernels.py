@@ -3,7 +3,8 @@
 The labeller works on 41 markers and a few dozen points per frame: numpy's per-call
 overhead, not arithmetic, is what costs there, so the steps that run every frame are
 plain loops compiled with numba (calibkit.core.jit). Each kernel has a numpy twin in
-daemon/markers/label.py that says what it computes; tests/test_label.py checks they agree.
+the labeller's modules (label, label_neighbours, label_reid, label_repair) that says
+what it computes; tests/test_label.py checks they agree.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 A marker set is what the labeller, the gap filler and the skeleton know about a body
 without any data of the current take: which markers keep their shape together (segments,
-the third seed's "modules"), how far apart every two markers are and how much that varies,
+"modules"), how far apart every two markers are and how much that varies,
 and which handed (chiral) marker quadruples tell left from right. It is learned from one or
 more labelled takes so any marker set works, and stored as TOML so a user can read and
 edit it.

@@ -1,4 +1,5 @@
-"""The simulated person's marker set, and scoring live labels against the person's truth."""
+"""Labelling against the truth: the simulated person's marker set, occlusions and ghosts
+added to a take, and scores of labels (offline and live) against the true markers."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ from collections import deque
 import numpy as np
 
 from calibkit.synthetic import person as sim_person
-from daemon.markers.c3dio import Take
+from daemon.markers.c3dio import Points, Take
 from daemon.markers.markerset import MarkerSet, learn
 
 
@@ -67,3 +68,63 @@ class LabelScore:
                 "not_in_person": self.unknown,
                 "position_error_mm_median": float(np.median(e)) if len(e) else None,
                 "position_error_mm_p99": float(np.percentile(e, 99)) if len(e) else None}
+
+
+def hide_spans(take: Take, fraction: float, span_s: tuple[float, float] = (0.1, 1.0),
+               seed: int = 0) -> Take:
+    """A copy with random spans hidden until `fraction` of marker-frames are gone."""
+    rng = np.random.default_rng(seed)
+    xyz = take.xyz_m.copy()
+    F, n = xyz.shape[:2]
+    hidden = np.zeros((F, n), bool)
+    target = fraction * F * n
+    lo, hi = (max(1, int(round(v * take.rate_hz))) for v in span_s)
+    while hidden.sum() < target:
+        m = rng.integers(n)
+        L = int(rng.integers(lo, hi + 1))
+        s = int(rng.integers(0, max(1, F - L)))
+        hidden[s:s + L, m] = True
+    xyz[hidden] = np.nan
+    return Take(list(take.labels), xyz, take.rate_hz, take.first_frame)
+
+
+def points_with_ghosts(take: Take, ghosts_per_frame: int, seed: int = 0
+                       ) -> tuple[Points, np.ndarray]:
+    """Unlabelled, shuffled points of a take plus uniform ghost points in each frame's
+    marker bounding box (grown by 0.1 m). Returns the points and each point's true marker
+    index (-1 for ghosts)."""
+    rng = np.random.default_rng(seed)
+    vis = take.visible
+    fr, mk = np.nonzero(vis)
+    xyz = take.xyz_m[fr, mk]
+    F = take.n_frames
+    if ghosts_per_frame:
+        lo = np.nanmin(take.xyz_m, axis=1) - 0.1
+        hi = np.nanmax(take.xyz_m, axis=1) + 0.1
+        gf = np.repeat(np.arange(F), ghosts_per_frame)
+        g = lo[gf] + rng.random((len(gf), 3)) * (hi[gf] - lo[gf])
+        ok = np.isfinite(g).all(1)
+        fr = np.concatenate([fr, gf[ok]])
+        mk = np.concatenate([mk, np.full(ok.sum(), -1)])
+        xyz = np.concatenate([xyz, g[ok]])
+    order = np.argsort(fr + rng.random(len(fr)))
+    return Points(fr[order] + take.first_frame, xyz[order]), mk[order]
+
+
+def score(points: Points, truth_marker: np.ndarray, labels_per_frame: list[np.ndarray],
+          start_frame_index: int = 0) -> dict:
+    """Fraction of real marker-points labelled correctly, and of ghosts left unlabelled,
+    counted from the frame index `start_frame_index` (after any seed frames)."""
+    order = np.argsort(points.frame, kind="stable")
+    tm = truth_marker[order]
+    f = points.frame[order]
+    _, starts = np.unique(f, return_index=True)
+    tm_split = np.split(tm, starts[1:])
+    got = np.concatenate(labels_per_frame[start_frame_index:])
+    want = np.concatenate(tm_split[start_frame_index:])
+    real = want >= 0
+    return {"marker_frames": int(real.sum()),
+            "correct": float((got[real] == want[real]).mean()) if real.any() else 1.0,
+            "unlabelled": float((got[real] < 0).mean()) if real.any() else 0.0,
+            "ghosts": int((~real).sum()),
+            "ghosts_rejected": float((got[~real] < 0).mean()) if (~real).any() else 1.0}

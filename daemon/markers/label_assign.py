@@ -1,0 +1,486 @@
+"""The global assignment of tracks to a marker set's markers, from the set alone.
+
+A labelling grown one marker at a time from a single frame by the set's distances goes
+wrong on a body the set was not learned on (another size, markers stuck elsewhere): a
+leg's labels shift by one marker, or left and right mix. Here tracks (a window's points
+linked over time, daemon/markers/label_start.py) are assigned all at once:
+
+1. every pair of (track -> marker) assignments gets a compatibility: how well the two
+   tracks' distance fits the two markers' distance in the set, scaled to this body and
+   with an allowance for another subject (a fraction of the distance), and whether a
+   pair the set says is rigid stays rigid over the tracks (two points on one segment
+   keep their distance while the body moves, whatever its size);
+2. the assignment maximising the summed compatibility (a quadratic assignment) is found
+   by graduated assignment (softassign: Sinkhorn-balanced soft matches sharpened step by
+   step) from several starts, each made discrete by linear assignments (Hungarian) on
+   the compatibility's gradient until it no longer changes;
+3. distances cannot tell a body from its mirror image, so each solution's left/right twin
+   (markers named L.../R...) is tried too, and the set's handedness tetrahedra (signed
+   volumes over the window) and the shapes of its rigid modules vote between them; the
+   best whole-body score wins after a local search (swaps, mirror moves of a segment,
+   reorderings inside a module).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from daemon.markers.label_modules import module_template, rigid_modules, template_sigma
+from daemon.markers.markerset import MarkerSet
+
+SUBJECT_REL = 0.12      # another body: a distance may differ by this fraction (1 SD)
+PLACEMENT_M = 0.012     # ... and by this much from markers stuck elsewhere (1 SD)
+RIGID_SD_M = 0.008      # pairs whose set spread is below this keep their distance
+RIGID_REL = 0.4        # ... and a rigid pair that stays rigid may differ by this fraction
+RIGID_REWARD = 0.7     # ... scoring at least this (a pair fitting the set's distance: 1)
+RIGID_BONUS = 0.5      # ... and this more: the window's rigidity is evidence of its own
+MODULE_WEIGHT = 0.3    # score per marker of a rigid module per unit chi-square of its shape
+HAND_WEIGHT = 1.0       # score per handedness vote, in units of one well-fitting pair
+
+
+def pair_stats(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean distance and its SD (T, T) between tracks (T, W, 3) over the frames both are
+    seen in (NaN for pairs never seen together)."""
+    diff = X[:, None] - X[None]                                   # (T, T, W, 3)
+    d = np.sqrt(np.einsum("abwi,abwi->abw", diff, diff))
+    ok = np.isfinite(d)
+    c = ok.sum(2)
+    d0 = np.where(ok, d, 0.0)
+    mean = d0.sum(2) / np.maximum(c, 1)
+    var = (d0 * d0).sum(2) / np.maximum(c, 1) - mean ** 2
+    mean[c < 3] = np.nan
+    return mean, np.sqrt(np.maximum(var, 0.0))
+
+
+
+def mirror_map(labels: list[str]) -> np.ndarray:
+    """Each marker's left/right twin by name (L... <-> R..., Left <-> Right, ..._L <->
+    ..._R); a marker without one is its own twin (the mid-line)."""
+    idx = {n: i for i, n in enumerate(labels)}
+    out = np.arange(len(labels))
+    pairs = (("L", "R"), ("Left", "Right"), ("left", "right"))
+    for i, name in enumerate(labels):
+        for a, b in pairs + tuple((y, x) for x, y in pairs):
+            for twin in ((b + name[len(a):]) if name.startswith(a) else None,
+                         (name[:-len(a)] + b) if name.endswith("_" + a) else None):
+                if twin is not None and twin in idx and twin != name:
+                    out[i] = idx[twin]
+    ok = out[out] == np.arange(len(labels))       # a twin must be mutual
+    return np.where(ok, out, np.arange(len(labels)))
+
+
+class Compat:
+    """Pairwise compatibilities C[a, i, b, j] of track a as marker i together with track
+    b as marker j, for one window and one body scale."""
+
+    def __init__(self, ms: MarkerSet, D: np.ndarray, S: np.ndarray, scale: float,
+                 noise_m: float = 0.003) -> None:
+        T, n = len(D), ms.n
+        M = ms.mean_m * scale
+        sub = np.maximum(ms.subject_sd_m * scale, SUBJECT_REL * M)
+        tol = np.sqrt(ms.sd_m ** 2 + sub ** 2 + PLACEMENT_M ** 2 + 2 * noise_m ** 2)
+        known = np.isfinite(D)
+        Dz = np.where(known, D, 0.0)
+        # C = exp(-e^2 / 2), e = (D[a, b] - M[i, j]) / tol[i, j], in place: the (T, n, T, n)
+        # table is the cost of the start (and of every verification)
+        C = Dz[:, None, :, None] - M[None, :, None, :]
+        C /= tol[None, :, None, :]
+        C *= C
+        C *= -0.5
+        np.exp(C, out=C)
+        # a pair the set says is rigid must stay rigid in the window ...
+        allow = 3.0 * ms.sd_m + 2.0 * noise_m + 0.004
+        ri, rj = np.nonzero(ms.sd_m < RIGID_SD_M)
+        Sz = np.where(known, S, 0.0)
+        sub = C[:, ri, :, rj]                                           # (K, T, T)
+        bad = Sz[None] > allow[ri, rj][:, None, None]
+        sub[bad] *= 0.05
+        # ... and one that does keeps it, wherever its markers sit on the segment: a
+        # rigid pair within a loose allowance scores at least RIGID_REWARD
+        loose = (RIGID_REL * M + 0.02)[ri, rj][:, None, None]
+        e2 = (Dz[None] - M[ri, rj][:, None, None]) / loose
+        near = np.exp(-0.5 * e2 * e2)
+        C[:, ri, :, rj] = np.where(~bad, np.maximum(sub, RIGID_REWARD * near)
+                                   + RIGID_BONUS * near, sub)
+        C *= known[:, None, :, None]
+        ia, ib = np.arange(T), np.arange(n)
+        C[ia, :, ia, :] = 0.0
+        C[:, ib, :, ib] = 0.0
+        self.C = C.reshape(T * n, T * n)
+        self.T, self.n = T, n
+        self._C32: np.ndarray | None = None
+
+    def gain(self, P: np.ndarray) -> np.ndarray:
+        """The gradient (T, n) of the summed compatibility at (soft) assignment P."""
+        k = _matched(P)
+        if k is not None:          # a 0/1 assignment: the sum of its rows of C (C = C^T)
+            return self.C[k].sum(0).reshape(self.T, self.n)
+        return (self.C @ P.reshape(-1)).reshape(self.T, self.n)
+
+    def soft_gain(self, P: np.ndarray) -> np.ndarray:
+        """`gain` in single precision, for softassign's soft matches (which are only
+        steered by it; the discrete assignments are judged in double)."""
+        if self._C32 is None:
+            self._C32 = self.C.astype(np.float32)
+        G = self._C32 @ P.reshape(-1).astype(np.float32)
+        return G.astype(np.float64).reshape(self.T, self.n)
+
+    def score(self, P: np.ndarray) -> float:
+        k = _matched(P)
+        if k is not None:
+            return 0.5 * float(self.C[np.ix_(k, k)].sum())
+        return 0.5 * float(P.reshape(-1) @ (self.C @ P.reshape(-1)))
+
+
+def _matched(P: np.ndarray) -> np.ndarray | None:
+    """The flat indices of a 0/1 assignment's matches, or None for a soft one (the
+    product with the whole table is the start's cost; a 0/1 one needs T of its rows)."""
+    flat = P.reshape(-1)
+    k = np.flatnonzero(flat)
+    if len(k) > P.shape[0] or not (flat[k] == 1.0).all():
+        return None
+    return k
+
+
+def _discrete(G: np.ndarray) -> np.ndarray:
+    """The 0/1 assignment (T, n) maximising sum G over matched pairs, each track and
+    marker used at most once, no match with a non-positive gain."""
+    r, c = linear_sum_assignment(-G)
+    P = np.zeros_like(G)
+    ok = G[r, c] > 0
+    P[r[ok], c[ok]] = 1.0
+    return P
+
+
+def refine(cp: Compat, P: np.ndarray, iters: int = 20) -> np.ndarray:
+    """Linear assignments on the gradient until the assignment stops changing (each
+    step can only raise the score: a local optimum of the quadratic assignment)."""
+    best = cp.score(P)
+    for _ in range(iters):
+        Q = _discrete(cp.gain(P))
+        s = cp.score(Q)
+        if s <= best + 1e-9:
+            break
+        P, best = Q, s
+    return P
+
+
+def softassign(cp: Compat, P0: np.ndarray, betas=(0.5, 1, 2, 4, 8, 16, 32),
+               inner: int = 3) -> np.ndarray:
+    """Graduated assignment: soft matches from the gradient, Sinkhorn-balanced (with a
+    slack row and column for unmatched tracks and markers), sharpened step by step."""
+    T, n = cp.T, cp.n
+    P = P0
+    for beta in betas:
+        for _ in range(inner):
+            G = cp.soft_gain(P)
+            G = G / max(G.max(), 1e-12)
+            Q = np.ones((T + 1, n + 1))
+            Q[:T, :n] = np.exp(beta * 4.0 * (G - 1.0))
+            Q[:T, n] = Q[T, :n] = np.exp(-beta * 4.0 * 0.7)
+            for _ in range(30):
+                Q[:T] /= Q[:T].sum(1, keepdims=True)
+                Q[:, :n] /= Q[:, :n].sum(0, keepdims=True)
+            P = Q[:T, :n]
+    return P
+
+
+class BodyTerms:
+    """The terms of the whole-body score beyond the pairwise compatibility, for one
+    window: the set's handedness tetrahedra (signed volumes' signs over the window
+    against the set's) and the shapes of its rigid modules (a proper, scaled Procrustes
+    fit of the set's shape of each module of 4+ markers, which tells a module from its
+    mirror image and its reorderings)."""
+
+    def __init__(self, X: np.ndarray, ms: MarkerSet, frames: int = 6,
+                 noise_m: float = 0.003) -> None:
+        self.ms = ms
+        W = X.shape[1]
+        self.X = X[:, np.linspace(0, W - 1, min(W, frames)).astype(int)]     # (T, f, 3)
+        self.quads = np.concatenate([ms.chiral, ms.pair_quads]).astype(int).reshape(-1, 4)
+        self.signs = np.concatenate([ms.chiral_sign, ms.pair_sign])
+        self.modules = [m for m in rigid_modules(ms) if len(m) >= 4]
+        self.shapes = [module_template(ms, m) for m in self.modules]
+        self.sigma = np.array([template_sigma(ms, m, noise_m) for m in self.modules])
+
+        self.quads_of = [np.nonzero((self.quads == i).any(1))[0] for i in range(ms.n)]
+        self.mods_of = [[k for k, m in enumerate(self.modules) if i in m] for i in range(ms.n)]
+        self.mt = None
+        self._memo: dict[tuple, float] = {}
+
+    def _votes(self, mt: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """Each quad's vote (+1 agrees with the set, -1 not, 0 unknown) among quads q."""
+        out = np.zeros(len(q))
+        if not len(q):
+            return out
+        ok = (mt[self.quads[q]] >= 0).all(1)
+        if not ok.any():
+            return out
+        x = self.X[mt[self.quads[q[ok]]]]                           # (q, 4, f, 3)
+        a, b, c = (x[:, k] - x[:, 0] for k in (1, 2, 3))
+        v = np.einsum("qfi,qfi->qf", np.cross(a, b), c)
+        s = np.sign(np.sign(np.where(np.isfinite(v), v, 0.0)).sum(1))     # majority
+        out[ok] = s * self.signs[q[ok]]
+        return out
+
+    def _module_cost(self, mt: np.ndarray, k: int) -> float:
+        """Markers x chi-square per marker (capped at 16) of module k's shape, fitted to
+        its labelled markers (3 or more); a member left unlabelled costs 1 (as much as
+        one that fits), so that leaving a marker out does not pay."""
+        key = (k, *mt[self.modules[k]].tolist())
+        if key not in self._memo:
+            self._memo[key] = self._module_cost_of(mt, k)
+        return self._memo[key]
+
+    def _module_cost_of(self, mt: np.ndarray, k: int) -> float:
+        m = self.modules[k]
+        have = mt[m] >= 0
+        if have.sum() < 3:
+            return float(len(m))
+        x = np.swapaxes(self.X[mt[m[have]]], 0, 1)                  # (f, h, 3)
+        ok = np.isfinite(x).all((1, 2))
+        if not ok.any():
+            return float(len(m))
+        r2 = _scaled_proper_residual(self.shapes[k][have], x[ok])
+        chi2 = min(float(np.median(r2)) / self.sigma[k] ** 2, 16.0)
+        return have.sum() * chi2 + (~have).sum()
+
+    def __call__(self, mt: np.ndarray) -> float:
+        """The terms' value for the labelling mt (marker -> track); remembered, so that
+        `change` can score a labelling that differs in a few markers."""
+        self.mt = mt.copy()
+        self.vote = self._votes(mt, np.arange(len(self.quads)))
+        self.cost = np.array([self._module_cost(mt, k) for k in range(len(self.modules))])
+        return HAND_WEIGHT * self.vote.sum() - MODULE_WEIGHT * self.cost.sum()
+
+    def _affected(self, m2: np.ndarray) -> tuple[np.ndarray, list[int]]:
+        ch = np.nonzero(m2 != self.mt)[0]
+        q = np.unique(np.concatenate([self.quads_of[i] for i in ch])) if len(ch) else []
+        return np.asarray(q, int), sorted({k for i in ch for k in self.mods_of[i]})
+
+    def gain_bound(self, m2: np.ndarray) -> float:
+        """At most how much the terms can rise from the last labelling to m2."""
+        q, ks = self._affected(m2)
+        return HAND_WEIGHT * float((1.0 - self.vote[q]).sum()) + \
+            MODULE_WEIGHT * float(self.cost[ks].sum())
+
+    def change(self, m2: np.ndarray) -> float:
+        """The terms' change from the last labelling scored by __call__ to m2."""
+        q, ks = self._affected(m2)
+        dv = (self._votes(m2, q) - self.vote[q]).sum()
+        dc = sum(self._module_cost(m2, k) - self.cost[k] for k in ks)
+        return HAND_WEIGHT * dv - MODULE_WEIGHT * dc
+
+
+def _scaled_proper_residual(shape: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Mean squared residual per frame (f,) of the best proper rotation, translation and
+    scale (within 0.8-1.25) of `shape` (k, 3) onto each frame's points x (f, k, 3)."""
+    S0 = shape - shape.mean(0)
+    X0 = x - x.mean(1, keepdims=True)
+    H = np.einsum("ki,fkj->fij", S0, X0)
+    U, sv, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(np.einsum("fji,fkj->fik", Vt, U)))
+    d = np.where(d == 0, 1.0, d)
+    sv = sv.copy()
+    sv[:, 2] *= d
+    Vt = Vt.copy()
+    Vt[:, 2] *= d[:, None]
+    R = np.einsum("fji,fkj->fik", Vt, U)
+    scale = np.clip(sv.sum(1) / (S0 ** 2).sum(), 0.8, 1.25)
+    fit = scale[:, None, None] * np.einsum("fij,kj->fki", R, S0)
+    return ((fit - X0) ** 2).sum(2).mean(1)
+
+
+def _sparse_delta(cp: Compat, G: np.ndarray, rem: tuple, add: tuple) -> float:
+    """The compatibility's change when the (track, marker) matches `rem` (two index
+    arrays) are dropped and `add` taken, G the gain at the current assignment."""
+    ka = rem[0] * cp.n + rem[1]
+    kb = add[0] * cp.n + add[1]
+    k = np.concatenate([ka, kb])
+    u = np.concatenate([-np.ones(len(ka)), np.ones(len(kb))])
+    return float(u @ G.reshape(-1)[k] + 0.5 * u @ cp.C[np.ix_(k, k)] @ u)
+
+
+def to_marker_track(P: np.ndarray) -> np.ndarray:
+    mt = np.full(P.shape[1], -1)
+    r, c = np.nonzero(P)
+    mt[c] = r
+    return mt
+
+
+def mirror_moves(ms: MarkerSet, twin: np.ndarray) -> list[np.ndarray]:
+    """Marker permutations that turn one part of the body into its mirror image: each
+    segment, and each segment with its descendants in the set's tree, together with its
+    left/right twins, each marker taken for its twin."""
+    segs = ms.segments
+    children: dict[int, list[int]] = {k: [] for k in range(len(segs))}
+    for k, sg in enumerate(segs):
+        if sg.parent >= 0:
+            children[sg.parent].append(k)
+
+    def subtree(k: int) -> list[int]:
+        out, todo = [], [k]
+        while todo:
+            s = todo.pop()
+            out += list(segs[s].markers)
+            todo += children[s]
+        return out
+
+    moves, seen = [], set()
+    for k in range(len(segs)):
+        for members in (list(segs[k].markers), subtree(k)):
+            S = np.unique(np.concatenate([members, twin[members]]))
+            if (twin[S] == S).all():
+                continue
+            perm = np.arange(ms.n)
+            perm[S] = twin[S]
+            key = perm.tobytes()
+            if key not in seen:
+                seen.add(key)
+                moves.append(perm)
+    return moves
+
+
+def module_moves(terms: BodyTerms) -> list[tuple[np.ndarray, int]]:
+    """Reorderings inside each rigid module of 4-5 markers (all its permutations), with
+    the module's index in `terms`."""
+    from itertools import permutations
+    out = []
+    for k, m in enumerate(terms.modules):
+        if len(m) <= 5:
+            for p in permutations(range(len(m))):
+                if p != tuple(range(len(m))):
+                    perm = np.arange(terms.ms.n)
+                    perm[m] = m[list(p)]
+                    out.append((perm, k))
+    return out
+
+
+def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
+           rounds: int = 30, near: float = 2.0, max_swaps: int = 60
+           ) -> tuple[np.ndarray, float]:
+    """Local search on the whole-body score (compatibility, handedness and module
+    shapes): swaps of two markers' tracks that the compatibility leaves within `near` of
+    the best, mirror moves of a part of the body and reorderings inside a rigid module;
+    the best improving move at a time."""
+    T, n = cp.T, cp.n
+    C4 = cp.C.reshape(T, n, T, n)
+    base = cp.score(P)
+    mt = to_marker_track(P)
+    cur = base + terms(mt)
+    for _ in range(rounds):
+        G = cp.gain(P)
+        a, i = np.nonzero(P)
+        if len(a) < 2:
+            break
+        d = (G[a[:, None], i[None]] + G[a[None], i[:, None]] - G[a, i][:, None]
+             - G[a, i][None] + C4[a[:, None], i[None], a[None], i[:, None]]
+             + C4[a[:, None], i[:, None], a[None], i[None]])
+        best, arg = cur, None
+        xs, ys = np.nonzero(np.triu(d > -near, 1))
+        top = np.argsort(-d[xs, ys])[:max_swaps]
+        for x, y in zip(xs[top], ys[top], strict=True):
+            m2 = mt.copy()
+            m2[i[x]], m2[i[y]] = mt[i[y]], mt[i[x]]
+            if cur + d[x, y] + terms.gain_bound(m2) <= best + 1e-6:
+                continue
+            s = cur + d[x, y] + terms.change(m2)
+            if s > best + 1e-6:
+                best, arg = s, m2
+        # a track taking a marker no track has (its own marker left free)
+        free = np.nonzero(mt < 0)[0]
+        if len(free):
+            d1 = G[a[:, None], free[None]] - G[a, i][:, None]
+            xs, ks = np.nonzero(np.isfinite(d1))
+            for x, k in zip(xs, ks, strict=True):
+                m2 = mt.copy()
+                m2[i[x]], m2[free[k]] = -1, a[x]
+                if cur + d1[x, k] + terms.gain_bound(m2) <= best + 1e-6:
+                    continue
+                s = cur + d1[x, k] + terms.change(m2)
+                if s > best + 1e-6:
+                    best, arg = s, m2
+        for perm, k in moves:
+            if k >= 0 and terms.cost[k] < len(terms.modules[k]):
+                continue                   # the module fits as it is: leave its order
+            m2 = mt[perm]
+            ch = np.nonzero(m2 != mt)[0]
+            if not len(ch):
+                continue
+            o = ch[mt[ch] >= 0]
+            nw = ch[m2[ch] >= 0]
+            s = cur + _sparse_delta(cp, G, (mt[o], o), (m2[nw], nw))
+            if s + terms.gain_bound(m2) <= best + 1e-6:
+                continue
+            s += terms.change(m2)
+            if s > best + 1e-6:
+                best, arg = s, m2
+        if arg is None:
+            break
+        Q = np.zeros_like(P)
+        got = arg >= 0
+        Q[arg[got], np.nonzero(got)[0]] = 1.0
+        R = refine(cp, Q)                 # the compatibility alone may undo the move:
+        r = cp.score(R) + terms(to_marker_track(R))
+        P = R if r > best else Q          # keep its refinement only if the whole gains
+        mt = to_marker_track(P)
+        base = cp.score(P)
+        cur = base + terms(mt)
+    return P, cur
+
+
+def body_scale(D: np.ndarray, ms: MarkerSet) -> float:
+    """This body's size against the set's: the RMS distance between the window's tracks
+    over the RMS distance between the set's markers (posture moves it by a few per cent;
+    the compatibility allows for more)."""
+    iu = np.triu_indices(len(D), 1)
+    d = D[iu]
+    d = d[np.isfinite(d)]
+    m = ms.mean_m[np.triu_indices(ms.n, 1)]
+    if not len(d):
+        return 1.0
+    return float(np.clip(np.sqrt(np.mean(d ** 2) / np.mean(m ** 2)), 0.6, 1.6))
+
+
+def assign(X: np.ndarray, ms: MarkerSet, restarts: int = 6, seed: int = 0,
+           scales=(0.92, 1.0, 1.08), noise_m: float = 0.003, keep: int = 2
+           ) -> tuple[np.ndarray, float]:
+    """The marker of each track (T,) (-1: none) for tracks X (T, W, 3), and its score.
+    Solutions are sought with the set scaled to this body's size and a little either
+    side of it, and all are scored (and polished) at this body's size."""
+    T, n = X.shape[0], ms.n
+    D, S = pair_stats(X)
+    size = body_scale(D, ms)
+    twin = mirror_map(ms.labels)
+    terms = BodyTerms(X, ms, noise_m=noise_m)
+    moves = [(p, -1) for p in mirror_moves(ms, twin)] + module_moves(terms)
+    rng = np.random.default_rng(seed)
+    judge = Compat(ms, D, S, size, noise_m)
+    found: list[tuple[float, int, np.ndarray]] = []
+    seen: set[bytes] = set()
+    for scale in scales:
+        cp = judge if scale == 1.0 else Compat(ms, D, S, size * scale, noise_m)
+        starts = [np.full((T, n), 1.0 / n)]
+        starts += [rng.random((T, n)) for _ in range(restarts - 1)]
+        for P0 in starts:
+            P = refine(cp, _discrete(softassign(cp, P0)))
+            for Q in (P, refine(cp, P[:, twin])):
+                Q = refine(judge, Q)
+                key = Q.tobytes()
+                if key in seen:
+                    continue
+                seen.add(key)
+                total = judge.score(Q) + terms(to_marker_track(Q))
+                found.append((total, len(found), Q))
+    found.sort(key=lambda f: -f[0])
+    best = None
+    for _, _, Q in found[:keep]:
+        Q, s = polish(judge, Q, terms, moves)
+        if best is None or s > best[0]:
+            best = (s, Q)
+    assert best is not None
+    lab = np.full(T, -1)
+    r, c = np.nonzero(best[1])
+    lab[r] = c
+    return lab, best[0]
