@@ -7,9 +7,10 @@ and drives to a list of targets on the floor.
 Each pose comes off the serial line (mocap_serial.SerialPoseReader); the controller turns
 the distance and bearing to the target into a forward speed and a turn rate, sent as the
 datagram "V OMEGA" to the robot's command port on 127.0.0.1 (the simulated robot of
-`[sim.robot]`; on a real robot, replace `send` with the motor driver). A target is reached
-when the robot is within --tolerance of it; the robot is then stopped, and once it has
-settled the error is printed with the capture time of the pose it was measured on:
+`[sim.robot]`; on a real robot, replace `send` with the motor driver). Near a target the
+robot is stopped; once it has settled within --tolerance the target counts as reached (else
+it drives on), and the error is printed with the capture time of the pose it was measured
+on:
 
     target 1 (0.500, 0.500): reached in 2.41 s, error 4.1 mm (pose t_ns 123456789)
     10 of 10 targets reached; error mean 4.0 mm, worst 6.3 mm
@@ -94,31 +95,44 @@ def random_targets(n: int, half_m: float, seed: int, spacing_m: float = 0.3):
     return out
 
 
-def settle(reader, robot, body: int, settle_s: float):
+def settle(reader, robot, body: int, settle_s: float, pose_timeout_s: float):
     """Stop and wait out the robot's delay and lag; the last pose seen."""
     end = time.monotonic() + settle_s
-    pose = None
+    pose = reader.latest(body, pose_timeout_s)
     while time.monotonic() < end:
         robot.send(0.0, 0.0)
-        pose = reader.latest(body, 1.0)
+        pose = reader.latest(body, pose_timeout_s)
     return pose
 
 
 def drive(reader, robot, body: int, targets, tolerance_m: float, max_speed: float,
-          max_turn: float, timeout_s: float, settle_s: float, out=print):
-    """Drive to each target in turn; per target (reached, seconds, error_m, pose)."""
+          max_turn: float, timeout_s: float, settle_s: float, pose_timeout_s: float = 10.0,
+          gap_s: float = 0.1, out=print):
+    """Drive to each target in turn; per target (reached, seconds, error_m, pose).
+
+    A target counts as reached when the robot, stopped and settled, is within tolerance;
+    if it settled outside, it drives on. Without a new pose for gap_s (the line or mocapd
+    stalled) it stops until poses come again: steering on an old pose overshoots."""
     results = []
     for k, target in enumerate(targets, 1):
         start = time.monotonic()
-        reached = False
+        reached, pose = False, None
         while time.monotonic() - start < timeout_s:
-            p = reader.latest(body, 1.0)
+            try:
+                p = reader.latest(body, gap_s)
+            except TimeoutError:
+                robot.send(0.0, 0.0)
+                p = reader.latest(body, pose_timeout_s)
             x, y = p.position[:2]
             if math.hypot(target[0] - x, target[1] - y) < tolerance_m:
-                reached = True
-                break
+                pose = settle(reader, robot, body, settle_s, pose_timeout_s)
+                if math.dist(pose.position[:2], target) < tolerance_m:
+                    reached = True
+                    break
+                continue
             robot.send(*steer(x, y, p.yaw, target, max_speed, max_turn))
-        pose = settle(reader, robot, body, settle_s)
+        if pose is None or not reached:
+            pose = settle(reader, robot, body, settle_s, pose_timeout_s)
         error = math.dist(pose.position[:2], target)
         took = time.monotonic() - start
         what = f"reached in {took:.2f} s" if reached else f"NOT reached in {timeout_s:g} s"
@@ -154,7 +168,7 @@ def main(argv=None) -> int:
     elif args.random > 0:
         targets = random_targets(args.random, args.area, args.seed)
     else:
-        ap.error("give --targets or --random N")
+        raise SystemExit("goto_point: error: give --targets or --random N")
     try:
         reader = SerialPoseReader(args.serial, args.baud)
     except Exception as exc:  # pyserial's SerialException, or OSError

@@ -174,7 +174,7 @@ def main(argv=None) -> int:
     ap.add_argument("--log", help="write the commands and poses here (.npz)")
     args = ap.parse_args(argv)
     if args.seconds <= 1 or args.rate <= 0:
-        ap.error("--seconds must be over 1 and --rate positive")
+        raise SystemExit("sysid: error: --seconds must be over 1 and --rate positive")
     seq = step_sequence(args.seconds, args.rate, args.speed, args.turn, args.seed) \
         if args.signal == "steps" else chirp_sequence(args.seconds, args.rate, args.speed,
                                                       args.turn)
