@@ -186,6 +186,8 @@ def main(argv=None) -> int:
     robot = Robot(args.command_port)
     try:
         reader.latest(args.body, args.wait)
+        print(f"sending {args.seconds:g} s of {args.signal} at {args.rate:g} Hz, then 1 s "
+              "stopped; logging the poses", flush=True)
         commands, poses = run(reader, robot, args.body, *seq)
     except TimeoutError as exc:
         print(f"sysid: error: {exc} (is mocapd running, with this body on the line?)",
