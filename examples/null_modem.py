@@ -28,7 +28,7 @@ class NullModem:
             tty.setraw(slave)  # no echo, no line editing: a byte stream, as a UART
             os.set_blocking(master, False)  # nobody reading an end: its bytes are lost
         self.a, self.b = (os.ttyname(s) for _, s in self.ends)
-        self.tap = open(tap, "wb") if tap else None  # noqa: SIM115
+        self.tap = open(tap, "wb") if tap else None
         self.stop_event = threading.Event()
         self.thread = threading.Thread(target=self._run, name="null-modem", daemon=True)
         self.thread.start()

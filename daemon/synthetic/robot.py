@@ -181,7 +181,7 @@ class LiveRobot:
             if self._truth_file is not None:
                 self._truth_file.close()
             try:
-                self._truth_file = open(self.cfg.truth, "w", encoding="ascii")  # noqa: SIM115
+                self._truth_file = open(self.cfg.truth, "w", encoding="ascii")
             except OSError as exc:
                 raise UserError(f"sim.robot.truth: cannot write {self.cfg.truth}: "
                                 f"{exc.strerror}") from None
@@ -193,9 +193,7 @@ class LiveRobot:
         while True:
             try:
                 data, _, arrived = receive_stamped(self.sock, 256)
-            except (BlockingIOError, InterruptedError):
-                return
-            except OSError:
+            except OSError:  # nothing waiting (BlockingIOError), or the socket closed
                 return
             cmd = parse_command(data)
             if cmd is None:
