@@ -16,6 +16,8 @@ opens. docs/daemon.md documents every key.
                 ghosts, volume_m, size, seed, realtime, drop_camera, drop_from_s, drop_for_s,
                 define_bodies, score, person, person_radius_m, unsync_ms, open_spread_s,
                 clock_drift_ppm
+    [sim.robot] port, start = [x, y, yaw_deg], delay_s, tau_s, max_speed_m_s,
+                max_turn_rad_s, truth                      (a robot driven live, docs/simulator.md)
     [[rigid_body]] name, id, markers = [[x, y, z], ...], pivot, min_markers_start,
                    min_markers_keep, smoothing
     [[camera]]  name (a camera of the rig), source ("0" a device, a video, an image folder,
@@ -60,6 +62,20 @@ from daemon.tracker import TrackerConfig
 
 
 @dataclass(frozen=True)
+class SimRobot:
+    """A simulated differential-drive robot driven live: (v, omega) commands come in as
+    UDP datagrams on 127.0.0.1:port (daemon.synthetic.robot)."""
+
+    port: int
+    start: tuple[float, float, float] = (0.0, 0.0, 0.0)  # x, y (m), heading (degrees)
+    delay_s: float = 0.05  # a command acts this long after it arrives
+    tau_s: float = 0.1  # the speeds follow the delayed command with this time constant
+    max_speed_m_s: float = 0.5  # commands are clipped to these
+    max_turn_rad_s: float = 3.0
+    truth: Path | None = None  # a CSV the robot's true path is written to (for scorers)
+
+
+@dataclass(frozen=True)
 class SimConfig:
     cameras: int = 8
     bodies: int = 3
@@ -83,6 +99,7 @@ class SimConfig:
     unsync_ms: float = 0.0  # cameras' clocks offset by up to this: unsynchronised cameras
     open_spread_s: float = 0.3  # cameras open up to this long after the first one
     clock_drift_ppm: float = 30.0  # each camera's clock gains or loses up to this
+    robot: SimRobot | None = None  # a robot driven live ([sim.robot])
 
 
 @dataclass(frozen=True)
@@ -290,8 +307,12 @@ def parse_config(data: dict, path: Path | None = None, base: Path | None = None)
     changes["rigid"] = _dataclass_table(w, _table(w, data, "rigid"), RigidConfig,
                                         RigidConfig(), "rigid.")
     if "sim" in data:
-        sim = _dataclass_table(w, _table(w, data, "sim"), SimConfig, SimConfig(), "sim.")
+        table = dict(_table(w, data, "sim"))
+        robot = table.pop("robot", None)
+        sim = _dataclass_table(w, table, SimConfig, SimConfig(), "sim.")
         _sim_limits(w, sim)
+        if robot is not None:
+            sim = replace(sim, robot=_sim_robot(w, robot, base, sim.volume_m))
         changes["sim"] = sim
     changes["bodies"] = tuple(_bodies(w, data))
     changes["udp"] = tuple(_udp(w, t, f"udp[{i}].") for i, t in enumerate(_list(w, data, "udp")))
@@ -359,6 +380,31 @@ def _sim_limits(w, sim: SimConfig) -> None:
     if sim.person and not 0.3 <= sim.person_radius_m <= sim.volume_m / 2 - 0.3:
         w.fail("sim.person_radius_m", f"must be between 0.3 and {sim.volume_m / 2 - 0.3:g} "
                                       f"(inside the volume), got {sim.person_radius_m}")
+
+
+def _sim_robot(w, t, base: Path, volume_m: float) -> SimRobot:
+    p = "sim.robot."
+    if not isinstance(t, dict):
+        w.fail("sim.robot", f"expected a table [sim.robot], got {t!r}")
+    _check_keys(w, t, {f.name for f in fields(SimRobot)}, p)
+    if "port" not in t:
+        w.fail(p + "port", "missing (required): the UDP port on 127.0.0.1 the robot's "
+                           "commands come in on")
+    start = t.get("start", [0.0, 0.0, 0.0])
+    if not (isinstance(start, list) and len(start) == 3 and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) for v in start)):
+        w.fail(p + "start", f"expected [x, y, yaw_deg], got {start!r}")
+    if max(abs(start[0]), abs(start[1])) > 0.4 * volume_m:
+        w.fail(p + "start", f"must be inside the volume's inner 80 % (|x|, |y| <= "
+                            f"{0.4 * volume_m:g} m), got {start[:2]}")
+    return SimRobot(
+        port=_number(w, t, "port", p, 0, int, lo=1, hi=65535),
+        start=tuple(float(v) for v in start),
+        delay_s=_number(w, t, "delay_s", p, 0.05, lo=0.0, hi=2.0),
+        tau_s=_number(w, t, "tau_s", p, 0.1, lo=0.001, hi=5.0),
+        max_speed_m_s=_number(w, t, "max_speed_m_s", p, 0.5, lo=0.01, hi=10.0),
+        max_turn_rad_s=_number(w, t, "max_turn_rad_s", p, 3.0, lo=0.01, hi=50.0),
+        truth=base / _string(w, t, "truth", p) if "truth" in t else None)
 
 
 def _bodies(w, data) -> list[BodyDef]:

@@ -740,6 +740,8 @@ class Daemon:
             cap.stop()
         for cap in self.captures:
             cap.join(1.0)
+        if isinstance(self.scene, SimScene):
+            self.scene.close()  # a live robot's command socket and truth file
         if hasattr(self, "pipeline"):
             self.pipeline._apply_pending()
             for p in self.pipeline.publishers:

@@ -8,6 +8,10 @@ smallest delay plus jitter), and when it reconnects (`drop_camera`) starts again
 a new epoch. The rig is triggered: every camera takes its frames at the same instants
 (plus its fixed `unsync_ms` phase, for free-running cameras).
 
+With `[sim.robot]` one more body is a robot driven live (daemon.synthetic.robot): its
+blobs are made at each trigger from the commands that have come in, and join the other
+bodies' in every camera.
+
 What the capture threads get is what cameras give (blobs, the device's time and frame
 counter, the arrival); the truth (bodies' poses, and for every delivered frame which
 trigger it was, when it was taken and which marker each blob is) stays in SimScene for the
@@ -80,6 +84,10 @@ class SimScene:
                           ghosts_per_camera=cfg.ghosts, fps=cfg.fps, seed=cfg.seed + 3,
                           clock_offset_ns=self.offsets_ns)
         self.obs = obs.sorted()
+        self.robot = None
+        self._n_scripted = len(self.bodies_truth)  # bodies whose poses are precomputed
+        if cfg.robot is not None:
+            self._add_robot()
         key = self.obs.frame * len(rig) + self.obs.camera
         self.starts = np.searchsorted(key, np.arange(n * len(rig) + 1))
         # each camera's own start, clock and transfer delay, fixed for the run
@@ -107,6 +115,23 @@ class SimScene:
                            np.concatenate([truth.marker, PERSON_MARKER_BASE
                                            + np.tile(np.arange(k), n)]),
                            np.concatenate([truth.xyz, take.markers_m.reshape(-1, 3)]))
+
+    def _add_robot(self) -> None:
+        """The live robot, the last of the scene's bodies (id after the others')."""
+        from daemon.synthetic.robot import LiveRobot
+
+        if not self.cfg.realtime:
+            raise UserError("[sim.robot] needs the simulation paced in real time (its "
+                            "commands come in real time); drop --fast or realtime = false")
+        self.robot = LiveRobot(self.cfg, self.truth_rig, self.offsets_ns,
+                               len(self.bodies_truth) + 1,
+                               [b.markers_body for b in self.bodies_truth])
+        self.bodies_truth = [*self.bodies_truth, self.robot.body]
+
+    def close(self) -> None:
+        """Stop the live robot (its command socket, the rest of its truth file)."""
+        if self.robot is not None:
+            self.robot.close()
 
     def held_alone(self, body: int, n_frames: int, place: int = 0) -> list:
         """Frame sets of the scene's body `body` held still and alone in the volume (the
@@ -146,12 +171,21 @@ class SimScene:
         k = i % period
         return k if k < self.n_frames else period - k
 
-    def _blobs(self, camera: int, trigger: int):
-        """(uv, area, peak, marker) of camera `camera` at trigger `trigger`."""
+    def _blobs(self, camera: int, trigger: int, make: bool = True):
+        """(uv, area, peak, marker) of camera `camera` at trigger `trigger`; `make`: the
+        live robot's blobs are made now if not yet (False: only those made, for scorers;
+        None when they were not)."""
         f = self.scene_frame(trigger)
         s, e = self.starts[f * len(self.rig) + camera], self.starts[f * len(self.rig) + camera + 1]
         o = self.obs
-        return o.uv[s:e], o.area[s:e], o.peak[s:e], o.marker[s:e]
+        out = o.uv[s:e], o.area[s:e], o.peak[s:e], o.marker[s:e]
+        if self.robot is None:
+            return out
+        live = self.robot.blobs(camera, trigger, self.t0_ns) if make \
+            else self.robot.known_blobs(camera, trigger)
+        if live is None:
+            return None
+        return tuple(np.concatenate([a, b]) for a, b in zip(out, live, strict=True))
 
     def deliver(self, camera: int, trigger: int, frame_id: int, device_ns: int, t_ns: int,
                 arrival_ns: int, taken_ns: int) -> CameraSample:
@@ -193,9 +227,10 @@ class SimScene:
         """The true marker of each of a sample's blobs (-1: a stray blob, or unknown);
         `trigger` if the caller has looked it up already."""
         g = self.trigger_of(sample) if trigger is None else trigger
-        if g < 0:
+        got = None if g < 0 else self._blobs(sample.camera, g, make=False)
+        if got is None:
             return np.full(len(sample.uv), -1, np.int64)
-        marker = self._blobs(sample.camera, g)[3]
+        marker = got[3]
         if len(marker) != len(sample.uv):
             return np.full(len(sample.uv), -1, np.int64)
         return marker
@@ -230,17 +265,22 @@ class SimScene:
         or less a body turns between frames, and cheap on the frame loop, where a
         quaternion slerp or an SVD costs about 100 us a frame."""
         if self._poses is None:
-            self._poses = np.stack([b.poses for b in self.bodies_truth]) \
-                if self.bodies_truth else np.zeros((0, self.n_frames, 4, 4))
+            scripted = self.bodies_truth[:self._n_scripted]
+            self._poses = np.stack([b.poses for b in scripted]) \
+                if scripted else np.zeros((0, self.n_frames, 4, 4))
         fa, fb, w = self.frames_at(t_ns)
         Ta = self._poses[:, fa]
         if w == 0.0:
-            return Ta[:, :3, :3], Ta[:, :3, 3]
-        T = (1 - w) * Ta + w * self._poses[:, fb]
-        R = T[:, :3, :3]
-        for _ in range(2):
-            R = 1.5 * R - 0.5 * R @ np.swapaxes(R, 1, 2) @ R
-        return R, T[:, :3, 3]
+            R, t = Ta[:, :3, :3], Ta[:, :3, 3]
+        else:
+            T = (1 - w) * Ta + w * self._poses[:, fb]
+            R, t = T[:, :3, :3], T[:, :3, 3]
+            for _ in range(2):
+                R = 1.5 * R - 0.5 * R @ np.swapaxes(R, 1, 2) @ R
+        if self.robot is None:
+            return R, t
+        Rr, tr = self.robot.pose_at(t_ns)
+        return np.concatenate([R, Rr[None]]), np.concatenate([t, tr[None]])
 
     def person_at(self, t_ns: int) -> np.ndarray:
         """The person's true markers (41, 3) at daemon time t_ns."""
