@@ -3,6 +3,7 @@ on stderr. Used by calibkit's and mocapd's commands alike."""
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import math
 import sys
@@ -163,6 +164,22 @@ def parse_size(text: str) -> tuple[int, int]:
     if w < 16 or h < 16:
         raise UserError(f"--size must be at least 16x16 pixels, got {text!r}")
     return w, h
+
+
+def parse_view(text: str) -> tuple[str, int]:
+    """--view [HOST:]PORT -> (host, port), for every command that serves a page; a bare port
+    is served on loopback only."""
+    host, sep, port = text.rpartition(":")
+    host = host.strip("[]") if sep else "127.0.0.1"
+    try:
+        ipaddress.ip_address(host)
+        port_n = int(port)
+        if not 0 < port_n < 65536:
+            raise ValueError
+    except ValueError:
+        raise UserError(f"--view: expected [HOST:]PORT with HOST an IP address (127.0.0.1 "
+                        f"for this computer only), got {text!r}") from None
+    return host, port_n
 
 
 def parse_floats(text: str, option: str) -> list[float]:

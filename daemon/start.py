@@ -73,7 +73,8 @@ def run_daemon(cfg: Config, reload_config, truth_rig: Path | None, frames: int |
     if view is not None:
         # the view's server starts now, loading while the daemon sets up; deferred so a
         # daemon without --view never imports the web stack
-        from daemon.view.link import ViewLink, parse_view
+        from calibkit.clitools import parse_view
+        from daemon.view.link import ViewLink
 
         daemon.view = ViewLink(*parse_view(view))
     daemon.install_signals()

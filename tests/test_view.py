@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from calibkit.clitools import parse_view
 from calibkit.core.errors import UserError
 from daemon.config import load_config
 from daemon.view import bodies, draw
-from daemon.view.link import parse_view
 
 
 def test_view_address_is_loopback_unless_told():

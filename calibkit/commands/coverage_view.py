@@ -25,23 +25,6 @@ VISITED = (60, 190, 90)
 EMPTY = (35, 35, 40)
 
 
-def parse_view(text: str) -> tuple[str, int]:
-    """--view [HOST:]PORT -> (host, port); a bare port is served on loopback only."""
-    import ipaddress
-
-    host, sep, port = text.rpartition(":")
-    host = host.strip("[]") if sep else "127.0.0.1"
-    try:
-        ipaddress.ip_address(host)
-        port_n = int(port)
-        if not 0 < port_n < 65536:
-            raise ValueError
-    except ValueError:
-        raise UserError(f"--view: expected [HOST:]PORT with HOST an IP address (127.0.0.1 "
-                        f"for this computer only), got {text!r}") from None
-    return host, port_n
-
-
 def coverage_image(cells: np.ndarray, size: tuple[int, int], done: bool,
                    width_px: int = THUMB_WIDTH_PX) -> np.ndarray:
     """(h, w, 3) RGB: the camera's grid cells (bool (gy, gx), True: the wand went there) at

@@ -181,7 +181,8 @@ def register(app: typer.Typer) -> None:
         pixel_pitch = parse_pixel_pitch(pixel_pitch_text)
         page = None  # viser stops its server at exit, whichever way the command ends
         if view is not None:
-            from calibkit.commands.coverage_view import IntrinsicView, parse_view
+            from calibkit.clitools import parse_view
+            from calibkit.commands.coverage_view import IntrinsicView
 
             page = IntrinsicView(*parse_view(view))
             print(f"views at {page.url}")

@@ -11,7 +11,7 @@ import typer
 
 from calibkit.calibrate import wand_pipeline as pipeline
 from calibkit.calibrate.wand import WandSpec
-from calibkit.clitools import Progress, parse_floats, print_table, write_json
+from calibkit.clitools import Progress, parse_floats, parse_view, print_table, write_json
 from calibkit.commands import coverage_view
 from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
@@ -123,7 +123,7 @@ def register(app: typer.Typer) -> None:
         if view is not None and source is not None:
             raise UserError("--view shows a capture's coverage as it fills; --from reads a "
                             "recording that is already made")
-        view_at = coverage_view.parse_view(view) if view is not None else None
+        view_at = parse_view(view) if view is not None else None
         page = report_path or out.with_name(out.stem + ".report.html")
         if not page.resolve().parent.is_dir():
             raise UserError(f"--report: the folder {page.parent} does not exist")

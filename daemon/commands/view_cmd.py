@@ -52,8 +52,8 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Scrub through a take or a recording in the browser: a frame slider, play, the
         markers of the chosen frame with their names and a marker set's sticks."""
-        from calibkit.clitools import Progress
-        from daemon.view.link import is_loopback, parse_view
+        from calibkit.clitools import Progress, parse_view
+        from daemon.view.link import is_loopback
         from daemon.view.replay import load_replay
 
         host, port = parse_view(where)

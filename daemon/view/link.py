@@ -26,21 +26,6 @@ FEED_HZ = 30.0  # frames a second the view gets (its 3D view redraws at this rat
 READY_TIMEOUT_S = 20.0  # the view process importing viser and binding its port
 
 
-def parse_view(text: str) -> tuple[str, int]:
-    """--view [HOST:]PORT -> (host, port); a bare port is served on loopback only."""
-    host, sep, port = text.rpartition(":")
-    host = host.strip("[]") if sep else "127.0.0.1"
-    try:
-        ipaddress.ip_address(host)
-        port_n = int(port)
-        if not 0 < port_n < 65536:
-            raise ValueError
-    except ValueError:
-        raise UserError(f"--view: expected [HOST:]PORT with HOST an IP address (127.0.0.1 "
-                        f"for this computer only), got {text!r}") from None
-    return host, port_n
-
-
 def is_loopback(host: str) -> bool:
     return ipaddress.ip_address(host).is_loopback
 
