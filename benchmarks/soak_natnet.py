@@ -181,6 +181,10 @@ def run(args) -> dict:
             sample.stdin.write(key + "\n")
             sample.stdin.flush()
         time.sleep(max(0.0, t0 + args.seconds - time.monotonic()))
+        # what the sample printed while it ran: the SDK's own threads can trip over their
+        # sockets being closed as it quits (EBADF in its command thread), which is the
+        # sample's shutdown, not our stream; those lines are counted apart
+        running = len(out)
         sample.stdin.write("q\n")
         sample.stdin.flush()
         try:
@@ -198,8 +202,12 @@ def run(args) -> dict:
         mocapd.terminate()
         mocapd.communicate(timeout=30)
     frames = [int(m.group(1)) for line in out if (m := re.match(r"MoCap Frame: (\d+)", line))]
-    errors = [line.strip() for line in out
-              if re.search(r"ERROR|WARNING|Traceback|Exception|Error:", line)]
+    def error_lines(lines):
+        return [line.strip() for line in lines
+                if re.search(r"ERROR|WARNING|Traceback|Exception|Error:", line)]
+
+    errors = error_lines(out[:running])
+    errors_at_quit = error_lines(out[running:])
     f = np.array(frames)
     span = int(f.max() - f.min() + 1) if len(f) else 0
     settled = np.unique(f[f >= f.min() + args.settle_s * args.fps]) if len(f) else f
@@ -214,7 +222,8 @@ def run(args) -> dict:
             f"frames_missing_after_{args.settle_s:g}s": missing_settled,
             "duplicates": len(frames) - len(set(frames)), "receive_buffer_drops": buffer_drops,
             "error_lines": errors[:20],
-            "errors": len(errors), "versions_seen": versions,
+            "errors": len(errors), "errors_at_quit": errors_at_quit[:20],
+            "versions_seen": versions,
             "bitstream_changes": sum("Bitstream version at" in line for line in out),
             "quit_cleanly": any("shutdown called" in line for line in out),
             "sample_starts": attempts, **daemon, **clock}

@@ -3,6 +3,7 @@ on stderr. Used by calibkit's and mocapd's commands alike."""
 
 from __future__ import annotations
 
+import importlib
 import ipaddress
 import json
 import math
@@ -25,8 +26,6 @@ def build_app(name: str, help_text: str, version: str, package: str,
     """A Typer app whose commands live in `package`, one module each with register(app),
     registered in the order given (the order of --help). A module not written yet is
     skipped; an import error inside a module is a bug and raises."""
-    import importlib
-
     app = typer.Typer(name=name, help=help_text, no_args_is_help=True, add_completion=False,
                       pretty_exceptions_enable=False)
 

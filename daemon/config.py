@@ -56,6 +56,7 @@ from daemon.config_check import (
     _table,
     _Where,
 )
+from daemon.nodes.zenoh_table import parse_daemon_zenoh
 from daemon.publish.mavlink import MESSAGES, WORLD_TO_NED
 from daemon.rigid import BodyDef, RigidConfig
 from daemon.tracker import TrackerConfig
@@ -338,14 +339,13 @@ def parse_config(data: dict, path: Path | None = None, base: Path | None = None)
     changes["vrpn"] = tuple(_vrpn(w, t, f"vrpn[{i}].")
                             for i, t in enumerate(_list(w, data, "vrpn")))
     if "zenoh" in data or any(c.source.startswith("zenoh:") for c in changes["cameras"]):
-        from daemon.nodes.zenoh_table import parse_daemon_zenoh
-
         changes["zenoh"] = parse_daemon_zenoh(w, _table(w, data, "zenoh"))
     return replace(cfg, **changes)
 
 
 def _markerset(w, value: str, base: Path) -> Path:
     """The marker set's file (a shipped set's name or a path), loaded once to check it."""
+    # deferred on purpose: loads SciPy's optimisers, SciPy's sparse graphs... only where used
     from daemon.live_label import load, resolve, shipped_sets
 
     path = resolve(value, base)

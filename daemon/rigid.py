@@ -14,7 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from daemon.rigid_kernel import fit_bodies
 from daemon.tracker import TrackFrame
+from daemon.tracker_kernel import refine_step
 
 
 @dataclass(frozen=True, eq=False)
@@ -164,8 +166,6 @@ class RigidTracker:
             obs = np.where((row >= 0)[..., None] & self._seen[..., None],
                            tracks.blobs[np.maximum(row, 0)], -1)  # (B, K, C)
             if cfg.compiled:
-                from daemon.tracker_kernel import refine_step
-
                 a = cameras.arrays
                 R, t = R.copy(), t.copy()
                 refine_step(R, t, self.markers, obs, uv, a.R, a.t, a.fx, a.fy, a.cx, a.cy,
@@ -218,8 +218,6 @@ class RigidTracker:
         if len(tracks) and tracks.sigma_m is not None:
             sigma = tracks.sigma_m[np.maximum(row, 0)]
         if cfg.compiled:
-            from daemon.rigid_kernel import fit_bodies
-
             use_sigma = sigma is not None
             R, t, err, seen, released = fit_bodies(
                 self.markers, dst, seen, sigma if use_sigma else np.zeros(seen.shape),

@@ -77,6 +77,7 @@ def learn_body(track: Callable, frame_sets: Iterable, skip_frames: int = 5) -> n
 
 def bodies_toml(bodies: Sequence[tuple[str, int, np.ndarray]]) -> str:
     """[[rigid_body]] tables (name, id, markers in metres) as a configuration holds them."""
+    # deferred on purpose: loads tomli_w only where used
     import tomli_w
 
     return tomli_w.dumps({"rigid_body": [{"name": name, "id": int(body_id),
@@ -109,6 +110,7 @@ def _cluster(frames, ref_ids, ref_xyz, cluster_m, min_share):
     """Every frame moved onto the reference points (a rigid fit on the track ids it shares
     with them), the points pooled and clustered: (points moved, as they were, their frame,
     their cluster, the clusters seen in at least min_share of the frames)."""
+    # deferred on purpose: loads SciPy's sparse graphs, SciPy's spatial only where used
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree

@@ -25,10 +25,14 @@ from typing import TYPE_CHECKING
 import numpy as np
 import tomllib
 
+from calibkit.cameras import missing_plugins
 from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
 from calibkit.core.fileio import write_text_atomic
+from calibkit.vision.correspondence import match_frame
+from calibkit.vision.detect import DetectorConfig, detect
 from calibkit.vision.gates import correspondence_config, rig_residual, tracker_gates
+from calibkit.vision.masks import load_mask
 from daemon.config import Config, default_runtime_dir, load_config, parse_config
 from daemon.nodes.remote import make_hub
 from daemon.nodes.zenoh_table import is_remote
@@ -48,6 +52,7 @@ from daemon.publish.recorder import RecorderPublisher
 from daemon.publish.serial import SerialPublisher
 from daemon.publish.udp import UdpPublisher
 from daemon.publish.vrpn import VrpnPublisher
+from daemon.publish.zenoh_poses import ZenohPosePublisher
 from daemon.realtime import raise_priority, restore_normal
 from daemon.rigid import alike_bodies
 from daemon.rigid_define import bodies_toml, learn_body
@@ -55,6 +60,8 @@ from daemon.sources import DetectCamera, ReplayCamera, ReplayScene
 from daemon.synthetic.evaluator import Evaluator
 from daemon.synthetic.labelling import LabelScore
 from daemon.synthetic.scene import SimCamera, SimScene
+from daemon.tracker import Tracker
+from daemon.tracker_kernel import refine_step
 
 if TYPE_CHECKING:
     from daemon.live_label import LiveLabeller
@@ -253,8 +260,6 @@ def make_publishers(config: Config, bodies=(), markerset=None, control=None, hub
         pubs.append(VrpnPublisher(bodies, v.host, v.port, v.rate_hz, v.udp,
                                   name=f"vrpn:{v.host}:{v.port}"))
     if hub is not None and config.zenoh.poses:
-        from daemon.publish.zenoh_poses import ZenohPosePublisher
-
         pubs.append(ZenohPosePublisher(hub, bodies))
     return pubs
 
@@ -387,8 +392,6 @@ class Daemon:
     def _cameras(self, cfg: Config) -> list:
         """Capture sources for the configured cameras; a camera whose plugin library is
         missing is reported and skipped, the rest run."""
-        from calibkit.cameras import missing_plugins
-
         names = self.rig.names
         out = []
         for cam in cfg.cameras:
@@ -412,9 +415,6 @@ class Daemon:
     def _detector(self, cam):
         """A [[camera]] table's detection settings, its mask read and checked against the
         camera's size (UserError for a bad one)."""
-        from calibkit.vision.detect import DetectorConfig
-        from calibkit.vision.masks import load_mask
-
         mask = None if cam.mask is None else load_mask(cam.mask, self.rig[cam.name].size)
         return DetectorConfig(threshold=cam.threshold, min_area=cam.min_area,
                               max_area=cam.max_area, mask=mask)
@@ -434,22 +434,15 @@ class Daemon:
     def _warm_up(self) -> None:
         """Run the correspondence once on a frame's blobs before READY: its compiled kernels
         load on first use (about a second), which would otherwise stall the first frames."""
-        from calibkit.vision.correspondence import match_frame
-        from daemon.tracker import Tracker
-
         # the tracker's kernel: one track in front of the rig, one blob per camera
         warm = Tracker(self.rig, self.tracker_config)
         warm.set_tracks(np.array([1]), np.zeros((1, 3)))
         warm.update(np.arange(len(self.rig)), np.zeros((len(self.rig), 2)) + 100.0, 0)
-        from daemon.tracker_kernel import refine_step
-
         a = warm.arrays
         refine_step(np.tile(np.eye(3), (1, 1, 1)), np.zeros((1, 3)), np.zeros((1, 3, 3)),
                     np.full((1, 3, len(self.rig)), -1, dtype=np.int64), np.zeros((1, 2)),
                     a.R, a.t, a.fx, a.fy, a.cx, a.cy, a.skew, a.dist, np.ones(1, dtype=bool))
         if self.scene is None:  # live cameras: detection has compiled kernels too
-            from calibkit.vision.detect import detect
-
             image = np.full((64, 64), 10, np.uint8)
             image[30:34, 30:34] = 200
             for src in self.live_sources:
@@ -468,6 +461,8 @@ class Daemon:
         # imported only with a marker set: the labelling modules (scipy.stats among them)
         # would cost every start a second
         from daemon.live_label import LiveLabeller
+
+        # deferred on purpose: loads SciPy's optimisers, SciPy's sparse graphs only where used
         from daemon.live_label import load as load_markerset
 
         fps = self.scene.fps if self.scene is not None else cfg.fps

@@ -10,6 +10,7 @@ simulated cameras live apart, in daemon.synthetic, and have the same shape.
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import time
 from collections.abc import Iterator
@@ -21,6 +22,8 @@ import numpy as np
 from calibkit import cameras
 from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
+from calibkit.core.recording import load_observations
+from calibkit.vision.detect import DetectorConfig, detect
 
 log = logging.getLogger("mocapd.sources")
 
@@ -65,8 +68,6 @@ class ReplayScene:
     at the recording's frame rate (or as fast as the tracker goes)."""
 
     def __init__(self, path, rig: Rig) -> None:
-        from calibkit.core.recording import load_observations
-
         obs, _ = load_observations(path)
         index = {n: i for i, n in enumerate(rig.names)}
         unknown = [n for n in obs.camera_names if n not in index]
@@ -123,8 +124,6 @@ def fine_timer_slack() -> None:
     timer slack, 50 us by default, to batch wake-ups); a simulated camera that wakes late
     would add that to every frame's latency. Best effort: elsewhere it does nothing."""
     try:
-        import ctypes
-
         ctypes.CDLL(None).prctl(29, 1, 0, 0, 0)  # PR_SET_TIMERSLACK: 1 ns
     except (OSError, AttributeError):
         pass
@@ -142,8 +141,6 @@ class DetectCamera:
         self.device_stamps = device_stamps  # False: pair by arrival (stamps not trusted)
 
     def open(self) -> Iterator[CameraSample]:
-        from calibkit.vision.detect import DetectorConfig, detect
-
         source = open_camera(self.spec, self.fps, self.name)
         default = DetectorConfig()
         try:

@@ -64,6 +64,7 @@ def run_daemon(cfg: Config, reload_config, truth_rig: Path | None, frames: int |
     """Run the daemon on `cfg` until stopped (SIGTERM) or for `frames` / `duration`, with
     progress when either is given; `reload_config` rebuilds the configuration on SIGHUP;
     `view` ("HOST:PORT") serves the live web view. Returns its figures."""
+    # deferred on purpose: loads OpenCV, SciPy's sparse graphs... only where used
     from daemon.service import Daemon
 
     if cfg.sim is not None and cfg.sim.fps <= 0:

@@ -15,6 +15,7 @@ import numpy as np
 
 from calibkit.core.errors import UserError
 from projector.dots import Dots
+from projector.screens import require_display
 
 _VERTEX = """
 #version 330
@@ -108,6 +109,7 @@ class OffscreenDisplay:
     """
 
     def __init__(self, size: tuple[int, int]) -> None:
+        # deferred on purpose: loads moderngl only where used
         import moderngl
 
         try:
@@ -148,14 +150,14 @@ class WindowDisplay:
     """
 
     def __init__(self, monitor_index: int = 0) -> None:
-        from projector.screens import require_display
-
         require_display()
         try:
+            # deferred on purpose: loads glfw only where used
             import glfw
         except ModuleNotFoundError:
             raise UserError("showing patterns on a monitor needs the 'glfw' package: "
                             "pip install glfw") from None
+        # deferred on purpose: loads moderngl only where used
         import moderngl
 
         if not glfw.init():

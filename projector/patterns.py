@@ -208,6 +208,7 @@ def decode_levels(on: np.ndarray, off: np.ndarray, bits: np.ndarray, n_codes: in
 def sample_levels(image: np.ndarray, uv: np.ndarray, radius_px: float) -> np.ndarray:
     """Mean level of a (2r+1)^2 box around each image position (N, 2): the cheap, robust
     per-dot brightness the decoder compares against its on/off references. NaN outside."""
+    # deferred on purpose: loads OpenCV only where used
     import cv2
 
     img = np.asarray(image, dtype=np.float32)
@@ -257,6 +258,7 @@ def predict_from_neighbours(ref_screen: np.ndarray, ref_uv: np.ndarray, screen: 
     whether the neighbours surround the point closely enough to trust it (P,). With
     skip_self the points are the reference dots themselves, each predicted without itself.
     """
+    # deferred on purpose: loads SciPy's sparse graphs, SciPy's spatial only where used
     from scipy.spatial import cKDTree
 
     k = max(4, min(k, len(ref_uv) - (1 if skip_self else 0)))
@@ -302,6 +304,7 @@ def check_by_neighbours(screen: np.ndarray, uv: np.ndarray, k: int = 8,
     the image spacing). A misdecoded id points to a screen position far away, so its dot
     sits where its supposed neighbours say it cannot be (a local homography fitted to
     them, predict_from_neighbours). Mask (N,)."""
+    # deferred on purpose: loads SciPy's sparse graphs, SciPy's spatial only where used
     from scipy.spatial import cKDTree
 
     n = len(uv)
@@ -342,6 +345,7 @@ def identify_by_neighbours(ref_screen: np.ndarray, ref_uv: np.ndarray, screen: n
     `max_fit_px`. Returns, per detection, the index
     into `screen` (-1 when not identified).
     """
+    # deferred on purpose: loads SciPy's sparse graphs, SciPy's spatial only where used
     from scipy.spatial import cKDTree
 
     out = np.full(len(uv), -1, dtype=np.int64)
@@ -366,6 +370,7 @@ def sampling_window_px(uv: np.ndarray) -> float:
     """A window for sampling a dot's code, well inside the dots' spacing in the image."""
     if len(uv) < 2:
         return 2.0
+    # deferred on purpose: loads SciPy's sparse graphs, SciPy's spatial only where used
     from scipy.spatial import cKDTree
 
     dist, _ = cKDTree(uv).query(uv, k=2)

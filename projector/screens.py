@@ -95,6 +95,7 @@ def parse_xrandr(text: str) -> list[Screen]:
 
 def _glfw_screens() -> list[Screen] | None:
     try:
+        # deferred on purpose: loads glfw only where used
         import glfw
     except ModuleNotFoundError:
         return None

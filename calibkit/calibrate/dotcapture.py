@@ -63,6 +63,7 @@ def _nearest(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For each row of a: index of the nearest row of b and its distance (b may be empty)."""
     if len(b) == 0:
         return np.zeros(len(a), np.int64), np.full(len(a), np.inf)
+    # deferred on purpose: loads SciPy's sparse graphs, SciPy's spatial only where used
     from scipy.spatial import cKDTree
 
     d, i = cKDTree(b).query(a)

@@ -38,6 +38,7 @@ from calibkit.calibrate.extrinsic_solve import ExtrinsicResult, SolveOptions, ca
 from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
 from calibkit.core.fileio import write_text_atomic
+from calibkit.core.recording import save_observations
 from projector.patterns import Schedule, coded_schedule
 
 # a plane map whose reference points disagree by more than this is suspect
@@ -209,8 +210,6 @@ def write_outputs(result: ExtrinsicResult, intrinsics: Rig, intrinsics_path: Pat
     """The rig file (with the intrinsics' figures), the dots for the wand step
     (NAME.dots.npz) and, when enough cameras share floor dots, a floor recording
     (NAME.floor.mcrec) for `calibkit wand --floor`."""
-    from calibkit.core.recording import save_observations
-
     keep_intrinsic_quality(result, intrinsics, intrinsics_path, out)
     result.rig.save(out)
     save_dots(dots_path(out), result.dots, result.inlier)

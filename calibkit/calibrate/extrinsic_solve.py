@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from calibkit.calibrate import bundle
 from calibkit.calibrate.extrinsic_capture import DotObservations
 from calibkit.calibrate.extrinsic_reference import FLOOR, TABLE, PlaneMap
 from calibkit.calibrate.extrinsic_report import figures
@@ -115,8 +116,6 @@ def _joint(rig: Rig, dots: DotObservations, use: np.ndarray, opts: SolveOptions
     free point held on its plane (sigma height_sigma_m) and near where the plane maps put it
     (sigma reference_sigma_m), so the cameras must agree with each other, not only with the
     maps. Returns the rig and the refined dot positions (NaN where a dot was not used)."""
-    from calibkit.calibrate import bundle
-
     sel = dots.select(use)
     index = np.array([rig.names.index(n) if n in rig.names else -1 for n in dots.camera_names])
     used = np.unique(sel.point[index[sel.camera] >= 0])
@@ -134,8 +133,6 @@ def bundle_data(rig: Rig, dots: DotObservations, known: bool = True):
     point observed by its cameras, held on its plane (n = z, d = height) and, with `known`,
     near its plane-map position (known_point). To join them to a wand solve, append these
     rows (points renumbered after the wand's) to its BundleData."""
-    from calibkit.calibrate import bundle
-
     index = np.array([rig.names.index(n) if n in rig.names else -1
                       for n in dots.camera_names])
     rows = index[dots.camera] >= 0
@@ -155,8 +152,6 @@ def join_bundle_data(a, b):
     """Two calibkit.calibrate.bundle.BundleData over the same rig as one: b's points are renumbered
     after a's. This is how the projector's dots (bundle_data) join a wand solve: their
     plane and position priors then hold the world frame while the wand refines the rest."""
-    from calibkit.calibrate import bundle
-
     if a.rig.names != b.rig.names:
         raise ValueError("both BundleData must use the same rig (same cameras, same order)")
     n = len(a.xyz)

@@ -17,6 +17,8 @@ import numpy as np
 
 from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
+from calibkit.core.geometry import triangulate
+from calibkit.vision.correspondence import match_frames
 
 LFRAME_MARKER_RADIUS_M = 0.007  # a 14 mm ball: its centre stands this high over the floor
 
@@ -104,12 +106,11 @@ def find_lframe(xyz: np.ndarray, lframe: LFrame = LFrame(),
 def static_markers(rig: Rig, obs, min_frames: int = 3, cluster_m: float = 0.01) -> np.ndarray:
     """Markers standing still (an L-frame on the floor): matched per frame, then the points
     of all frames grouped by position and averaged (medians), ghosts seen rarely dropped."""
-    from calibkit.vision.correspondence import match_frames
-
     pts = match_frames(rig, obs)
     xyz = pts.xyz[np.isfinite(pts.xyz).all(axis=1)]
     if not len(xyz):
         raise UserError("no marker is seen by two cameras: check the rig and the recording")
+    # deferred on purpose: loads SciPy's clustering, SciPy's sparse graphs... only where used
     from scipy.cluster.hierarchy import fcluster, linkage
 
     if len(xyz) == 1:
@@ -182,9 +183,8 @@ def wand_placements(rig: Rig, obs, spacing_m, cluster_m: float = 0.02
                     ) -> list[tuple[np.ndarray, np.ndarray]]:
     """The wand's (marker-0 end, far end) in each place it lay still on the floor: the wand
     identified per frame, triangulated, and frames grouped by where marker 0 was."""
+    # deferred on purpose: loads OpenCV only where used
     from calibkit.calibrate.wand import WandSpec, identify, point_index, wand_lengths
-    from calibkit.core.geometry import triangulate
-
     spec = WandSpec(tuple(spacing_m))
     if spec.n_markers < 2:
         raise UserError("a wand laid on the floor needs 2 or 3 markers")
@@ -207,6 +207,7 @@ def wand_placements(rig: Rig, obs, spacing_m, cluster_m: float = 0.02
     a, b = xyz[first[good]], xyz[np.minimum(last[good], len(xyz) - 1)]
     if len(a) < 2:
         raise UserError("the wand on the floor was not seen by two cameras at once")
+    # deferred on purpose: loads SciPy's clustering, SciPy's sparse graphs... only where used
     from scipy.cluster.hierarchy import fcluster, linkage
 
     labels = fcluster(linkage(a, "single"), cluster_m, criterion="distance")

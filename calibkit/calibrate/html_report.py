@@ -265,6 +265,7 @@ def write_wand_report(path: Path, cal, out: Path, plots: bool) -> None:
     each camera's wand coverage over its image (solved and held-out frames)."""
     images = []
     if plots:
+        # deferred on purpose: loads OpenCV only where used
         from calibkit.calibrate.wand_report import coverage_png
 
         for ident, suffix, caption in (("layout", ".layout.png", "cameras and wand points"),
@@ -350,6 +351,7 @@ def intrinsic_section(name: str, result, views: list, plot_png: bytes | None, k:
 def intrinsic_page(cameras: list[tuple[str, object, list]], plots: bool = True) -> str:
     """The page of a `calibkit intrinsic` run: (name, IntrinsicResult, its views) per
     camera calibrated."""
+    # deferred on purpose: loads OpenCV only where used
     from calibkit.calibrate.intrinsic import distortion_plot_png
 
     body = ["<h1>Intrinsic calibration: " + esc(", ".join(n for n, _, _ in cameras))

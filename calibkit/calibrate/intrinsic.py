@@ -402,9 +402,11 @@ def guidance(views: list[PlaneView], size: tuple[int, int], wanted: int) -> str:
 def distortion_plot_png(result: IntrinsicResult, uv: np.ndarray | None = None) -> bytes:
     """A PNG: the lens distortion's displacement field over the image (arrows, contours
     in pixels) and the measured points, so the user sees how much of the image they covered."""
+    # deferred on purpose: loads matplotlib only where used
     import matplotlib
 
     matplotlib.use("Agg")
+    # deferred on purpose: loads matplotlib only where used
     import matplotlib.pyplot as plt
 
     cam = result.camera

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from calibkit.calibrate import plane_views
+from calibkit.calibrate.board import board_views, parse_board
 from calibkit.calibrate.dotcapture import DotCapture
 from calibkit.calibrate.intrinsic import (
     IntrinsicResult,
@@ -86,8 +87,6 @@ def capture_views(device, schedule: Schedule, n_views: int, pitch_mm: float,
 def board_capture(images: Path, board: str, progress
                   ) -> tuple[list[PlaneView], tuple[int, int], list[str]]:
     """The views of a printed board in a folder of images (calibkit.calibrate.board)."""
-    from calibkit.calibrate.board import board_views, parse_board
-
     spec = parse_board(board)
     sink = progress("images", None)
     found, size, missed = board_views(images, spec, lambda d, t: sink.update(d))

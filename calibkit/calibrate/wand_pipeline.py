@@ -15,12 +15,16 @@ from pathlib import Path
 
 import numpy as np
 
-from calibkit.calibrate import floor
+from calibkit.calibrate import floor, plane_views, wand_report
+from calibkit.calibrate.extrinsic_capture import load_dots
+from calibkit.calibrate.extrinsic_solve import bundle_data
 from calibkit.calibrate.wand import CaptureMonitor, WandSpec, identify
+from calibkit.cameras import open_camera
 from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
 from calibkit.core.observations import Observations
 from calibkit.core.recording import RecordingWriter, load_observations
+from calibkit.vision.detect import DetectorConfig, detect
 
 World = Callable[[Rig, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
@@ -54,9 +58,6 @@ def capture(batches: Iterator[Observations], spec: WandSpec, intrinsics: Rig,
 def live_batches(specs: list[str], rig: Rig) -> Iterator[Observations]:
     """One frame from every camera at a time, detected: cameras (calibkit.cameras specs) named
     as in the rig, in the order given."""
-    from calibkit.cameras import open_camera
-    from calibkit.vision.detect import DetectorConfig, detect
-
     if len(specs) != len(rig):
         raise UserError(f"give one --camera per camera of the intrinsics file ({len(rig)}), "
                         f"got {len(specs)}")
@@ -124,9 +125,6 @@ def dots_extra(path: Path):
     extra bundle rows, held on their planes only: their positions come from a homography
     fitted to tape measurements (mm errors) and priors on them pull the wand's scale and
     shape; the planes alone kept the rig 2.7x closer to the truth (docs/wand.md)."""
-    from calibkit.calibrate.extrinsic_capture import load_dots
-    from calibkit.calibrate.extrinsic_solve import bundle_data
-
     dots = load_dots(path)
 
     def extra(start_rig: Rig):
@@ -137,8 +135,6 @@ def dots_extra(path: Path):
 
 def monitor_views(intrinsics: Rig, intrinsics_path: Path | None):
     """The intrinsic step's monitor views its rig file names (None without)."""
-    from calibkit.calibrate import plane_views
-
     return plane_views.load_for(intrinsics.quality, intrinsics_path, intrinsics.names)
 
 
@@ -146,8 +142,6 @@ def write_outputs(cal, out: Path, plots: bool) -> None:
     """The rig file and, with plots, NAME.layout.png and NAME.residuals.png."""
     cal.rig.save(out)
     if plots:
-        from calibkit.calibrate import wand_report
-
         wand_report.plot_layout(cal.rig, cal.solved["xyz"],
                                 out.with_name(out.stem + ".layout.png"))
         wand_report.plot_residuals(cal.rig, cal.solved,

@@ -14,12 +14,14 @@ from the image centre (`systematics`), which no choice of intrinsics can hide.
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
 
 from calibkit.calibrate.wand import WandObservations, WandSpec, point_index
 from calibkit.core.camera import Rig
+from calibkit.core.fileio import write_bytes_atomic
 from calibkit.core.geometry import RigArrays, triangulate
 
 # Grade thresholds, on the held-out frames (docs/wand.md explains them).
@@ -291,12 +293,13 @@ def _grade_held(held: dict, found: dict, wand_length_m: float) -> tuple[str, str
 
 def plot_layout(rig: Rig, xyz: np.ndarray, path: Path) -> None:
     """Cameras and wand points from above and from the side (PNG)."""
+    # deferred on purpose: loads matplotlib only where used
     import matplotlib
 
     matplotlib.use("Agg")
+    # deferred on purpose: loads matplotlib only where used
     import matplotlib.pyplot as plt
 
-    from calibkit.core.fileio import write_bytes_atomic
 
     c = rig.centres()
     axes_z = np.array([cam.R[2] for cam in rig])  # optical axes in the world
@@ -320,12 +323,13 @@ def plot_layout(rig: Rig, xyz: np.ndarray, path: Path) -> None:
 
 def plot_residuals(rig: Rig, figures: dict, path: Path) -> None:
     """Per camera: residual vectors over the image (scaled up), coloured by size (PNG)."""
+    # deferred on purpose: loads matplotlib only where used
     import matplotlib
 
     matplotlib.use("Agg")
+    # deferred on purpose: loads matplotlib only where used
     import matplotlib.pyplot as plt
 
-    from calibkit.core.fileio import write_bytes_atomic
 
     n = len(rig)
     cols = min(4, n)
@@ -354,9 +358,11 @@ def plot_residuals(rig: Rig, figures: dict, path: Path) -> None:
 def coverage_png(rig: Rig, camera: np.ndarray, uv: np.ndarray, cells: int = 24) -> bytes:
     """Per camera: where in its image the wand was seen (observations per cell of a
     `cells`-wide grid; blank cells are where it never went), as PNG bytes."""
+    # deferred on purpose: loads matplotlib only where used
     import matplotlib
 
     matplotlib.use("Agg")
+    # deferred on purpose: loads matplotlib only where used
     import matplotlib.pyplot as plt
 
     n = len(rig)
@@ -387,8 +393,6 @@ def coverage_png(rig: Rig, camera: np.ndarray, uv: np.ndarray, cells: int = 24) 
 
 
 def _png(fig) -> bytes:
-    import io
-
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
     return buf.getvalue()

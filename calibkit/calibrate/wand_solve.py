@@ -12,8 +12,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibkit.calibrate import bundle, floor, intrinsic_prior, wand_report
+from calibkit.calibrate.extrinsic_solve import join_bundle_data
 from calibkit.calibrate.plane_views import PlaneViews
-from calibkit.calibrate.wand import WandObservations, WandSpec, identify, initial_poses, point_index
+from calibkit.calibrate.wand import (
+    CaptureMonitor,
+    WandObservations,
+    WandSpec,
+    identify,
+    initial_poses,
+    point_index,
+    wand_lengths,
+)
 from calibkit.core.camera import Rig, rotation_from_rvec
 from calibkit.core.errors import UserError
 from calibkit.core.geometry import RigArrays, triangulate
@@ -156,8 +165,6 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
         edge, length = _edges(pinfo, spec) if spec.n_markers > 1 else (np.zeros((0, 2)), [])
         data = bundle.BundleData(start, pidx, cam, tw.uv, tri.xyz, edge, length)
         if extra is not None:
-            from calibkit.calibrate.extrinsic_solve import join_bundle_data
-
             data = join_bundle_data(data, extra(start))
         data.target = target
         opts = dataclasses.replace(
@@ -309,8 +316,6 @@ def _two_marker_start(wand: WandObservations, sub: Rig, spec: WandSpec
     pidx, pinfo = point_index(labelled, 2)
     xyz = triangulate(start, pidx, camera_of[labelled.camera], labelled.uv,
                       n_points=len(pinfo), ray_distance=False).xyz
-    from calibkit.calibrate.wand import wand_lengths
-
     lengths = wand_lengths(xyz, pinfo, spec)
     lengths = lengths[np.isfinite(lengths)]
     if len(lengths) < 5:
@@ -361,8 +366,6 @@ def _two_marker_labels(wand: WandObservations, rig: Rig, camera_of: np.ndarray
 
 def _report(rig, spec, result, solved, held, cov, found, grade, reason, warnings, left_out,
             wand, intr, floor_given) -> dict:
-    from calibkit.calibrate.wand import CaptureMonitor
-
     monitor = CaptureMonitor(intr.names, [c.size for c in intr])
     monitor.add(wand)
     coverage = dict(zip(intr.names, monitor.coverage.tolist(), strict=True))

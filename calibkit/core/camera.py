@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from calibkit.core.rigfile import read_rig, save_rig
+
 # Lens profiles measured on real cameras, reused by the simulator and the tests.
 # A 658x492 Basler machine-vision camera with a short lens (strong barrel distortion).
 BASLER_658x492_DIST = (-0.38, 0.16, 0.0, 0.0, 0.0)
@@ -37,6 +39,7 @@ def rotation_from_rvec(rvec: np.ndarray) -> np.ndarray:
 
 def rvec_from_rotation(R: np.ndarray) -> np.ndarray:
     """Inverse of rotation_from_rvec; exact for angles up to and including pi."""
+    # deferred on purpose: loads SciPy's sparse graphs, SciPy's spatial only where used
     from scipy.spatial.transform import Rotation
 
     return Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_rotvec()
@@ -274,13 +277,9 @@ class Rig:
     @classmethod
     def load(cls, path: str | Path) -> Rig:
         """A rig from a rig.toml or OpenCV YAML file (calibkit.core.rigfile checks it)."""
-        from calibkit.core.rigfile import read_rig
-
         found = read_rig(path)
         return cls(tuple(Camera(**c) for c in found.cameras), quality=found.quality,
                    meta=found.meta)
 
     def save(self, path: str | Path) -> None:
-        from calibkit.core.rigfile import save_rig
-
         save_rig(self, path)

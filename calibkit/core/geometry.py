@@ -269,6 +269,7 @@ def triangulate(rig: Rig, point: np.ndarray, camera: np.ndarray, uv: np.ndarray,
 
 def _triangulate_compiled(arrays: RigArrays, point, camera, uv, origins, dirs, iterations,
                           n, n_cams, ray_distance, start) -> Triangulation:
+    # deferred on purpose: loads numba (compiled kernels) only where used
     from calibkit.core.geometry_kernels import mean_ray_distances, triangulate_points
 
     order = np.argsort(point, kind="stable")

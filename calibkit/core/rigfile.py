@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import datetime as _dt
 import math
+import os
+import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
@@ -84,6 +86,7 @@ def camera_args(fields: dict, where: str) -> dict:
         Rm = _matrix(fields["R"], (3, 3), f"{where} field 'R'")
         if not np.allclose(Rm @ Rm.T, np.eye(3), atol=1e-6) or np.linalg.det(Rm) < 0:
             raise UserError(f"{where} field 'R' is not a rotation matrix")
+        # deferred on purpose: loads SciPy's sparse graphs, SciPy's spatial only where used
         from scipy.spatial.transform import Rotation
 
         rvec = Rotation.from_matrix(Rm).as_rotvec()
@@ -162,6 +165,7 @@ def _camera_toml(cam: Camera) -> str:
 
 
 def _toml_string(text: str) -> str:
+    # deferred on purpose: loads tomli_w only where used
     import tomli_w
 
     return tomli_w.dumps({"x": text}).split("=", 1)[1].strip()
@@ -170,6 +174,7 @@ def _toml_string(text: str) -> str:
 def rig_to_toml(rig: Rig) -> str:
     """The rig as TOML: header, [meta], [quality], then one [[cameras]] table per camera
     with one line per field, so the file stays easy to read and to edit by hand."""
+    # deferred on purpose: loads tomli_w only where used
     import tomli_w
 
     meta = {"created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
@@ -204,9 +209,7 @@ def save_rig(rig: Rig, path: str | Path) -> None:
 
 def export_opencv_yaml(rig: Rig, path: str | Path) -> None:
     """Write the rig as OpenCV FileStorage YAML (a sequence `cameras`), atomically."""
-    import os
-    import tempfile
-
+    # deferred on purpose: loads OpenCV only where used
     import cv2
 
     path = Path(path)
@@ -239,6 +242,7 @@ def export_opencv_yaml(rig: Rig, path: str | Path) -> None:
 
 def import_opencv_yaml(path: str | Path) -> RigFields:
     """Read a rig from OpenCV FileStorage YAML as written by export_opencv_yaml."""
+    # deferred on purpose: loads OpenCV only where used
     import cv2
 
     path = Path(path)

@@ -128,6 +128,7 @@ def merge_blobs(frame: np.ndarray, uv: np.ndarray, radius_px: np.ndarray, depth:
     Vectorised over all rows at once: overlapping pairs by a sweep (overlapping_pairs), the
     covered parts as disc lenses, the groups as connected components, the sums by bincount.
     """
+    # deferred on purpose: loads SciPy's sparse graphs only where used
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from calibkit.calibrate.compare import compare_rigs
 from calibkit.calibrate.extrinsic_capture import capture_frames_estimate
 from calibkit.calibrate.extrinsic_pipeline import (
     Captured,
@@ -109,8 +110,6 @@ def capture(run: ProjectorSimRun, sessions: Sessions, samples: int, render: bool
 def score(run: ProjectorSimRun, result: ExtrinsicResult, out: Path) -> dict:
     """The calibrated rig against the truth (in the tape's frame, not aligned), put in the
     report as `truth`; the true rig and the simulated tape file written beside `out`."""
-    from calibkit.calibrate.compare import compare_rigs
-
     run.truth.save(truth_rig_path(out))
     write_text_atomic(out.with_name(out.stem + ".refs.toml"), references_toml(
         run.refs, "simulated tape measurements (calibkit extrinsic --sim)"))

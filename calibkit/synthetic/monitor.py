@@ -109,6 +109,7 @@ class MonitorSim:
         below 0.001 px for webcam lenses, and it is 15 times cheaper than inverting at
         every sub-sample.
         """
+        # deferred on purpose: loads SciPy's ndimage only where used
         from scipy.ndimage import map_coordinates
 
         cam, s = self.camera, SUPERSAMPLE

@@ -22,9 +22,12 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from calibkit.calibrate.extrinsic_capture import CameraDots
 from calibkit.core.camera import Camera, Rig
+from calibkit.core.geometry import RigArrays, mean_ray_distance
 from calibkit.synthetic import sim
 from calibkit.synthetic.sim import Table
+from projector.display import OffscreenDisplay
 
 SUPERSAMPLE = 3
 
@@ -204,8 +207,6 @@ class ProjectorRigSim:
     table_present: bool = False
 
     def __post_init__(self) -> None:
-        from projector.display import OffscreenDisplay
-
         cfg = self.config
         self.display = OffscreenDisplay(cfg.projector_px)
         self.rng = np.random.default_rng(cfg.seed)
@@ -302,6 +303,7 @@ class ProjectorRigSim:
 def _camera_rays(cam: Camera, s: int) -> np.ndarray:
     """Normalised undistorted coordinates of every sub-sample (h*s, w*s, 2): the lens is
     inverted on a grid 4 sub-samples apart and interpolated (the ray field is smooth)."""
+    # deferred on purpose: loads SciPy's ndimage only where used
     from scipy.ndimage import map_coordinates
 
     cam0 = cam.replace(rvec=np.zeros(3), t=np.zeros(3))
@@ -353,8 +355,6 @@ def ray_distance_at_height(estimated: Rig, truth: Rig, z_m: float, volume_m: flo
     """Mean ray distance (mm) at height z: a grid of points at z across the volume, seen
     exactly by the true cameras, cast back as rays by the estimated ones; the mean distance
     between every pair of rays of each point, averaged over points seen by >= 2 cameras."""
-    from calibkit.core.geometry import RigArrays, mean_ray_distance
-
     half = 0.4 * volume_m
     g = np.linspace(-half, half, steps)
     gx, gy = np.meshgrid(g, g)
@@ -381,8 +381,6 @@ def simulated_dots(scene: ProjectorScene, points_px: np.ndarray, table_present: 
     ids (indices into points_px), noisy centroids, and a share `wrong_ids` of dots given
     another dot's id (a decoding error, for testing the outlier rejection). shown: the ids
     the schedule shows (default all)."""
-    from calibkit.calibrate.extrinsic_capture import CameraDots
-
     rng = np.random.default_rng(seed + 7)
     shown = np.arange(len(points_px)) if shown is None else np.asarray(shown, np.int64)
     out = []

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
+from calibkit.synthetic import sim
 
 
 def truth_rig_path(out: Path) -> Path:
@@ -26,8 +27,6 @@ def sim_hardware(sim_rig: Path | None, cameras: int, volume_m: float, seed: int,
     estimate files."""
     if sim_rig is not None:
         return Rig.load(sim_rig)
-    from calibkit.synthetic import sim
-
     return sim.make_rig(cameras, volume_m, size, seed=seed)
 
 

@@ -20,6 +20,7 @@ from calibkit.core.camera import WEBCAM_DIST, Camera, Rig, look_at, rvec_from_ro
 from calibkit.core.errors import UserError
 from calibkit.core.observations import Observations, Truth
 from calibkit.synthetic.blobs import merge_blobs
+from calibkit.synthetic.spots import render_spots
 
 MARKER_RADIUS_M = 0.007  # a 14 mm retro-reflective ball
 
@@ -120,6 +121,7 @@ def wand_motion(n_frames: int, fps: float = 100.0, volume_m: float = 4.0,
     The rod's centre follows a hand-like path and its direction turns smoothly, so every
     camera sees it at many places and angles, as in a real wand dance.
     """
+    # deferred on purpose: loads SciPy's interpolation, SciPy's optimisers... only where used
     from scipy.interpolate import CubicSpline
 
     _check(n_frames >= 1, f"--frames must be at least 1, got {n_frames}")
@@ -186,6 +188,7 @@ def rigid_body_motion(n_bodies: int, n_frames: int, fps: float = 100.0, volume_m
                       seed: int = 0) -> tuple[Truth, list[SimBody]]:
     """Rigid bodies (3 to 8 markers, distinct inter-marker distances) moving smoothly through
     the volume, turning as they go; bodies may cross each other's paths."""
+    # deferred on purpose: loads SciPy's sparse graphs, SciPy's spatial only where used
     from scipy.spatial.transform import Rotation, RotationSpline
 
     _check(n_bodies >= 1, f"--bodies must be at least 1, got {n_bodies}")
@@ -338,8 +341,6 @@ def render_frame(camera: Camera, xyz: np.ndarray, marker_radius_m: float = MARKE
     covered by a nearer marker's disc is hidden, and so is one behind any of `occluders`
     ((K, 4) spheres: x, y, z, radius in metres, e.g. a body or an arm).
     """
-    from calibkit.synthetic.spots import render_spots
-
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     n = len(xyz)
     if xyz_end is None:
@@ -427,6 +428,7 @@ def monitor_views(camera: Camera, n_views: int, screen_px: tuple[int, int] = (19
     """Poses a user would hold a monitor in front of a camera: the screen fills about `fill`
     of the image, tilted about both axes (alternating sides, so focal length is determined)
     and slightly rotated in-plane."""
+    # deferred on purpose: loads SciPy's sparse graphs, SciPy's spatial only where used
     from scipy.spatial.transform import Rotation
 
     rng = np.random.default_rng(seed)

@@ -93,6 +93,7 @@ def _pairs(arrays: RigArrays, group: np.ndarray, camera: np.ndarray, n: np.ndarr
     flops each); the numpy path narrows them down by sorting first (see _pairs_numpy)."""
     if not compiled:
         return _pairs_numpy(arrays, group, camera, n, origins, dirs, tol_px)
+    # deferred on purpose: loads numba (compiled kernels) only where used
     from calibkit.core.geometry_kernels import epipolar_pairs
 
     if len(camera) < 2:

@@ -9,11 +9,13 @@ subtracted centroids and roundness).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import os
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from calibkit.core.errors import UserError
+from calibkit.vision import detect_kernels
 
 HsvRange = tuple[tuple[int, int, int], tuple[int, int, int]]
 
@@ -138,7 +140,6 @@ class DetectorConfig:
             object.__setattr__(self, "mask", np.asarray(self.mask, dtype=bool))
 
     def replace(self, **changes) -> DetectorConfig:
-        from dataclasses import replace
         return replace(self, **changes)
 
 
@@ -150,11 +151,9 @@ def jit_kernels():
     where numba is missing or CALIBKIT_NO_JIT is set: detection then runs in numpy."""
     global _kernels_module
     if _kernels_module is None:
-        import os
         _kernels_module = False
         if not os.environ.get("CALIBKIT_NO_JIT"):
             try:
-                from calibkit.vision import detect_kernels
                 _kernels_module = detect_kernels
             except ImportError:
                 pass

@@ -110,6 +110,7 @@ def read_c3d(path: str | Path, strip_prefix: bool = True) -> Take:
     in ANALOG:RATE, no channels) are read as they are: the frame layout does not depend on
     that field. Any other inconsistency is reported as a UserError naming the file.
     """
+    # deferred on purpose: loads c3d only where used
     import c3d
 
     path = Path(path)
@@ -180,6 +181,7 @@ def write_c3d(path: str | Path, take: Take) -> None:
     Measured samples get residual 1 (the residual is unknown here), filled ones 0: the
     C3D convention for interpolated samples, which read_c3d turns back into `filled`.
     """
+    # deferred on purpose: loads c3d only where used
     import c3d
 
     writer = c3d.Writer(point_rate=float(take.rate_hz), analog_rate=0.0, point_scale=-1.0)

@@ -161,6 +161,7 @@ def _one_blas_thread():
     """OpenBLAS's threads make a 300 x 123 SVD 20-100x slower on a busy 2-core machine
     (measured 2.6 s against 0.016 s); these small matrices are fastest on one thread, so
     every BLAS loaded is limited to one thread for the block (threadpoolctl)."""
+    # deferred on purpose: loads threadpoolctl only where used
     from threadpoolctl import threadpool_limits
 
     return threadpool_limits(limits=1, user_api="blas")

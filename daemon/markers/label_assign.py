@@ -23,6 +23,8 @@ linked over time, daemon/markers/label_start.py) are assigned all at once:
 
 from __future__ import annotations
 
+from itertools import permutations
+
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
@@ -345,7 +347,6 @@ def mirror_moves(ms: MarkerSet, twin: np.ndarray) -> list[np.ndarray]:
 def module_moves(terms: BodyTerms) -> list[tuple[np.ndarray, int]]:
     """Reorderings inside each rigid module of 4-5 markers (all its permutations), with
     the module's index in `terms`."""
-    from itertools import permutations
     out = []
     for k, m in enumerate(terms.modules):
         if len(m) <= 5:

@@ -9,6 +9,8 @@ image and a labelling from its reorderings, which distances alone cannot.
 
 from __future__ import annotations
 
+from itertools import permutations
+
 import numpy as np
 
 from daemon.markers.markerset import MarkerSet, signed_volume
@@ -110,7 +112,6 @@ def better_order(shape: np.ndarray, sigma: float, X: np.ndarray) -> np.ndarray |
     else None. The set's shape is a mean over subjects (~15-20 mm RMS off a body), so:
     at most half the given order's squared residual, no runner-up within 1.5x (a flat
     module's mirror twin), and no residual over 3.5 sigma."""
-    from itertools import permutations
     perms = np.array(list(permutations(range(len(X)))))          # perms[0]: as given
     r2 = rigid_residuals(shape, X[perms], np.ones(perms.shape, float), True)
     tot = r2.sum(1)

@@ -11,6 +11,8 @@ modules fit well enough for their shape to be renewed from this frame.
 
 from __future__ import annotations
 
+from itertools import permutations
+
 import numpy as np
 
 from daemon.markers import label_kernels as kern
@@ -179,7 +181,6 @@ class StructureRepair:
     def _maps(self, m: int, p: int) -> np.ndarray:
         key = (m, p)
         if key not in self._maps_cache:
-            from itertools import permutations
             self._maps_cache[key] = np.array(list(permutations(range(m), p)), int
                                              ).reshape(-1, p)
         return self._maps_cache[key]

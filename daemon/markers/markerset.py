@@ -11,6 +11,7 @@ edit it.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from itertools import combinations
 from pathlib import Path
 
 import numpy as np
@@ -228,6 +229,7 @@ def _segment_names(labels: list[str], members: list[int]) -> str:
 def learn(takes: list, cut_m: float = SEGMENT_SPREAD_M, name: str = "markerset",
           n_chiral: int = 24) -> MarkerSet:
     """Learn a marker set from labelled takes (c3dio.Take) that share their labels."""
+    # deferred on purpose: loads SciPy's clustering, SciPy's sparse graphs... only where used
     from scipy.cluster.hierarchy import fcluster, linkage
     from scipy.sparse.csgraph import minimum_spanning_tree
     from scipy.spatial.distance import squareform
@@ -343,8 +345,6 @@ def _learn_swap_witnesses(allx: np.ndarray, mean: np.ndarray, sd: np.ndarray,
     such that the tetrahedron (i, j, a, b) keeps its handedness over the takes: swapping
     i and j negates its volume, even where the distances are symmetric (a foot's toe and
     fifth metatarsal seen from heel and ankle)."""
-    from itertools import combinations
-
     n = len(mean)
     step = max(1, len(allx) // 300)
     x = allx[::step]

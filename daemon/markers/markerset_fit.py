@@ -161,6 +161,7 @@ def check_points(ms: MarkerSet, per_frame: list[np.ndarray], noise_m: float = 0.
                  ) -> SetFit:
     """The fit on unlabelled points: a window of frames labelled from the set alone
     (daemon/markers/label_start.py) compared with the set."""
+    # deferred on purpose: loads SciPy's optimisers, SciPy's sparse graphs... only where used
     from daemon.markers.label_start import window_start
 
     _, _, xyz = window_start(per_frame, ms, noise_m=noise_m)

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from calibkit.core.errors import UserError
-from calibkit.core.fileio import write_text_atomic
+from calibkit.core.fileio import atomic_write, write_text_atomic
 
 # accepted header names for each field, lower case; the first match wins
 TIME_COLUMNS = ("t_s", "time_s", "timestamp", "time", "t", "t_ns", "time_ns", "timestamp_ns")
@@ -191,8 +191,6 @@ def write_poses_csv(path: str | Path, table: PoseTable, comment: str = "") -> No
     """One row per frame and body, frame-major; an invalid pose keeps its row (valid 0)
     with the pose fields empty. Metres, quaternions x y z w body-to-world, to 0.1 um and
     1e-8; written whole or not at all."""
-    from calibkit.core.fileio import atomic_write
-
     n_frames, n_bodies = table.valid.shape
     with atomic_write(path, "w", newline="", encoding="utf-8") as handle:
         if comment:

@@ -15,9 +15,11 @@ from daemon.markers.trajectory_eval import Evaluation
 
 def plot_png(ev: Evaluation, title: str = "") -> bytes:
     """Top view of both paths, position error over time, and the relative errors."""
+    # deferred on purpose: loads matplotlib only where used
     import matplotlib
 
     matplotlib.use("Agg")
+    # deferred on purpose: loads matplotlib only where used
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.5))

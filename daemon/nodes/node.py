@@ -19,15 +19,19 @@ import json
 import logging
 import os
 import random
+import sys
 import threading
 import time
 
+from calibkit.cameras import missing_plugins
 from calibkit.core.errors import UserError
+from calibkit.vision.detect import DetectorConfig
 from daemon.nodes import wire
 from daemon.nodes.session import announce_key, blobs_key, ping_key, pong_key
 from daemon.nodes.settings import NodeConfig
 from daemon.pipeline import CaptureThread
 from daemon.realtime import raise_priority, restore_normal
+from daemon.sources import DetectCamera
 
 log = logging.getLogger("mocapd.node")
 ANNOUNCE_S = 1.0
@@ -54,6 +58,7 @@ class CapturePublisher:
     """Pushes one camera's samples out as blobs messages (called on its capture thread)."""
 
     def __init__(self, session, key: str, boot: int, clock: NodeTime) -> None:
+        # deferred on purpose: loads Zenoh only where used
         import zenoh
 
         self.pub = session.declare_publisher(
@@ -105,8 +110,7 @@ class Node:
             "frames": [c.frames for c in self.captures]}))
 
     def start(self) -> None:
-        import sys
-
+        # deferred on purpose: loads Zenoh only where used
         import zenoh
 
         # a clock ping waits for the interpreter's lock before it is stamped; the default
@@ -158,9 +162,6 @@ class Node:
 
 def live_sources(cfg: NodeConfig):
     """The node's own cameras, with the daemon's detector and per-camera settings."""
-    from calibkit.vision.detect import DetectorConfig
-    from daemon.sources import DetectCamera, missing_plugins
-
     if not cfg.cameras:
         where = f"{cfg.path}: " if cfg.path else ""
         raise UserError(f"{where}camera: the node has no cameras; add [[camera]] tables or "

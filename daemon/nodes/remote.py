@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import logging
+import sys
 import threading
 import time
 from collections import deque
@@ -90,8 +91,7 @@ class NodeHub:
     # ---- lifecycle ---------------------------------------------------------------------------
 
     def start(self) -> None:
-        import sys
-
+        # deferred on purpose: loads Zenoh only where used
         import zenoh
 
         # a clock exchange is stamped by Python on both ends: a thread stamping t1 or t4

@@ -30,6 +30,7 @@ class ZenohSettings:
 
     def config(self):
         """A zenoh.Config for a peer with exactly these endpoints."""
+        # deferred on purpose: loads Zenoh only where used
         import zenoh
 
         conf = zenoh.Config()
@@ -46,6 +47,7 @@ class ZenohSettings:
 
     def open(self):
         """An open zenoh.Session; a bad endpoint or a busy port is the user's to fix."""
+        # deferred on purpose: loads Zenoh only where used
         import zenoh
 
         try:

@@ -11,6 +11,7 @@ when the rate is left to it (`rate_hz = "auto"`, the default).
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 from daemon.publish.packet import BODY_SIZE, HEADER_SIZE
 
@@ -36,6 +37,7 @@ def serial_frame_bytes(n_bodies: int) -> int:
 
 def mavlink_frame_bytes(message: str) -> int:
     """The longest MAVLink 2 frame of a message (no zero trimming, unsigned)."""
+    # deferred on purpose: loads pymavlink only where used
     from pymavlink.dialects.v20 import common
 
     return getattr(common, f"MAVLink_{message}_message").unpacker.size + MAVLINK_FRAMING
@@ -77,8 +79,6 @@ def fit_serial(out, n_bodies: int, fps: float, default_hz: float = 100.0):
     line: "auto" (None) becomes the highest rate up to `default_hz` (and the cameras'
     `fps`) that fills at most AUTO_SHARE of it; 0 (every frame) is `fps`. Returns (output,
     note for the log or None); ValueError when a rate given does not fit."""
-    from dataclasses import replace
-
     frame = serial_frame_bytes(n_bodies)
     default_hz = min(default_hz, fps)
     what = f"{n_bodies} {'body' if n_bodies == 1 else 'bodies'} ({frame}-byte frames)"
@@ -101,8 +101,6 @@ def fit_mavlink(out, fps: float, default_hz: float = 50.0):
     """A [[mavlink]] output (daemon.config.MavlinkOut) checked as fit_serial checks a
     serial one, counting HEARTBEAT and TIMESYNC too; outputs over UDP or TCP pass as
     they are ("auto": `default_hz`)."""
-    from dataclasses import replace
-
     default_hz = min(default_hz, fps)
     if not is_serial_device(out.device):
         return (replace(out, rate_hz=default_hz), None) if out.rate_hz is None else (out, None)

@@ -44,6 +44,7 @@ class MavlinkLink:
 
     def __init__(self, device: str, baud: int, system_id: int, component_id: int,
                  origin: tuple[float, float, float] | None = None) -> None:
+        # deferred on purpose: loads pymavlink only where used
         from pymavlink.dialects.v20 import common
 
         self.dialect = common
@@ -73,6 +74,7 @@ class MavlinkLink:
         return self.conn is not None
 
     def open(self) -> None:
+        # deferred on purpose: loads pymavlink only where used
         from pymavlink import mavutil
 
         conn = mavutil.mavlink_connection(self.device, baud=self.baud, retries=0,

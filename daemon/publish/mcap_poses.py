@@ -85,6 +85,7 @@ class McapPoseWriter:
 
     def __init__(self, path: str | Path, body_names: list[str], markers: bool = True,
                  world_frame: str = WORLD_FRAME) -> None:
+        # deferred on purpose: loads mcap only where used
         from mcap.writer import Writer
 
         self.path = Path(path)

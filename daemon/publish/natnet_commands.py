@@ -20,6 +20,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from calibkit.core.errors import UserError
 from daemon.publish.natnet_wire import (
     DEFAULT_VERSION,
     EVERYTHING,
@@ -195,8 +196,6 @@ class Commands:
             log.warning("NatNet: StartRecording refused: set record_dir in [natnet] to "
                         "record takes")
             return FAILED
-        from calibkit.core.errors import UserError
-
         folder = self.record_dir / self.session if self.session else self.record_dir
         take = self.take or time.strftime("take_%Y-%m-%d_%H-%M-%S")
         path = folder / f"{take}.mcrec"
@@ -217,8 +216,6 @@ class Commands:
     def _stop_recording(self) -> int:
         if self.control is None:
             return FAILED
-        from calibkit.core.errors import UserError
-
         try:
             answer = self.control({"cmd": "record_stop"})
         except UserError:

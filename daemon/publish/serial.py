@@ -10,6 +10,7 @@ from daemon.publish.udp import result_packet
 def open_port(device: str, baud: int, write_timeout_s: float = 0.2):
     """A pyserial port; a write that cannot finish in write_timeout_s raises, so a
     consumer that stopped reading is noticed, not waited for."""
+    # deferred on purpose: loads pyserial only where used
     import serial
 
     return serial.serial_for_url(device, baudrate=baud, timeout=0,

@@ -36,6 +36,7 @@ class ZenohPosePublisher(Publisher):
     def _publisher(self, body_id: int):
         pub = self._pubs.get(body_id)
         if pub is None:
+            # deferred on purpose: loads Zenoh only where used
             import zenoh
 
             name = self.names.get(body_id, f"body{body_id}")

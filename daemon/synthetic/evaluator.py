@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from calibkit.core.geometry import rigid_fit
 from daemon.synthetic.scene import SimScene
 
 GROSS_M, GROSS_DEG = 0.02, 5.0  # a pose this far off is a gross error
@@ -235,9 +236,9 @@ def match_bodies(true_markers, defined_markers):
     are assigned one to one, best fits first (the Hungarian method on the fit RMS).
     Yields (true index, defined index, perm, R, t, rms): defined marker perm[m] is true
     marker m, defined = R @ true + t."""
+    # deferred on purpose: loads SciPy's optimisers, SciPy's sparse graphs... only where used
     from scipy.optimize import linear_sum_assignment
 
-    from calibkit.core.geometry import rigid_fit
 
     nt, nd = len(true_markers), len(defined_markers)
     cost = np.full((nt, nd), 1e9)

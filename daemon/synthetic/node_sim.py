@@ -15,6 +15,7 @@ from daemon.nodes.settings import NodeConfig
 
 def sim_sources(cfg: NodeConfig):
     """The simulated cameras this node serves, on the shared trigger grid."""
+    # deferred on purpose: loads OpenCV only where used
     from daemon.synthetic.scene import SimCamera, SimScene
 
     if cfg.sim is None:

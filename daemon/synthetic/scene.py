@@ -27,9 +27,13 @@ import numpy as np
 
 from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
+from calibkit.core.observations import Truth
+from calibkit.synthetic import person as sim_person
 from calibkit.synthetic import sim
 from daemon.config import SimConfig
+from daemon.multiplexer import FrameSet
 from daemon.sources import CameraSample, fine_timer_slack
+from daemon.synthetic.robot import LiveRobot
 
 PERSON_MARKER_BASE = 2000  # the simulated person's truth marker ids start here
 TRANSFER_NS = (100_000, 500_000)  # range of the cameras' smallest capture-to-arrival delay
@@ -106,8 +110,6 @@ class SimScene:
     def _add_person(self, truth, n: int):
         """A person wearing the 41-marker set walks a circle in the volume (truth marker
         ids PERSON_MARKER_BASE + k, k the index in person_labels)."""
-        from calibkit.synthetic import person as sim_person
-
         take = sim_person.walk_circle(n, self.fps, self.cfg.person_radius_m)
         self.person_labels, self.person_xyz = list(take.labels), take.markers_m
         k = len(take.labels)
@@ -118,8 +120,6 @@ class SimScene:
 
     def _add_robot(self) -> None:
         """The live robot, the last of the scene's bodies (id after the others')."""
-        from daemon.synthetic.robot import LiveRobot
-
         if not self.cfg.realtime:
             raise UserError("[sim.robot] needs the simulation paced in real time (its "
                             "commands come in real time); drop --fast or realtime = false")
@@ -141,9 +141,6 @@ class SimScene:
         rig's frame sets. Only the blobs reach the daemon. `place` picks where it is held
         (HOLD_PLACES, around the middle of the volume): a user whose definition came out
         short of markers moves the body and tries again."""
-        from calibkit.core.observations import Truth
-        from daemon.multiplexer import FrameSet
-
         cfg, b = self.cfg, self.bodies_truth[body]
         volume = float(self.rig.meta.get("volume_m", cfg.volume_m)) if self.rig.meta \
             else cfg.volume_m

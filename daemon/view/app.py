@@ -20,7 +20,10 @@ from collections import deque
 
 import numpy as np
 
+from calibkit.core.errors import UserError
+from calibkit.vision.masks import load_mask
 from daemon.view import draw
+from daemon.view.detection_panel import DetectionPanel
 
 log = logging.getLogger("mocapd.view")
 THUMB_HZ = 8.0  # thumbnails a second, per camera
@@ -37,6 +40,7 @@ def main(conn, host: str, port: int) -> None:
     """The process: serve, say so (or why not), then follow the daemon until it stops."""
     logging.basicConfig(level=logging.WARNING, format="mocapd-view: %(message)s")
     try:
+        # deferred on purpose: loads viser only where used
         import viser
 
         with contextlib.redirect_stdout(io.StringIO()):  # its banner: the daemon logs the URL
@@ -130,6 +134,7 @@ class LiveView:
             trail.append((now, p if ok else np.full(3, np.nan, np.float32)))
 
     def _status_loop(self) -> None:
+        # deferred on purpose: loads numba kernels, SciPy... only where used
         from daemon.service import request
 
         while not self._stop.wait(1.0 / STATUS_HZ):
@@ -158,8 +163,6 @@ class LiveView:
     @staticmethod
     def _load_masks(desc: dict) -> dict:
         """camera name -> its detection mask (bool), drawn in blue on its thumbnail."""
-        from calibkit.vision.masks import load_mask
-
         out = {}
         for name, c in desc["cameras"].items():
             if c.get("mask"):
@@ -218,8 +221,6 @@ class LiveView:
                                                  jpeg_quality=75))
                 self.cam_md.append(gui.add_markdown(f"`{cam.name}`: waiting"))
         with tabs.add_tab("Detection", icon="adjustments"):
-            from daemon.view.detection_panel import DetectionPanel
-
             self.detection = DetectionPanel(gui, self)
         bodies = tabs.add_tab("Bodies", icon="cube")
         with bodies:
@@ -384,14 +385,13 @@ class LiveView:
         """Edits of the configuration run on a thread of their own (a body's creation
         watches 30 frames) and one at a time, then the daemon reloads; their outcome, or
         the user's error, is written in `message` (a markdown under the buttons)."""
-        from calibkit.core.errors import UserError
-
         def run():
             if not self._busy.acquire(blocking=False):
                 message.content = "busy with the last request"
                 return
             try:
                 message.content = action() + "; the daemon is reloading"
+                # deferred on purpose: loads numba kernels, SciPy... only where used
                 from daemon.service import request
 
                 request(self.desc["runtime_dir"], {"cmd": "reload"})
@@ -407,6 +407,7 @@ class LiveView:
         threading.Thread(target=run, name="view-edit", daemon=True).start()
 
     def _create(self) -> str:
+        # deferred on purpose: loads numba kernels, SciPy... only where used
         from daemon.service import request
         from daemon.view.bodies import add_picked
 
@@ -418,6 +419,7 @@ class LiveView:
         return f"added rigid body {name.strip()!r} (id {body_id}, {n} markers)"
 
     def _rename(self) -> str:
+        # deferred on purpose: loads numba (compiled kernels), tomli_w only where used
         from daemon.view.bodies import rename_body
 
         old, new = self.body_choice.value, self.rename_to.value
@@ -425,6 +427,7 @@ class LiveView:
         return f"renamed {old!r} to {new.strip()!r}"
 
     def _remove(self) -> str:
+        # deferred on purpose: loads numba (compiled kernels), tomli_w only where used
         from daemon.view.bodies import remove_body
 
         name = self.body_choice.value

@@ -13,8 +13,10 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import tomllib
 
 from calibkit.core.errors import UserError
+from calibkit.vision.masks import load_mask, save_mask
 from daemon.view import tomledit
 
 MASK_MARGIN_PX = 4  # masked beyond each blob's own radius: its flickering edge too
@@ -51,8 +53,6 @@ def _edit(path: Path, camera: str, change) -> None:
     new_text = tomledit.join(segs)
 
     def want(old: dict) -> dict:
-        import tomllib
-
         tables = [dict(t) for t in old.get("camera", [])]
         for t in tables:
             if t.get("name") == camera:
@@ -104,12 +104,11 @@ def set_mask(config, camera: str, mask: np.ndarray | None, merge: bool = True) -
     """Write the camera's mask PNG beside the configuration (added to the one its table
     names when merge) and point the table at it; None clears the table's mask (the PNG is
     kept, for undo by hand). The path written, or None."""
-    from calibkit.vision.masks import load_mask, save_mask
-
     path = _need_config(config)
     if mask is None:
         _edit(path, camera, lambda lines: tomledit.remove_key(lines, "mask"))
         return None
+    # deferred on purpose: loads numba (compiled kernels) only where used
     from daemon.config import load_config
 
     table = next((c for c in load_config(path).cameras if c.name == camera), None)

@@ -47,6 +47,7 @@ def thumbnail(size: tuple[int, int], uv: np.ndarray, area: np.ndarray,
 
 def wxyz_from_matrix(R: np.ndarray) -> np.ndarray:
     """(..., 3, 3) rotation matrices -> (..., 4) quaternions w, x, y, z."""
+    # deferred on purpose: loads SciPy's sparse graphs, SciPy's spatial only where used
     from scipy.spatial.transform import Rotation
 
     q = Rotation.from_matrix(np.asarray(R, np.float64)).as_quat()  # x, y, z, w
@@ -96,6 +97,7 @@ def project_to_screen(xyz: np.ndarray, position, wxyz, fov_rad: float,
     """Points into a browser camera's screen, (0..1, 0..1) from the top left, as viser
     gives it (camera-to-world w, x, y, z in OpenCV's axes, vertical field of view); and
     whether each is in front of it."""
+    # deferred on purpose: loads SciPy's sparse graphs, SciPy's spatial only where used
     from scipy.spatial.transform import Rotation
 
     w, x, y, z = np.asarray(wxyz, np.float64)
@@ -120,6 +122,7 @@ def markerset_sticks(ms) -> list[tuple[int, int]]:
     """The sticks drawn between a marker set's markers: within each segment, each marker
     to its nearest neighbour and the neighbours joined into one tree (a minimum spanning
     tree of the segment's reference shape), so a segment reads as one piece."""
+    # deferred on purpose: loads SciPy's sparse graphs only where used
     from scipy.sparse.csgraph import minimum_spanning_tree
 
     sticks = []

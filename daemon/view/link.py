@@ -64,12 +64,14 @@ def pack(result) -> dict:
 def describe(daemon) -> dict:
     """What the view needs once (and again after a reload): the rig, the bodies' names,
     where the control socket and the configuration are, the cameras' detection settings."""
+    # deferred on purpose: loads numba (compiled kernels) only where used
     from daemon.config import default_runtime_dir
 
     cfg = daemon.config
     ms = daemon._markerset() if hasattr(daemon, "_markerset") else None
     sticks = None
     if ms is not None:
+        # deferred on purpose: loads OpenCV only where used
         from daemon.view.draw import markerset_sticks
 
         sticks = markerset_sticks(ms)
@@ -103,6 +105,7 @@ class ViewLink:
 
     def __init__(self, host: str, port: int) -> None:
         check_port_free(host, port)
+        # deferred on purpose: loads OpenCV only where used
         from daemon.view.app import main
 
         self.host, self.port = host, port

@@ -17,7 +17,13 @@ from pathlib import Path
 
 import numpy as np
 
+from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
+from calibkit.core.recording import load_observations
+from calibkit.vision.correspondence import match_frames
+from calibkit.vision.gates import gated_config
+from daemon.markers.c3dio import read_take
+from daemon.view import draw
 
 LABELLED = (60, 220, 90)
 UNLABELLED = (235, 235, 235)
@@ -55,6 +61,7 @@ def from_take(take, ms=None) -> ReplayFrames:
     offsets = np.r_[0, np.cumsum(vis.sum(axis=1))]
     sticks = []
     if ms is not None:
+        # deferred on purpose: loads OpenCV only where used
         from daemon.view.draw import markerset_sticks
 
         where = {name: k for k, name in enumerate(take.labels)}
@@ -71,10 +78,6 @@ def from_take(take, ms=None) -> ReplayFrames:
 def from_recording(path: Path, rig, progress=None) -> ReplayFrames:
     """A recording's blobs matched across cameras and triangulated, frame by frame, with
     `calibkit triangulate`'s gates (they follow the rig's residual)."""
-    from calibkit.core.recording import load_observations
-    from calibkit.vision.correspondence import match_frames
-    from calibkit.vision.gates import gated_config
-
     obs, _ = load_observations(path, rig)
     if len(obs) == 0:
         raise UserError(f"{path}: holds no blobs")
@@ -96,8 +99,6 @@ def from_recording(path: Path, rig, progress=None) -> ReplayFrames:
 def load_replay(path: Path, rig_path: Path | None = None, markerset: str | None = None,
                 progress=None) -> tuple[ReplayFrames, object]:
     """(the frames, the rig or None) from what the user gave; UserError in one line."""
-    from calibkit.core.camera import Rig
-
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in SUFFIXES:
@@ -114,10 +115,9 @@ def load_replay(path: Path, rig_path: Path | None = None, markerset: str | None 
             raise UserError("--markerset draws a labelled take's sticks; a recording's "
                             "markers are unlabelled")
         return from_recording(path, rig, progress), rig
-    from daemon.markers.c3dio import read_take
-
     ms = None
     if markerset is not None:
+        # deferred on purpose: loads tomli_w only where used
         from daemon.markers.markerset import open_set
 
         ms = open_set(markerset)
@@ -161,8 +161,6 @@ class ReplayView:
         threading.Thread(target=self._play, name="replay-play", daemon=True).start()
 
     def _build_scene(self) -> None:
-        from daemon.view import draw
-
         sc, fr = self.server.scene, self.frames
         pts = fr.xyz if len(fr.xyz) else np.zeros((1, 3))
         lo, hi = np.percentile(pts[:, :2], [1, 99], axis=0)

@@ -10,6 +10,7 @@ the file by hand.
 
 from __future__ import annotations
 
+import json
 import re
 from collections.abc import Callable
 from pathlib import Path
@@ -80,8 +81,6 @@ def remove_key(lines: list[str], key: str) -> list[str]:
 
 def toml_value(value) -> str:
     """A number or a string as TOML writes it (strings as basic strings, JSON-escaped)."""
-    import json
-
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, int) or (isinstance(value, float) and value.is_integer()):
@@ -95,6 +94,7 @@ def write_checked(path: Path, old_text: str, new_text: str,
                   expect: Callable[[dict], dict]) -> None:
     """Write new_text only if it parses to expect(the old file's tables) and the daemon
     accepts it: nothing else may have moved."""
+    # deferred on purpose: loads numba (compiled kernels) only where used
     from daemon.config import parse_config
 
     old = tomllib.loads(old_text)
