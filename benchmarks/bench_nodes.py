@@ -73,7 +73,7 @@ def node(name, rig, endpoint, cameras, clock, n_cameras=32, seconds=120):
 
 
 def status(runtime):
-    from daemon.service import request
+    from daemon.control import request
 
     try:
         return request(runtime, {"cmd": "status"}, timeout_s=2.0)

@@ -128,7 +128,7 @@ def udp_receive_buffer_drops() -> int:
 def daemon_side(runtime: Path) -> dict:
     """What the daemon says it did: sets it skipped to stay live when it fell behind (their
     frame numbers never go out), frames its NatNet output sent and pushed out of its queue."""
-    from daemon.service import request
+    from daemon.control import request
 
     st = request(runtime, {"cmd": "status"})
     natnet = next((o for o in st["outputs"] if "natnet" in o["name"].lower()), {})

@@ -1,22 +1,17 @@
-"""The daemon as a service: sd_notify, signals, the control socket, and the run loop.
+"""The daemon as a service: builds the pipeline from a configuration and runs it.
 
-systemd's notify protocol is one datagram per message to $NOTIFY_SOCKET, no library
-needed: READY=1 once the rig and cameras are up, WATCHDOG=1 from the frame loop (so a hung
-loop is restarted, not a hung thread elsewhere), STATUS= with rate and latency, RELOADING=1
-around a SIGHUP reload, STOPPING=1 on the way out. SIGTERM and SIGINT stop cleanly:
-publishers flush their queues and close their ports. The control socket (Unix, mode 0600,
-under the runtime directory) answers one JSON request per connection: status, stop,
-reload, record, record_stop, markers.
+Set-up (the rig, cameras or the simulator, bodies, outputs, labelling), the run loops
+(live, paced by the cameras; or as fast as the tracker goes), signals (SIGTERM and SIGINT
+stop cleanly: publishers flush their queues and close their ports; SIGHUP reloads), the
+control socket's requests (daemon.control), systemd's notify messages (daemon.notify),
+status and the run's figures.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
-import os
 import signal
-import socket
 import threading
 import time
 from pathlib import Path
@@ -34,8 +29,11 @@ from calibkit.vision.detect import DetectorConfig, detect
 from calibkit.vision.gates import correspondence_config, rig_residual, tracker_gates
 from calibkit.vision.masks import load_mask
 from daemon.config import Config, default_runtime_dir, load_config, parse_config
+from daemon.control import ControlServer
 from daemon.nodes.remote import make_hub
 from daemon.nodes.zenoh_table import is_remote
+from daemon.notify import sd_notify, watchdog_interval_s
+from daemon.outputs import make_publishers
 from daemon.pipeline import (
     CaptureThread,
     FrameSet,
@@ -44,15 +42,9 @@ from daemon.pipeline import (
     latency_figures,
     latency_stage_figures,
 )
-from daemon.publish.line import fit_mavlink, fit_serial
-from daemon.publish.mavlink import MavlinkPublisher
 from daemon.publish.mcap_recorder import McapRecorderPublisher
-from daemon.publish.natnet import NatNetPublisher
 from daemon.publish.recorder import RecorderPublisher
-from daemon.publish.serial import SerialPublisher
 from daemon.publish.udp import UdpPublisher
-from daemon.publish.vrpn import VrpnPublisher
-from daemon.publish.zenoh_poses import ZenohPosePublisher
 from daemon.realtime import raise_priority, restore_normal
 from daemon.rigid import alike_bodies
 from daemon.rigid_define import bodies_toml, learn_body
@@ -67,154 +59,10 @@ if TYPE_CHECKING:
     from daemon.live_label import LiveLabeller
 
 log = logging.getLogger("mocapd")
-SOCKET_NAME = "mocapd.sock"
 OPEN_GRACE_NS = 1_000_000_000  # after the start, sets wait this long for cameras not open yet
 LEARN_FRAMES = 30  # --sim: frames each body is held still (as `rigid-body add`'s default)
 HOLD_TRIES = 4  # --sim: places each body is held at until its definition has every marker
 LEARNED_BODIES = "sim-bodies.toml"  # where (in the runtime directory) they are written
-
-
-# ---- systemd notify --------------------------------------------------------------------------
-
-def sd_notify(message: str) -> bool:
-    """Send one notify message; False when not under systemd (no NOTIFY_SOCKET), or when
-    the socket would block: the frame loop sends its status every second and must never
-    wait for a manager that stopped reading."""
-    address = os.environ.get("NOTIFY_SOCKET")
-    if not address:
-        return False
-    if address.startswith("@"):
-        address = "\0" + address[1:]
-    try:
-        with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as s:
-            s.connect(address)
-            s.send(message.encode(), socket.MSG_DONTWAIT)
-        return True
-    except OSError as exc:
-        log.debug("sd_notify failed: %s", exc)
-        return False
-
-
-def watchdog_interval_s() -> float | None:
-    usec = os.environ.get("WATCHDOG_USEC")
-    pid = os.environ.get("WATCHDOG_PID")
-    if not usec or (pid and pid != str(os.getpid())):
-        return None
-    return int(usec) / 2e6
-
-
-# ---- control socket ----------------------------------------------------------------------------
-
-def _read_message(sock: socket.socket) -> bytes:
-    """One control-socket message: bytes up to a newline, or to the peer's close."""
-    data = b""
-    while not data.endswith(b"\n"):
-        chunk = sock.recv(65536)
-        if not chunk:
-            break
-        data += chunk
-    return data
-
-
-def request(runtime_dir: Path | None, message: dict, timeout_s: float = 5.0) -> dict:
-    """Send one request to a running daemon's control socket; its JSON answer."""
-    path = Path(runtime_dir or default_runtime_dir()) / SOCKET_NAME
-    try:
-        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
-            s.settimeout(timeout_s)
-            s.connect(str(path))
-            s.sendall(json.dumps(message).encode() + b"\n")
-            data = _read_message(s)
-    except (FileNotFoundError, ConnectionRefusedError):
-        raise UserError(f"no mocapd running (no control socket at {path}); start one with "
-                        "`mocapd start`, or pass --runtime-dir") from None
-    except OSError as exc:
-        raise UserError(f"cannot talk to mocapd at {path}: {exc}") from None
-    try:
-        answer = json.loads(data)
-    except json.JSONDecodeError:
-        raise UserError(f"mocapd at {path} sent a malformed answer") from None
-    if not answer.get("ok", False):
-        raise UserError(f"mocapd: {answer.get('error', 'request failed')}")
-    return answer
-
-
-class ControlServer:
-    """Accepts one JSON request per connection and answers with handler(request)."""
-
-    def __init__(self, runtime_dir: Path, handler) -> None:
-        self.dir = Path(runtime_dir)
-        self.path = self.dir / SOCKET_NAME
-        self.handler = handler
-        self.sock: socket.socket | None = None
-        self.thread: threading.Thread | None = None
-
-    def open(self) -> None:
-        self.dir.mkdir(parents=True, exist_ok=True, mode=0o700)
-        if self.path.exists():
-            probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-            try:
-                probe.connect(str(self.path))
-                raise UserError(f"another mocapd is running (control socket {self.path}); "
-                                "stop it with `mocapd stop` or use another --runtime-dir")
-            except (ConnectionRefusedError, FileNotFoundError):
-                self.path.unlink(missing_ok=True)  # left over from a killed daemon
-            finally:
-                probe.close()
-        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        old = os.umask(0o177)
-        try:
-            sock.bind(str(self.path))
-        except OSError as exc:
-            sock.close()
-            raise UserError(f"cannot create the control socket {self.path}: {exc}") from None
-        finally:
-            os.umask(old)
-        os.chmod(self.path, 0o600)
-        sock.listen(8)
-        sock.settimeout(0.2)
-        self.sock = sock
-        self.thread = threading.Thread(target=self._serve, name="control", daemon=True)
-        self.thread.start()
-
-    def _serve(self) -> None:
-        while self.sock is not None:
-            try:
-                conn, _ = self.sock.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                break
-            with conn:
-                try:
-                    conn.settimeout(2.0)
-                    data = _read_message(conn)
-                    try:
-                        answer = self.handler(json.loads(data or b"{}"))
-                    except UserError as exc:
-                        answer = {"ok": False, "error": str(exc)}
-                    except Exception as exc:  # noqa: BLE001 - never kill the server
-                        log.exception("control request failed")
-                        answer = {"ok": False, "error": f"internal error: {exc}"}
-                    conn.sendall(json.dumps(answer, default=_plain).encode() + b"\n")
-                except OSError:
-                    pass
-
-    def close(self) -> None:
-        sock, self.sock = self.sock, None
-        if sock is not None:
-            sock.close()
-        if self.thread is not None:
-            self.thread.join(1.0)
-        self.path.unlink(missing_ok=True)
-
-
-def _plain(value):
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    return str(value)
 
 
 # ---- the daemon ------------------------------------------------------------------------------
@@ -225,55 +73,6 @@ def _paced(cfg: Config) -> bool:
     if cfg.sim is not None:
         return cfg.sim.realtime
     return cfg.replay.realtime if cfg.replay is not None else True
-
-
-def make_publishers(config: Config, bodies=(), markerset=None, control=None, hub=None) -> list:
-    """The configured outputs; `bodies` (BodyDef) name the trackers NatNet and VRPN serve,
-    `markerset` (the live MarkerSet, if any) the labelled markers NatNet describes,
-    `control` (Daemon.handle) is how NatNet's StartRecording records, `hub` (the nodes'
-    Zenoh session) is where the poses go out over Zenoh."""
-    pubs = []
-    fps = config.sim.fps if config.sim is not None else config.fps
-    for u in config.udp:
-        pubs.append(UdpPublisher([(u.host, u.port)], ttl=u.ttl, rate_hz=u.rate_hz,
-                                 bodies=u.bodies, name=f"udp:{u.host}:{u.port}",
-                                 interface=u.interface, markers=u.markers))
-    for i, s in enumerate(config.serial):
-        n = sum(1 for b in bodies if s.bodies is None or b.id in s.bodies)
-        s = _fitted(f"serial[{i}] ({s.device})", fit_serial, s, n, fps)
-        pubs.append(SerialPublisher(s.device, s.baud, s.rate_hz, s.bodies))
-    for i, m in enumerate(config.mavlink):
-        m = _fitted(f"mavlink[{i}] ({m.device})", fit_mavlink, m, fps)
-        pubs.append(MavlinkPublisher(m.device, m.body, m.baud, m.rate_hz, m.message, m.frame,
-                                     m.system_id, m.component_id, origin=m.origin))
-    if config.natnet is not None:
-        n = config.natnet
-        pubs.append(NatNetPublisher(bodies, n.interface, n.command_port, n.data_port,
-                                    n.multicast, n.group, n.up_axis, n.ttl, n.rate_hz,
-                                    n.legacy_unlabeled, name=f"natnet:{n.interface}",
-                                    marker_sets=n.marker_sets,
-                                    markerset=None if markerset is None else
-                                    (markerset.name, list(markerset.labels)),
-                                    markerset_id=n.markerset_id, fps=fps,
-                                    record_dir=n.record_dir, control=control))
-    for v in config.vrpn:
-        pubs.append(VrpnPublisher(bodies, v.host, v.port, v.rate_hz, v.udp,
-                                  name=f"vrpn:{v.host}:{v.port}"))
-    if hub is not None and config.zenoh.poses:
-        pubs.append(ZenohPosePublisher(hub, bodies))
-    return pubs
-
-
-def _fitted(name: str, fit, out, *args):
-    """An output's rate checked against its serial line (daemon.publish.line); a rate
-    that cannot fit is the user's to fix (UserError)."""
-    try:
-        out, note = fit(out, *args)
-    except ValueError as exc:
-        raise UserError(f"{name}: {exc}") from None
-    if note:
-        log.info("%s: %s", name, note)
-    return out
 
 
 class Daemon:

@@ -565,7 +565,7 @@ def test_a_port_held_elsewhere_is_retried():
 def test_configuration_tables_and_their_errors():
     from calibkit.core.errors import UserError
     from daemon.config import parse_config
-    from daemon.service import make_publishers
+    from daemon.outputs import make_publishers
 
     cfg = parse_config({"natnet": {"interface": "127.0.0.1", "up_axis": "y",
                                    "multicast": False, "command_port": 1600,

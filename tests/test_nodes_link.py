@@ -171,7 +171,7 @@ def test_node_in_a_network_namespace_over_a_delayed_link(namespaces, tmp_path):
     node's namespace): the daemon tracks the node's cameras and its status reports the
     node's clock within 50 us of the truth (median; all within 100 us) and its drift
     within 3 ppm (median; all within 10)."""
-    from daemon.service import request
+    from daemon.control import request
 
     a, b = namespaces["daemon"], namespaces["node"]
     port = 17000 + os.getpid() % 1000

@@ -99,7 +99,7 @@ def test_a_notify_socket_nobody_reads_never_blocks_the_frame_loop(tmp_path, monk
     import socket
     import time
 
-    from daemon.service import sd_notify
+    from daemon.notify import sd_notify
 
     path = tmp_path / "notify"
     rx = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)

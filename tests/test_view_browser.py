@@ -38,7 +38,8 @@ def _free_port() -> int:
 def live(tmp_path_factory):
     """A simulated daemon with the view on, its configuration file, and a browser on it."""
     from daemon.config import load_config
-    from daemon.service import Daemon, request
+    from daemon.control import request
+    from daemon.service import Daemon
     from daemon.view.link import ViewLink
 
     tmp = tmp_path_factory.mktemp("view")

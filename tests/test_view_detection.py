@@ -62,7 +62,8 @@ def live(tmp_path_factory):
     from calibkit.synthetic import sim
     from daemon import sources
     from daemon.config import load_config
-    from daemon.service import Daemon, request
+    from daemon.control import request
+    from daemon.service import Daemon
     from daemon.view.link import ViewLink
 
     tmp = tmp_path_factory.mktemp("detect")

@@ -15,7 +15,7 @@ RuntimeDir = Annotated[Path | None, typer.Option(
 
 
 def register(app: typer.Typer) -> None:
-    from daemon.service import request
+    from daemon.control import request
 
     @app.command("status")
     def status(runtime_dir: RuntimeDir = None,

@@ -88,7 +88,7 @@ def register(app: typer.Typer) -> None:
         """Define a rigid body from the free markers the daemon tracks over --frames frames
         (clustered: a marker is a cluster seen in most of them); the body's frame has its
         origin at their centroid and the world's axes."""
-        from daemon.service import request
+        from daemon.control import request
 
         if not from_live:
             raise UserError("give --from-live (place the body alone in the volume), or "

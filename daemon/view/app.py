@@ -22,6 +22,7 @@ import numpy as np
 
 from calibkit.core.errors import UserError
 from calibkit.vision.masks import load_mask
+from daemon.control import request
 from daemon.view import draw
 from daemon.view.detection_panel import DetectionPanel
 
@@ -134,9 +135,6 @@ class LiveView:
             trail.append((now, p if ok else np.full(3, np.nan, np.float32)))
 
     def _status_loop(self) -> None:
-        # deferred on purpose: loads numba kernels, SciPy... only where used
-        from daemon.service import request
-
         while not self._stop.wait(1.0 / STATUS_HZ):
             if self.desc is None:
                 continue
@@ -391,9 +389,6 @@ class LiveView:
                 return
             try:
                 message.content = action() + "; the daemon is reloading"
-                # deferred on purpose: loads numba kernels, SciPy... only where used
-                from daemon.service import request
-
                 request(self.desc["runtime_dir"], {"cmd": "reload"})
             except UserError as exc:
                 message.content = f"**not done**: {exc}"
@@ -408,7 +403,6 @@ class LiveView:
 
     def _create(self) -> str:
         # deferred on purpose: loads numba kernels, SciPy... only where used
-        from daemon.service import request
         from daemon.view.bodies import add_picked
 
         rt = self.desc["runtime_dir"]
