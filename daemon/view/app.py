@@ -64,6 +64,14 @@ def main(conn, host: str, port: int) -> None:
         view.close()
 
 
+
+
+def _next(due: float, hz: float, now: float) -> float:
+    """The next deadline of a redraw done `hz` times a second: one period after the last
+    one, so the rate holds whatever the redraw costs, but never half a period in the past
+    (a stall is not caught up)."""
+    return max(due + 1.0 / hz, now - 0.5 / hz)
+
 class LiveView:
     """The page's contents, updated from the daemon's frames."""
 
@@ -115,13 +123,13 @@ class LiveView:
                 continue
             now = time.monotonic()
             if now >= next_scene and self.frame is not None:
-                next_scene = now + 1.0 / SCENE_HZ
+                next_scene = _next(next_scene, SCENE_HZ, now)
                 self.draw_scene()
             if now >= next_thumb:
-                next_thumb = now + 1.0 / THUMB_HZ
+                next_thumb = _next(next_thumb, THUMB_HZ, now)
                 self.draw_thumbnails()
             if now >= next_status:
-                next_status = now + 1.0 / STATUS_HZ
+                next_status = _next(next_status, STATUS_HZ, now)
                 self.draw_figures()
 
     def take(self, frame: dict) -> None:

@@ -26,6 +26,13 @@ FEED_HZ = 30.0  # frames a second the view gets (its 3D view redraws at this rat
 READY_TIMEOUT_S = 20.0  # the view process importing viser and binding its port
 
 
+def next_due(due: float, period: float, now: float) -> float:
+    """The next deadline of a loop run `1 / period` times a second: one period after the
+    last deadline (sleeping a period after the work would lose the work's time every
+    round), but never more than half a period in the past (a stall is not caught up)."""
+    return max(due + period, now - 0.5 * period)
+
+
 def is_loopback(host: str) -> bool:
     return ipaddress.ip_address(host).is_loopback
 
@@ -156,7 +163,11 @@ class ViewLink:
     def _feed(self) -> None:
         period = 1.0 / FEED_HZ
         last = None
-        while not self._stop.wait(period):
+        due = time.monotonic()
+        while True:
+            due = next_due(due, period, time.monotonic())
+            if self._stop.wait(max(0.0, due - time.monotonic())):
+                return
             d = self._daemon
             key = (tuple(b.name for b in d.pipeline.rigid.bodies), str(d.config.path),
                    d.config.cameras, _mask_times(d.config.cameras))
