@@ -47,23 +47,30 @@ def coverage_image(cells: np.ndarray, size: tuple[int, int], done: bool,
     return img
 
 
+
+def open_page(host: str, port: int, label: str):
+    """A viser server on host:port with the pages' theme; a port in use is the user's to
+    change (one line)."""
+    # deferred on purpose: loads viser only where used
+    import viser
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
+    # the page is served only where the user said, never through viser's share tunnel
+    server.request_share_url = lambda *args, **kwargs: None
+    if server.get_port() != port:
+        server.stop()
+        raise UserError(f"--view: port {port} on {host} is taken; choose another")
+    server.gui.configure_theme(control_width="large", dark_mode=True, show_logo=False,
+                               show_share_button=False)
+    return server
+
 class CoverageView:
     """The page; `update(monitor)` after each batch of frames (it redraws when due)."""
 
     def __init__(self, host: str, port: int, monitor) -> None:
-        import viser
-
-        with contextlib.redirect_stdout(io.StringIO()):
-            self.server = viser.ViserServer(host=host, port=port, label="calibkit wand",
-                                            verbose=False)
-        # the page is served only where the user said, never through viser's share tunnel
-        self.server.request_share_url = lambda *args, **kwargs: None
-        if self.server.get_port() != port:
-            self.server.stop()
-            raise UserError(f"--view: port {port} on {host} is taken; choose another")
+        self.server = open_page(host, port, "calibkit wand")
         gui = self.server.gui
-        gui.configure_theme(control_width="large", dark_mode=True, show_logo=False,
-                            show_share_button=False)
         self.head = gui.add_markdown("**wand capture**: waiting for the first frames")
         self.images, self.text = [], []
         for name, size, cells in zip(monitor.names, monitor.sizes, monitor.cells,
@@ -150,18 +157,8 @@ class IntrinsicView:
     wanted)` after each view (live) or each camera (simulated)."""
 
     def __init__(self, host: str, port: int) -> None:
-        import viser
-
-        with contextlib.redirect_stdout(io.StringIO()):
-            self.server = viser.ViserServer(host=host, port=port, label="calibkit intrinsic",
-                                            verbose=False)
-        self.server.request_share_url = lambda *args, **kwargs: None
-        if self.server.get_port() != port:
-            self.server.stop()
-            raise UserError(f"--view: port {port} on {host} is taken; choose another")
+        self.server = open_page(host, port, "calibkit intrinsic")
         gui = self.server.gui
-        gui.configure_theme(control_width="large", dark_mode=True, show_logo=False,
-                            show_share_button=False)
         gui.add_markdown("**intrinsic calibration**: each camera's views as they are taken; "
                          "the monitor's dots each view decoded (the newest bright), the image "
                          "cells they reached (green)")
