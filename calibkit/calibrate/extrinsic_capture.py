@@ -183,15 +183,6 @@ def _latency_passed(own: int | None, known: list[int], first: bool, waited: int,
     return waited > (own if own is not None else max(known)) + hold + 2
 
 
-def _latency_passed(own: int | None, known: list[int], first: bool, waited: int,
-                    hold: int) -> bool:
-    """Has a camera whose image did not change waited past its latency (its own, else the
-    slowest known; never on the first pattern when it has none)?"""
-    if own is None and (first or not known):
-        return False
-    return waited > (own if own is not None else max(known)) + hold + 2
-
-
 def capture_frames_estimate(schedule: Schedule, latency_frames: list[int], samples: int = 3,
                             hold: int = 1) -> int:
     """Camera frames a session takes when the slowest camera settles `max(latency) + hold`
