@@ -81,6 +81,31 @@ class FrameSource:
         self.close()
 
 
+class CaptureSource(FrameSource):
+    """A source read through an OpenCV VideoCapture (`self.cap`; None once closed): read
+    until it ends, each frame stamped by `_time_ns(index)` right after it is read."""
+
+    cap = None
+
+    def _time_ns(self, index: int) -> int:  # pragma: no cover - every capture overrides it
+        raise NotImplementedError
+
+    def __iter__(self) -> Iterator[Frame]:
+        i = 0
+        while self.cap is not None:
+            ok, image = self.cap.read()
+            t_ns = self._time_ns(i)
+            if not ok:
+                break
+            yield Frame(self.camera, i, t_ns, image)
+            i += 1
+
+    def close(self) -> None:
+        if self.cap is not None:
+            self.cap.release()
+            self.cap = None
+
+
 def rate_differs(asked: float, got: float) -> bool:
     """Whether a device's read-back frame rate is not the one asked for (within 1 %, as
     drivers round: 29.97 for 30)."""

@@ -9,17 +9,16 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterator
 
 import cv2
 
-from calibkit.cameras.base import Capabilities, Frame, FrameSource, Warn, rate_differs
+from calibkit.cameras.base import Capabilities, CaptureSource, Warn, rate_differs
 from calibkit.core.errors import UserError
 
 log = logging.getLogger("calibkit.cameras")
 
 
-class DeviceSource(FrameSource):
+class DeviceSource(CaptureSource):
     """An OpenCV capture device, stamped with time.monotonic_ns() as each frame is read
     (OpenCV gives no device timestamp or counter)."""
 
@@ -55,17 +54,5 @@ class DeviceSource(FrameSource):
             warn(f"camera {self.camera} (device {self.device}): asked for {fps:g} fps, the "
                  f"device {said}")
 
-    def __iter__(self) -> Iterator[Frame]:
-        i = 0
-        while self.cap is not None:
-            ok, image = self.cap.read()
-            t_ns = time.monotonic_ns()
-            if not ok:
-                break
-            yield Frame(self.camera, i, t_ns, image)
-            i += 1
-
-    def close(self) -> None:
-        if self.cap is not None:
-            self.cap.release()
-            self.cap = None
+    def _time_ns(self, index: int) -> int:
+        return time.monotonic_ns()

@@ -2,18 +2,17 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
 
-from calibkit.cameras.base import Frame, FrameSource
+from calibkit.cameras.base import CaptureSource
 from calibkit.core.errors import UserError
 
 VIDEO_SUFFIXES = {".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v", ".mpg", ".mpeg"}
 
 
-class VideoSource(FrameSource):
+class VideoSource(CaptureSource):
     """A video file; each frame's time is the container's presentation time (or its index
     over the frame rate where the container gives none)."""
 
@@ -28,18 +27,6 @@ class VideoSource(FrameSource):
         self.fps = self.cap.get(cv2.CAP_PROP_FPS) or 30.0
         self.camera = camera or self.path.stem
 
-    def __iter__(self) -> Iterator[Frame]:
-        i = 0
-        while self.cap is not None:
-            ok, image = self.cap.read()
-            if not ok:
-                break
-            ms = self.cap.get(cv2.CAP_PROP_POS_MSEC)
-            t_ns = round(ms * 1e6) if ms > 0 or i == 0 else round(i * 1e9 / self.fps)
-            yield Frame(self.camera, i, t_ns, image)
-            i += 1
-
-    def close(self) -> None:
-        if self.cap is not None:
-            self.cap.release()
-            self.cap = None
+    def _time_ns(self, index: int) -> int:
+        ms = self.cap.get(cv2.CAP_PROP_POS_MSEC)
+        return round(ms * 1e6) if ms > 0 or index == 0 else round(index * 1e9 / self.fps)
