@@ -264,6 +264,16 @@ class Labeller(NeighbourEvidence, ModuleReidentification, StructureRepair):
         self._tol_frames = -1
         self._tol_known = None
 
+    def found(self, markers: np.ndarray, xyz: np.ndarray, vel: np.ndarray) -> None:
+        """Markers (m,) that a verification found on points tracking had left unlabelled,
+        seen now at xyz (m, 3) moving by vel (m, 3) a frame: tracked from here on."""
+        self.pos[markers] = xyz
+        self.vel[markers] = vel
+        self.age[markers] = 0
+        self.since_reacquired[markers] = 0
+        now = np.where((self.age == 0)[:, None], self.pos, np.nan)
+        self.snap[markers] = now[None]
+
     def _learn_distances(self, cur: np.ndarray, rate: float) -> None:
         """Follow this take's own marker distances (another subject, other placement)."""
         seen = np.isfinite(cur).all(1)

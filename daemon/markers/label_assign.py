@@ -359,12 +359,14 @@ def module_moves(terms: BodyTerms) -> list[tuple[np.ndarray, int]]:
 
 
 def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
-           rounds: int = 30, near: float = 2.0, max_swaps: int = 60
+           rounds: int = 30, near: float = 2.0, max_swaps: int = 60, allowed=None
            ) -> tuple[np.ndarray, float]:
     """Local search on the whole-body score (compatibility, handedness and module
     shapes): swaps of two markers' tracks that the compatibility leaves within `near` of
     the best, mirror moves of a part of the body and reorderings inside a rigid module;
-    the best improving move at a time."""
+    the best improving move at a time. `allowed(mt)` (marker -> track), if given, says
+    which labellings the search may move to."""
+    ok = allowed or (lambda mt: True)
     T, n = cp.T, cp.n
     C4 = cp.C.reshape(T, n, T, n)
     base = cp.score(P)
@@ -384,7 +386,7 @@ def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
         for x, y in zip(xs[top], ys[top], strict=True):
             m2 = mt.copy()
             m2[i[x]], m2[i[y]] = mt[i[y]], mt[i[x]]
-            if cur + d[x, y] + terms.gain_bound(m2) <= best + 1e-6:
+            if cur + d[x, y] + terms.gain_bound(m2) <= best + 1e-6 or not ok(m2):
                 continue
             s = cur + d[x, y] + terms.change(m2)
             if s > best + 1e-6:
@@ -397,9 +399,34 @@ def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
             for x, k in zip(xs, ks, strict=True):
                 m2 = mt.copy()
                 m2[i[x]], m2[free[k]] = -1, a[x]
-                if cur + d1[x, k] + terms.gain_bound(m2) <= best + 1e-6:
+                if cur + d1[x, k] + terms.gain_bound(m2) <= best + 1e-6 or not ok(m2):
                     continue
                 s = cur + d1[x, k] + terms.change(m2)
+                if s > best + 1e-6:
+                    best, arg = s, m2
+        # a track no marker has taking a free marker, or taking a marker whose track
+        # moves to a free one (a tracker that gave a marker's label to its neighbour and
+        # left the marker's own point unlabelled)
+        un = np.setdiff1d(np.arange(T), a)
+        if len(un) and len(free):
+            d2 = (G[un][:, i][:, :, None] + G[a][:, free][None] - G[a, i][None, :, None]
+                  + C4[un[:, None, None], i[None, :, None], a[None, :, None],
+                       free[None, None, :]])                                   # (U, A, F)
+            cands = [(G[un[u], free[f]], un[u], -1, free[f])
+                     for u, f in zip(*np.nonzero(G[un][:, free] > -near), strict=True)]
+            us, xs, fs = np.nonzero(d2 > -near)
+            top = np.argsort(-d2[us, xs, fs])[:max_swaps]
+            cands += [(d2[u, x, f], un[u], x, free[f])
+                      for u, x, f in zip(us[top], xs[top], fs[top], strict=True)]
+            for dv, u, x, f in cands:
+                m2 = mt.copy()
+                if x < 0:
+                    m2[f] = u
+                else:
+                    m2[i[x]], m2[f] = u, a[x]
+                if cur + dv + terms.gain_bound(m2) <= best + 1e-6 or not ok(m2):
+                    continue
+                s = cur + dv + terms.change(m2)
                 if s > best + 1e-6:
                     best, arg = s, m2
         for perm, k in moves:
@@ -412,7 +439,7 @@ def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
             o = ch[mt[ch] >= 0]
             nw = ch[m2[ch] >= 0]
             s = cur + _sparse_delta(cp, G, (mt[o], o), (m2[nw], nw))
-            if s + terms.gain_bound(m2) <= best + 1e-6:
+            if s + terms.gain_bound(m2) <= best + 1e-6 or not ok(m2):
                 continue
             s += terms.change(m2)
             if s > best + 1e-6:
@@ -423,7 +450,8 @@ def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
         got = arg >= 0
         Q[arg[got], np.nonzero(got)[0]] = 1.0
         R = refine(cp, Q)                 # the compatibility alone may undo the move:
-        r = cp.score(R) + terms(to_marker_track(R))
+        mr = to_marker_track(R)
+        r = cp.score(R) + terms(mr) if ok(mr) else -np.inf
         P = R if r > best else Q          # keep its refinement only if the whole gains
         mt = to_marker_track(P)
         base = cp.score(P)

@@ -9,7 +9,7 @@ import numpy as np
 from daemon.markers.c3dio import Points, Take
 from daemon.markers.label import Labeller
 from daemon.markers.label_start import window_start
-from daemon.markers.label_verify import Verification, verify_labels
+from daemon.markers.label_verify import Verification, carry_back, verify_labels
 from daemon.markers.markerset import MarkerSet
 
 
@@ -79,6 +79,10 @@ def label_take(points: Points, ms: MarkerSet, rate_hz: float = 120.0,
     if check is not None:
         check.finish(lab, order)
         if order and order[0] > start:      # the frames before the window, labelled backward
+            if check.head is not None:      # ... from the start's labels, renamed since
+                ahead = list(range(start, order[0]))[::-1]
+                back = [ahead[j:j + check.width][::-1] for j in range(0, len(ahead), check.width)]
+                carry_back(per_frame, out, back, check.head, ms, check.head_ref, lab.noise_m)
             verify_labels(per_frame, out, range(start, order[0]), ms, noise_m=lab.noise_m)
     for i in range(start, len(frames)):
         P = per_frame[i]
