@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.interpolate import CubicSpline
 
+from calibkit.core.blas import one_blas_thread
 from daemon.markers.c3dio import Take
 from daemon.markers.markerset import MarkerSet
 
@@ -157,23 +158,13 @@ def fill_rigid(xyz: np.ndarray, gap: Gap, weights: np.ndarray, min_support: int 
 # ------------------------------------------------------------------ PCA over the take
 
 
-def _one_blas_thread():
-    """OpenBLAS's threads make a 300 x 123 SVD 20-100x slower on a busy 2-core machine
-    (measured 2.6 s against 0.016 s); these small matrices are fastest on one thread, so
-    every BLAS loaded is limited to one thread for the block (threadpoolctl)."""
-    # deferred on purpose: loads threadpoolctl only where used
-    from threadpoolctl import threadpool_limits
-
-    return threadpool_limits(limits=1, user_api="blas")
-
-
 def pca_reconstruct(xyz: np.ndarray, energy: float = 0.995, iters: int = 30,
                     init: np.ndarray | None = None) -> np.ndarray:
     """Fill every missing sample from the correlations between markers over the take:
     iterative low-rank (PCA) imputation of the frames x (markers*3) matrix, in
     coordinates relative to each frame's centroid so that walking across the room does
     not use up the components."""
-    with _one_blas_thread():
+    with one_blas_thread():
         return _pca_iterations(xyz, energy, iters, init)
 
 

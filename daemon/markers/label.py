@@ -30,7 +30,6 @@ import warnings
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from daemon.markers import label_kernels as kern
 from daemon.markers.label_modules import module_template, rigid_modules, template_sigma
 from daemon.markers.label_neighbours import BIG, NeighbourEvidence
 from daemon.markers.label_reid import ModuleReidentification
@@ -39,6 +38,15 @@ from daemon.markers.label_single import SUBJECT_REL, initial_labels, template_to
 from daemon.markers.markerset import MarkerSet
 
 K_NEIGHBOURS = 6
+
+
+def compiled_kernels():
+    """The labeller's numba kernels (daemon/markers/label_kernels.py), imported when a
+    Labeller first uses them: loading numba and the cached kernels costs about 0.3-0.6 s
+    of CPU, more than their numpy twins lose on a take of a few thousand frames."""
+    from daemon.markers import label_kernels  # deferred on purpose: loads numba
+
+    return label_kernels
 
 
 class Labeller(NeighbourEvidence, ModuleReidentification, StructureRepair):
@@ -118,6 +126,7 @@ class Labeller(NeighbourEvidence, ModuleReidentification, StructureRepair):
         self.chi2_cost = chi2_cost
         self.renew_sigma = renew_sigma
         self.compiled = compiled       # numba kernels (label_kernels); numpy twins otherwise
+        self.kern = compiled_kernels() if compiled else None
         self._sd2 = markerset.sd_m ** 2
         self.modules = rigid_modules(markerset)
         M = len(self.modules)
@@ -420,7 +429,7 @@ class Labeller(NeighbourEvidence, ModuleReidentification, StructureRepair):
                 new = full & ~(np.isfinite(self.mod_shape_first).all(2) | ~self.mod_mask).all(1)
                 self.mod_shape_first[new] = self.mod_shape[new]
         if self.compiled:
-            kern.commit_state(cur, has, self.pos, self.vel, self.age, self.snap,
+            self.kern.commit_state(cur, has, self.pos, self.vel, self.age, self.snap,
                               self.since_reacquired, self.nb, float(self.smooth), steps)
         else:
             self._commit_state(cur, has, seen_prev, steps)

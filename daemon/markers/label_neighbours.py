@@ -12,8 +12,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from daemon.markers import label_kernels as kern
-
 BIG = 1e6
 
 
@@ -24,7 +22,7 @@ class NeighbourEvidence:
         """Per marker: mean over its labelled neighbours of |d - mean| / tolerance (each
         capped at 3, so one bad neighbour cannot condemn a marker alone)."""
         if self.compiled:
-            return kern.structure_error(cur, self.nb, self.nb_mean, self._tol())
+            return self.kern.structure_error(cur, self.nb, self.nb_mean, self._tol())
         diff = cur[:, None] - cur[self.nb]
         d = np.sqrt(np.einsum("nki,nki->nk", diff, diff))
         e = np.abs(d - self.nb_mean) / self._tol()
@@ -38,7 +36,7 @@ class NeighbourEvidence:
         marker against the marker set, weighted by steadiness (as when a take starts from
         the template); only a clear winner (4 units better than the runner-up) counts."""
         if self.compiled:
-            return kern.fresh_cost(markers, P, cur, self.anchors, self.adapt_tol,
+            return self.kern.fresh_cost(markers, P, cur, self.anchors, self.adapt_tol,
                                    self.mean_all, self.fresh_margin, BIG)
         seen = np.isfinite(cur).all(1)
         if seen.sum() < 3:
@@ -65,7 +63,7 @@ class NeighbourEvidence:
                          ) -> np.ndarray:
         """(len(markers), len(P)): neighbour-distance error if marker took that point."""
         if self.compiled:
-            mean, num, self._cand_chi2 = kern.candidate_error(
+            mean, num, self._cand_chi2 = self.kern.candidate_error(
                 markers, P, cur, self.nb, self.nb_mean, self._tol())
             return mean, num
         nbx = cur[self.nb[markers]]                                    # (L, K, 3)
@@ -90,7 +88,7 @@ class NeighbourEvidence:
             W = self.pred_w[lost]
             fallback = self.pos[lost] + self.vel[lost] * \
                 np.minimum(self.age[lost] + 1, 3)[:, None]
-            pred, self._support_spread = kern.predict_from_neighbours(
+            pred, self._support_spread = self.kern.predict_from_neighbours(
                 A, cur, W, W.max(1), self._sd2[lost], A[np.arange(len(lost)), lost], fallback)
             return pred
         A = self.snap[lost]                                     # (L, n, 3) then

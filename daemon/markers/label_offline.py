@@ -4,13 +4,18 @@ figures about duplicates."""
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 
+from calibkit.core.blas import one_blas_thread
 from daemon.markers.c3dio import Points, Take
 from daemon.markers.label import Labeller
 from daemon.markers.label_start import window_start
 from daemon.markers.label_verify import Verification, carry_back, verify_labels
 from daemon.markers.markerset import MarkerSet
+
+KERNELS_FROM = 8000      # frames from which loading the compiled kernels pays off
 
 
 def label_take(points: Points, ms: MarkerSet, rate_hz: float = 120.0,
@@ -24,9 +29,22 @@ def label_take(points: Points, ms: MarkerSet, rate_hz: float = 120.0,
     checked against the set window by window, and a window whose labels went wrong is
     labelled again (daemon/markers/label_verify.py). Returns the labelled take, per-frame
     confidence (mean over labelled markers) and the per-point labels (aligned with points
-    rows after sorting by frame, see `Points.split`)."""
+    rows after sorting by frame, see `Points.split`). Small matrices throughout: one
+    BLAS thread (calibkit/core/blas.py)."""
+    with one_blas_thread():
+        return _label_take(points, ms, rate_hz, start_labels, start_frames, progress,
+                           options, from_window, verify)
+
+
+def _label_take(points, ms, rate_hz, start_labels, start_frames, progress, options,
+                from_window, verify):
     frames, per_frame = points.split()
-    lab = Labeller(ms, rate_hz, **(options or {}))
+    options = dict(options or {})
+    # the compiled kernels cost ~0.4 s of CPU to load and save ~0.05 ms a frame: on a
+    # shorter take their numpy twins are faster (unless the kernels are loaded already)
+    options.setdefault("compiled", len(per_frame) >= KERNELS_FROM
+                       or "daemon.markers.label_kernels" in sys.modules)
+    lab = Labeller(ms, rate_hz, **options)
     n_frames = int(frames[-1] - frames[0] + 1) if len(frames) else 0
     first = int(frames[0]) if len(frames) else 0
     xyz = np.full((n_frames, ms.n, 3), np.nan)
@@ -65,7 +83,7 @@ def label_take(points: Points, ms: MarkerSet, rate_hz: float = 120.0,
             out[w0 + w] = (wl[w], np.where(wl[w] >= 0, 0.5, 0.0))
         order = list(range(w0 + S, len(frames)))
         if w0 > 0:
-            back = Labeller(ms, rate_hz, **(options or {}))
+            back = Labeller(ms, rate_hz, **options)
             back.start_from_labelled_frames(wx[::-1])
             for i in range(w0 - 1, -1, -1):
                 out[i] = back.update(per_frame[i])

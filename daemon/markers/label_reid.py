@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from daemon.markers import label_kernels as kern
 from daemon.markers.label_modules import pair_distances
 from daemon.markers.label_neighbours import BIG
 
@@ -199,7 +198,7 @@ class ModuleReidentification:
         own_all = (cost[inmod] < BIG) | never[inmod][:, None]
         cand_all = own_all.copy()
         if self.compiled:
-            cand_all = kern.module_candidates(lm_all, self.mates, cur, Pf, self.mean_all,
+            cand_all = self.kern.module_candidates(lm_all, self.mates, cur, Pf, self.mean_all,
                                               self.adapt_tol, cand_all)
         else:
             cand_all = module_candidates_numpy(lm_all, self.mates, cur, Pf, self.mean_all,

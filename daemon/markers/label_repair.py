@@ -15,7 +15,6 @@ from itertools import permutations
 
 import numpy as np
 
-from daemon.markers import label_kernels as kern
 from daemon.markers.label_modules import rigid_residuals
 from daemon.markers.markerset import signed_volume
 
@@ -173,7 +172,7 @@ class StructureRepair:
     def _residuals(self, shape: np.ndarray, X: np.ndarray, w: np.ndarray) -> np.ndarray:
         """Squared residuals of proper rigid fits (see `rigid_residuals`)."""
         if self.compiled:
-            return kern.rigid_residuals(np.ascontiguousarray(np.broadcast_to(shape, X.shape)),
+            return self.kern.rigid_residuals(np.ascontiguousarray(np.broadcast_to(shape, X.shape)),
                                         np.ascontiguousarray(X), np.ascontiguousarray(w),
                                         True)
         return rigid_residuals(shape, X, w, True)
@@ -200,7 +199,7 @@ class StructureRepair:
         if not ok.any():
             return done
         i, j = i[ok], j[ok]
-        scores = kern.swap_scores if self.compiled else swap_scores_numpy
+        scores = self.kern.swap_scores if self.compiled else swap_scores_numpy
         # a marker found again in this very frame (perhaps a ghost) is no witness
         keep, swap = scores(cur, i, j, self.swap_w, self.mean_all, ~self._new_now)
         better = (swap < 0.25 * keep) & (keep - swap > 25.0)
