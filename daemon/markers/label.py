@@ -469,6 +469,8 @@ def duplicates(P: np.ndarray, within_m: float) -> np.ndarray | None:
         return None
     diff = P[:, None] - P[None]
     close = np.einsum("abi,abi->ab", diff, diff) < within_m * within_m
+    if close.sum() == k:                   # only each point itself (the common case)
+        return None
     close[np.tril_indices(k)] = False
     if not close.any():
         return None

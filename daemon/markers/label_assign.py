@@ -83,13 +83,15 @@ class Compat:
         sub = np.maximum(ms.subject_sd_m * scale, SUBJECT_REL * M)
         tol = np.sqrt(ms.sd_m ** 2 + sub ** 2 + PLACEMENT_M ** 2 + 2 * noise_m ** 2)
         known = np.isfinite(D)
-        Dz = np.where(known, D, 0.0)
-        # C = exp(-e^2 / 2), e = (D[a, b] - M[i, j]) / tol[i, j], in place: the (T, n, T, n)
+        f4 = np.float32
+        Dz = np.where(known, D, 0.0).astype(f4)
+        # C = exp(-e^2 / 2), e = (D[a, b] - M[i, j]) / tol[i, j], in place and in single
+        # precision (5x faster; the sums over it are taken in double): the (T, n, T, n)
         # table is the cost of the start (and of every verification)
-        C = Dz[:, None, :, None] - M[None, :, None, :]
-        C /= tol[None, :, None, :]
+        C = Dz[:, None, :, None] - M.astype(f4)[None, :, None, :]
+        C /= tol.astype(f4)[None, :, None, :]
         C *= C
-        C *= -0.5
+        C *= f4(-0.5)
         np.exp(C, out=C)
         # a pair the set says is rigid must stay rigid in the window ...
         allow = 3.0 * ms.sd_m + 2.0 * noise_m + 0.004
@@ -97,42 +99,40 @@ class Compat:
         Sz = np.where(known, S, 0.0)
         sub = C[:, ri, :, rj]                                           # (K, T, T)
         bad = Sz[None] > allow[ri, rj][:, None, None]
-        sub[bad] *= 0.05
+        sub[bad] *= f4(0.05)
         # ... and one that does keeps it, wherever its markers sit on the segment: a
         # rigid pair within a loose allowance scores at least RIGID_REWARD
-        loose = (RIGID_REL * M + 0.02)[ri, rj][:, None, None]
-        e2 = (Dz[None] - M[ri, rj][:, None, None]) / loose
-        near = np.exp(-0.5 * e2 * e2)
-        C[:, ri, :, rj] = np.where(~bad, np.maximum(sub, RIGID_REWARD * near)
-                                   + RIGID_BONUS * near, sub)
+        loose = (RIGID_REL * M + 0.02)[ri, rj][:, None, None].astype(f4)
+        e2 = (Dz[None] - M[ri, rj][:, None, None].astype(f4)) / loose
+        near = np.exp(f4(-0.5) * e2 * e2)
+        C[:, ri, :, rj] = np.where(~bad, np.maximum(sub, f4(RIGID_REWARD) * near)
+                                   + f4(RIGID_BONUS) * near, sub)
         C *= known[:, None, :, None]
         ia, ib = np.arange(T), np.arange(n)
         C[ia, :, ia, :] = 0.0
         C[:, ib, :, ib] = 0.0
         self.C = C.reshape(T * n, T * n)
         self.T, self.n = T, n
-        self._C32: np.ndarray | None = None
 
     def gain(self, P: np.ndarray) -> np.ndarray:
         """The gradient (T, n) of the summed compatibility at (soft) assignment P."""
         k = _matched(P)
         if k is not None:          # a 0/1 assignment: the sum of its rows of C (C = C^T)
-            return self.C[k].sum(0).reshape(self.T, self.n)
-        return (self.C @ P.reshape(-1)).reshape(self.T, self.n)
+            return self.C[k].sum(0, dtype=np.float64).reshape(self.T, self.n)
+        return self.soft_gain(P)
 
     def soft_gain(self, P: np.ndarray) -> np.ndarray:
-        """`gain` in single precision, for softassign's soft matches (which are only
-        steered by it; the discrete assignments are judged in double)."""
-        if self._C32 is None:
-            self._C32 = self.C.astype(np.float32)
-        G = self._C32 @ P.reshape(-1).astype(np.float32)
+        """`gain` at a soft assignment, in single precision (softassign's soft matches
+        are only steered by it; the discrete assignments are judged in double)."""
+        G = self.C @ P.reshape(-1).astype(np.float32)
         return G.astype(np.float64).reshape(self.T, self.n)
 
     def score(self, P: np.ndarray) -> float:
         k = _matched(P)
         if k is not None:
-            return 0.5 * float(self.C[np.ix_(k, k)].sum())
-        return 0.5 * float(P.reshape(-1) @ (self.C @ P.reshape(-1)))
+            return 0.5 * float(self.C[np.ix_(k, k)].sum(dtype=np.float64))
+        G = self.soft_gain(P)
+        return 0.5 * float(P.reshape(-1) @ G.reshape(-1))
 
 
 def _matched(P: np.ndarray) -> np.ndarray | None:
@@ -168,23 +168,30 @@ def refine(cp: Compat, P: np.ndarray, iters: int = 20) -> np.ndarray:
     return P
 
 
-def softassign(cp: Compat, P0: np.ndarray, betas=(0.5, 1, 2, 4, 8, 16, 32),
+def softassign(cps: list[Compat], P0: np.ndarray, betas=(0.5, 1, 2, 4, 8, 16, 32),
                inner: int = 3) -> np.ndarray:
     """Graduated assignment: soft matches from the gradient, Sinkhorn-balanced (with a
-    slack row and column for unmatched tracks and markers), sharpened step by step."""
-    T, n = cp.T, cp.n
+    slack row and column for unmatched tracks and markers), sharpened step by step.
+    Runs for each table of `cps` its starts P0[k] (R, T, n) (the start's restarts at
+    its scales) together: one product with each table, one balancing for all."""
+    K, R, T, n = P0.shape
     P = P0
+    Q = np.ones((K, R, T + 1, n + 1))
+    G = np.empty((K, R, T * n))
     for beta in betas:
+        slack = np.exp(-beta * 4.0 * 0.7)
         for _ in range(inner):
-            G = cp.soft_gain(P)
-            G = G / max(G.max(), 1e-12)
-            Q = np.ones((T + 1, n + 1))
-            Q[:T, :n] = np.exp(beta * 4.0 * (G - 1.0))
-            Q[:T, n] = Q[T, :n] = np.exp(-beta * 4.0 * 0.7)
+            for k, cp in enumerate(cps):
+                G[k] = (cp.C @ P[k].reshape(R, -1).T.astype(np.float32)).T
+            G /= np.maximum(G.max(2, keepdims=True), 1e-12)
+            Q[:, :, :T, :n] = np.exp(beta * 4.0 * (G.reshape(K, R, T, n) - 1.0))
+            Q[:, :, :T, n] = slack
+            Q[:, :, T, :n] = slack
+            Q[:, :, T, n] = 1.0
             for _ in range(30):
-                Q[:T] /= Q[:T].sum(1, keepdims=True)
-                Q[:, :n] /= Q[:, :n].sum(0, keepdims=True)
-            P = Q[:T, :n]
+                Q[:, :, :T] /= Q[:, :, :T].sum(3, keepdims=True)
+                Q[:, :, :, :n] /= Q[:, :, :, :n].sum(2, keepdims=True)
+            P = Q[:, :, :T, :n].copy()
     return P
 
 
@@ -488,12 +495,13 @@ def assign(X: np.ndarray, ms: MarkerSet, restarts: int = 6, seed: int = 0,
     judge = Compat(ms, D, S, size, noise_m)
     found: list[tuple[float, int, np.ndarray]] = []
     seen: set[bytes] = set()
-    for scale in scales:
-        cp = judge if scale == 1.0 else Compat(ms, D, S, size * scale, noise_m)
-        starts = [np.full((T, n), 1.0 / n)]
-        starts += [rng.random((T, n)) for _ in range(restarts - 1)]
-        for P0 in starts:
-            P = refine(cp, _discrete(softassign(cp, P0)))
+    cps = [judge if scale == 1.0 else Compat(ms, D, S, size * scale, noise_m)
+           for scale in scales]
+    starts = np.stack([np.concatenate([np.full((1, T, n), 1.0 / n),
+                                       rng.random((restarts - 1, T, n))]) for _ in cps])
+    for cp, soft in zip(cps, softassign(cps, starts), strict=True):
+        for S0 in soft:
+            P = refine(cp, _discrete(S0))
             for Q in (P, refine(cp, P[:, twin])):
                 Q = refine(judge, Q)
                 key = Q.tobytes()
