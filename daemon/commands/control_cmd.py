@@ -14,9 +14,16 @@ RuntimeDir = Annotated[Path | None, typer.Option(
     "--runtime-dir", help="Folder of the daemon's control socket (as given to start).")]
 
 
-def register(app: typer.Typer) -> None:
-    from daemon.control import request
+def request(runtime_dir: Path | None, message: dict) -> dict:
+    """daemon.control.request, imported when a command asks the daemon: it loads the
+    daemon's configuration (the tracker and its numba kernels, 0.2-0.3 s of CPU), which
+    registering these commands for every mocapd command must not."""
+    from daemon.control import request as ask  # deferred on purpose: see above
 
+    return ask(runtime_dir, message)
+
+
+def register(app: typer.Typer) -> None:
     @app.command("status")
     def status(runtime_dir: RuntimeDir = None,
                json_path: Annotated[Path | None, typer.Option("--json")] = None) -> None:

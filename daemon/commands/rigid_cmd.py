@@ -14,9 +14,10 @@ import typer
 from calibkit.clitools import parse_floats
 from calibkit.core.errors import UserError
 from calibkit.core.fileio import write_text_atomic
-from daemon.config import load_config, parse_config
-from daemon.console import print_table
-from daemon.rigid_define import body_from_snapshots
+
+# daemon.config (the tracker, rigid bodies and their numba kernels) is imported where it
+# is used, deferred on purpose: every mocapd command imports this module to register its
+# commands, and loading it costs 0.2-0.3 s of CPU that `mocapd label` does not need.
 
 rigid_app = typer.Typer(help="Rigid-body definitions in the configuration.",
                         no_args_is_help=True)
@@ -57,6 +58,8 @@ def capture_snapshots(ask, n_frames: int, near: np.ndarray | None, radius: float
 def append_body(config_path: Path, name: str, body_id: int, markers: np.ndarray) -> None:
     """Add a [[rigid_body]] table at the end of the file (its comments stay), after checking
     that the whole file still validates."""
+    from daemon.config import parse_config  # deferred: see above
+
     text = config_path.read_text(encoding="utf-8") if config_path.exists() else ""
     table = {"rigid_body": [{"name": name, "id": body_id,
                              "markers": np.round(markers, 6).tolist()}]}
@@ -88,7 +91,9 @@ def register(app: typer.Typer) -> None:
         """Define a rigid body from the free markers the daemon tracks over --frames frames
         (clustered: a marker is a cluster seen in most of them); the body's frame has its
         origin at their centroid and the world's axes."""
+        from daemon.config import load_config  # deferred: see above
         from daemon.control import request
+        from daemon.rigid_define import body_from_snapshots
 
         if not from_live:
             raise UserError("give --from-live (place the body alone in the volume), or "
@@ -121,6 +126,9 @@ def register(app: typer.Typer) -> None:
     @rigid_app.command("list")
     def list_bodies(config: ConfigOpt) -> None:
         """The rigid bodies a configuration defines, with their closest distance gap."""
+        from daemon.config import load_config  # deferred: see above
+        from daemon.console import print_table
+
         cfg = load_config(config)
         rows = []
         for b in cfg.bodies:

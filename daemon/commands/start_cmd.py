@@ -11,25 +11,17 @@ import typer
 
 from calibkit.clitools import write_json
 from calibkit.core.errors import UserError
-from daemon.config import (
-    Config,
-    MavlinkOut,
-    NatnetOut,
-    SerialOut,
-    UdpOut,
-    VrpnOut,
-    load_config,
-    mavlink_device,
-    parse_address,
-    parse_serial,
-)
-from daemon.console import print_table
-from daemon.logs import setup_logging
-from daemon.start import StartOverrides, run_daemon
+
+# The daemon's modules (configuration, tracker, rigid bodies and their numba kernels) are
+# imported where `start` uses them, deferred on purpose: every mocapd command imports this
+# module to register `start`, and loading them costs 0.2-0.3 s of CPU that `mocapd label`
+# and the other file commands do not need.
 
 
 def protocol_outputs(natnet: str | None, natnet_up: str | None, vrpn: list[str]):
     """--natnet IFACE[:COMMAND_PORT] (data port: the next one), --vrpn [HOST:]PORT."""
+    from daemon.config import NatnetOut, VrpnOut, parse_address  # deferred: see above
+
     out_natnet = None
     if natnet is not None:
         iface, _, port = natnet.partition(":")
@@ -60,6 +52,17 @@ def command_line_additions(udp: list[str], serial: list[str], mavlink: list[str]
                            natnet: str | None = None, natnet_up: str | None = None,
                            vrpn: list[str] = (), mavlink_origin: str | None = None):
     """A function that adds the flags' outputs to a Config (and again after a reload)."""
+    from daemon.config import (  # deferred: see above
+        Config,
+        MavlinkOut,
+        NatnetOut,
+        SerialOut,
+        UdpOut,
+        mavlink_device,
+        parse_address,
+        parse_serial,
+    )
+
     out_natnet, outs_vrpn = protocol_outputs(natnet, natnet_up, list(vrpn))
     outs_udp = []
     for text in udp:
@@ -184,6 +187,10 @@ def register(app: typer.Typer) -> None:
         SIGHUP reloads the configuration. With --frames or --duration it stops by itself
         and prints (and with --json writes) its figures.
         """
+        from daemon.config import Config, load_config  # deferred: see above
+        from daemon.logs import setup_logging
+        from daemon.start import StartOverrides, run_daemon
+
         setup_logging(verbose)
         for name, value in (("--frames", frames), ("--duration", duration)):
             if value is not None and value <= 0:
@@ -206,6 +213,8 @@ def register(app: typer.Typer) -> None:
 
 
 def _report(fig: dict) -> None:
+    from daemon.console import print_table  # deferred: see above (loads rich)
+
     lat = fig["latency_to_poses"]
     rows = [["frames", fig["frames"]],
             ["rate (fps)", round(fig["rate_hz"] or 0.0, 1)],
