@@ -18,9 +18,11 @@ import pytest
 from calibkit.synthetic import person as sim_person
 from daemon.config import SimConfig, parse_config
 from daemon.live_label import LiveLabeller, load, resolve, shipped_sets
-from daemon.markers.markerset import MarkerSet
+from daemon.markers.c3dio import read_c3d
+from daemon.markers.markerset import MarkerSet, open_set
 from daemon.publish import natnet as nn
 from daemon.publish import packet
+from daemon.synthetic.labelling import hide_spans
 from daemon.synthetic.scene import SimScene
 from daemon.tracker import TrackFrame
 
@@ -86,9 +88,9 @@ def test_stage_labels_the_person_inline_with_ghosts_and_gaps():
             a, b = _score(out, truth)
             right, total = right + a, total + b
             expected += int(np.sum(seen & (r.tracks.ids < 1000)))
-    # a search on the first frame, accepted when the search a quarter second (30 frames)
-    # later agrees with it
-    assert first == 30
+    # the first second's frames labelled at once, from the set alone, on the frame that
+    # completes the window (inline: the same frames on every run)
+    assert first == 119
     assert right >= 0.99 * total
     # most seen markers named (a marker back from a 30-frame gap is found again within a
     # few frames: ~92 % here)
@@ -101,7 +103,7 @@ def test_stage_labels_the_person_inline_with_ghosts_and_gaps():
 def test_stage_starts_on_a_thread_and_catches_up():
     """Realtime: the first frames go out unlabelled while the set is searched on a thread,
     then the caught-up labeller names every marker; a stream that never waits for it."""
-    stage = LiveLabeller(load(SET), 120.0, background=True, check_s=0.1)
+    stage = LiveLabeller(load(SET), 120.0, background=True)
     outs, truths = [], []
     for r, truth in list(_frames(240, hide=False)):
         outs.append(stage(r))
@@ -120,7 +122,7 @@ def test_stage_starts_on_a_thread_and_catches_up():
 
 def test_stage_searches_again_after_losing_the_subject_and_survives_a_failure():
     stage = LiveLabeller(load(SET), 120.0, lost_s=0.1, background=False, settle_s=0.1,
-                         check_s=0.05)
+                         window_s=0.1)
     frames = list(_frames(120, hide=False))
     for r, _ in frames[:30]:
         stage(r)
@@ -147,6 +149,45 @@ def test_stage_searches_again_after_losing_the_subject_and_survives_a_failure():
     for r, _ in frames[100:]:
         out = stage(r)
     assert stage.starts == 3 and _score(out, frames[-1][1])[0] >= 39
+
+
+def _cmu_tracks(name, pattern, ms):
+    """A CMU take as the daemon's tracker hands it over, 10 % of marker-frames hidden in
+    0.1-1 s spans and 2 ghosts a frame: a marker's track gets a new id after each gap,
+    a ghost lives one frame. Yields (frame result, true marker per point, -1 ghosts)."""
+    take = read_c3d(ROOT / "fixtures" / "cmu_c3d" / f"{name}.c3d").select(ms.labels)
+    t = hide_spans(take, 0.1, seed=pattern)
+    rng = np.random.default_rng(pattern)
+    vis = t.visible
+    back = vis & ~np.vstack([np.zeros((1, ms.n), bool), vis[:-1]])
+    track = np.arange(ms.n)[None] * 10000 + np.cumsum(back, axis=0)
+    for f in range(t.n_frames):
+        m = np.nonzero(vis[f])[0]
+        xyz = t.xyz_m[f, m]
+        lo, hi = xyz.min(0) - 0.1, xyz.max(0) + 0.1
+        xyz = np.concatenate([xyz, lo + rng.random((2, 3)) * (hi - lo)])
+        ids = np.concatenate([track[f, m], 10 ** 6 + 2 * f + np.arange(2)])
+        m = np.concatenate([m, [-1, -1]])
+        p = rng.permutation(len(ids))
+        yield _Result(ids[p], xyz[p], np.ones(len(p), bool)), dict(zip(ids[p], m[p], strict=True))
+
+
+def test_stage_starts_from_the_set_alone_and_repairs_itself_on_another_subject():
+    """85_02 (acrobatics, a subject the shipped set fits loosely) with the sweep's worst
+    occlusion pattern: the live stage starts on a window of frames and verifies itself
+    as `mocapd label` does. The earlier one-frame start (two searches that must agree)
+    named 42 % of its labelled markers right here; now a window is relabelled once and
+    99.9 % are right."""
+    ms = open_set("cmu41")
+    stage = LiveLabeller(ms, 120.0, background=False)
+    right = total = 0
+    for r, truth in _cmu_tracks("85_02", 16, ms):
+        out = stage(r)
+        right += sum(truth[int(t)] == i for t, i in zip(out.track, out.index, strict=True))
+        total += len(out.index)
+    st = stage.status()
+    assert st["starts"] == 1 and st["windows_relabelled"] >= 1
+    assert total > 0.8 * 37 * 690 and right >= 0.995 * total
 
 
 def test_the_shipped_person_set_is_what_sim_person_set_learns():

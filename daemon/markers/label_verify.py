@@ -230,9 +230,10 @@ def apply_window(labels: dict, win: list[int], perm: np.ndarray, gained: np.ndar
         labels[i] = (new, c)
 
 
-def _check_window(per_frame, labels, win, ms, noise_m):
+def check_window(per_frame, labels, win, ms, noise_m):
     """Check one window and relabel it in place if it went wrong. Returns (perm, the
-    markers the unlabelled tracks took, their positions (E, W, 3)) or None."""
+    markers the unlabelled tracks took, their positions (E, W, 3), their points' rows
+    (E, W)) or None."""
     if len(win) < 10:
         return None
     xyz, X, rows = window_labels(per_frame, labels, win, ms.n)
@@ -241,7 +242,7 @@ def _check_window(per_frame, labels, win, ms, noise_m):
         return None
     perm, gained = got
     apply_window(labels, win, perm, gained, rows)
-    return perm, gained, X
+    return perm, gained, X, rows
 
 
 def compose(first: np.ndarray | None, then: np.ndarray) -> np.ndarray:
@@ -321,7 +322,7 @@ def verify_labels(per_frame: list[np.ndarray], labels: dict, frames: range, ms: 
             win = idx[starts[k]:starts[k] + width]
             if k == len(starts) - 1:
                 win = idx[starts[k]:]
-            done[k] = _check_window(per_frame, labels, win, ms, noise_m) is not None
+            done[k] = check_window(per_frame, labels, win, ms, noise_m) is not None
         return done[k]
 
     for k in range(0, len(starts), stride):
@@ -353,7 +354,7 @@ class Verification:
         self.head_ref: tuple | None = None      # ... and the body's distances it fits
 
     def _fix(self, k: int):
-        got = _check_window(self.per_frame, self.labels, self.windows[k], self.ms,
+        got = check_window(self.per_frame, self.labels, self.windows[k], self.ms,
                             self.noise_m)
         self.right[k] = got is None
         self.fixed += got is not None
@@ -372,7 +373,7 @@ class Verification:
         got = self._fix(k)
         if got is None:
             return
-        perm, gained, X = got
+        perm, gained, X, _ = got
         lab.relabel(perm)
         # markers that unlabelled tracks took: the tracker starts them where their track
         # is in the window's last frames (the window ends at the tracker's frame)
