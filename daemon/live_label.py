@@ -15,10 +15,11 @@ second showing most of the set (`start_fraction` of its markers, or any after
 `settle_s`) are labelled all at once (`_Start`: a window of `window_s`), the labels kept
 by track id (the tracker keeps a marker's track through the window and the search), and
 a labeller starts on the current frame's tracks, having learned this body's distances
-from the window. Then every 4th window of labelled frames is checked against the set
-(`_Verify`); a window gone wrong (a swap, a side mirrored, a marker's point left
-unlabelled while its label sits on a neighbour) renames the labeller's markers from the
-frame the check ends on (live: the frames already sent keep their names).
+from the window. Then every 2nd window of labelled frames is checked against the set
+(`_Verify`; offline every 4th, but live the frames sent before a check keep their
+names); a window gone wrong (a swap, a side mirrored, a marker's point left unlabelled
+while its label sits on a neighbour) renames the labeller's markers from the frame the
+check ends on.
 
 Both searches take tens to hundreds of milliseconds, which would stall the stream. So
 when the daemon is paced by cameras they run on a thread of their own (`_Worker`) and
@@ -48,6 +49,11 @@ from daemon.markers.markerset import MarkerSet, open_set, shipped_sets
 from daemon.markers.markerset import resolve as _resolve
 
 log = logging.getLogger("mocapd.label")
+
+# live, a window found wrong cannot be relabelled in the frames already sent, so windows
+# are checked twice as often as offline (every 2nd second; a check is a few tens of
+# milliseconds on the worker, a few hundred when the whole assignment runs)
+LIVE_STRIDE = 2
 
 __all__ = ["LiveLabeller", "LabelledMarkers", "load", "resolve", "shipped_sets"]
 
@@ -228,7 +234,8 @@ class LiveLabeller:
 
     def __init__(self, markerset: MarkerSet, rate_hz: float, source: str = "",
                  lost_s: float = 0.5, background: bool = True, start_fraction: float = 0.9,
-                 settle_s: float = 2.0, window_s: float = 1.0, verify: bool = True) -> None:
+                 settle_s: float = 2.0, window_s: float = 1.0, verify: bool = True,
+                 verify_every: int = LIVE_STRIDE) -> None:
         self.ms = markerset
         self.rate_hz = float(rate_hz)
         self.source = source  # the file it came from, for status
@@ -237,7 +244,7 @@ class LiveLabeller:
         self.labeller: Labeller | None = None  # None while starting (or before)
         self.start: _Start | None = None  # the start in progress
         self.verify: _Verify | None = None  # the running labeller's verification
-        self.check = verify
+        self.check, self.verify_every = verify, verify_every
         self.worker = _Worker() if background else None
         self.width = max(10, int(round(window_s * self.rate_hz)))
         self.start_points = max(3, int(np.ceil(start_fraction * markerset.n)))
@@ -331,7 +338,8 @@ class LiveLabeller:
             if not done:
                 return False
             self.labeller = start.labeller(xyz, ids)
-            self.verify = _Verify(self.ms, self.width) if self.check else None
+            self.verify = _Verify(self.ms, self.width, self.verify_every) if self.check \
+                else None
         except Exception as exc:  # noqa: BLE001 - a labelling bug must not stop the stream
             self._failed(exc)
             return False
