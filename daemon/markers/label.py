@@ -273,15 +273,21 @@ class Labeller(NeighbourEvidence, ModuleReidentification, StructureRepair):
         self._tol_frames = -1
         self._tol_known = None
 
-    def found(self, markers: np.ndarray, xyz: np.ndarray, vel: np.ndarray) -> None:
+    def found(self, markers: np.ndarray, xyz: np.ndarray, vel: np.ndarray,
+              age: np.ndarray | None = None, snap: np.ndarray | None = None) -> None:
         """Markers (m,) that a verification found on points tracking had left unlabelled,
-        seen now at xyz (m, 3) moving by vel (m, 3) a frame: tracked from here on."""
+        last seen at xyz (m, 3) moving by vel (m, 3) a frame, `age` (m,) frames ago (0:
+        now) with everything where `snap` (m, n, 3) had it then (default: where the
+        tracker has it now): tracked, or looked for from their neighbours' motion since,
+        from here on."""
         self.pos[markers] = xyz
         self.vel[markers] = vel
-        self.age[markers] = 0
+        self.age[markers] = 0 if age is None else age
         self.since_reacquired[markers] = 0
-        now = np.where((self.age == 0)[:, None], self.pos, np.nan)
-        self.snap[markers] = now[None]
+        if snap is None:
+            snap = np.where((self.age == 0)[:, None], self.pos, np.nan)[None]
+        self.snap[markers] = snap
+        self.snap[markers, markers] = xyz
 
     def _learn_distances(self, cur: np.ndarray, rate: float) -> None:
         """Follow this take's own marker distances (another subject, other placement)."""

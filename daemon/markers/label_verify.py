@@ -13,6 +13,11 @@ are labelled again by the same global assignment that starts a take from the set
 better than the labels tracking gave. Every window first gets the assignment's local
 search from its current labels, which is cheap and finds a side mirrored at the pelvis
 (which no distance and, on the CMU set, no handedness tetrahedron shows by itself).
+Points tracking left unlabelled are linked into tracks of their own and may take markers
+no track holds: a tracker that gave a marker's label to its neighbour leaves the
+marker's own point unlabelled, and only with it is the right labelling a reordering. A
+relabelling found in one window is carried back to the windows before it that cannot
+tell by themselves (a marker hidden there), which tracking joined to it.
 """
 
 from __future__ import annotations
@@ -41,7 +46,7 @@ MARGIN = 5.0          # the new labels must score this much better (about 5 pair
 MARGIN_FULL = 20.0    # ... and those of the whole assignment from the set alone this much
 MIN_SEEN = 0.3        # a marker seen in less of the window is not relabelled
 STRIDE = 4            # every 4th window is checked (and its neighbours when it is wrong)
-NEW_MISFIT = 2.0      # an unlabelled point takes a marker within 2 allowances (2 SD) of it
+NEW_MISFIT = 2.0      # a track takes a new marker within 2 allowances (2 SD) of the set
 
 
 def relabel_window(xyz: np.ndarray, ms: MarkerSet, noise_m: float = 0.003,
@@ -67,6 +72,7 @@ def relabel_window(xyz: np.ndarray, ms: MarkerSet, noise_m: float = 0.003,
         X = np.concatenate([X, extra])
     cur = np.concatenate([tracks, np.full(E, -1)])
     keeps = _Keeps(cur, ms.n)
+    before = check_fit(ms, xyz[::4], noise_m=noise_m)
     for _ in range(3):
         lab, gain = improve(X, ms, cur, noise_m, keeps)
         if gain < MARGIN or not keeps.labels(lab):
@@ -75,21 +81,19 @@ def relabel_window(xyz: np.ndarray, ms: MarkerSet, noise_m: float = 0.003,
         fit = check_fit(ms, moved[::4], noise_m=noise_m)  # every 4th frame tells as much
         # a point tracking left unlabelled takes a marker only where it sits as the set
         # says (a wrong one scores too, by the set's loose allowance for far pairs)
-        misfit = _misfits(fit, lab, cur, ms)
+        misfit = _misfits(fit, lab, cur, ms, before)
         if not misfit:
             break
-        keeps.barred = np.concatenate([keeps.barred, misfit])
+        keeps.bar(misfit)
     else:
-        lab = cur
-        moved = xyz
-        fit = check_fit(ms, moved[::4], noise_m=noise_m)
+        lab, moved, fit = cur, xyz, before
     if fit.misfit and (fit.misfit_worst > SUSPECT or fit.bent or _turned(moved[::4], ms)):
         # from the set alone the assignment is less sure than tracking on a window with
         # markers hidden: it must win by more
         full, score = assign(X, ms, noise_m=noise_m)
         if keeps.labels(full) and score >= score_labels(X, ms, lab, noise_m) + MARGIN_FULL \
                 and not _misfits(check_fit(ms, _positions(X, full, ms.n)[::4],
-                                           noise_m=noise_m), full, cur, ms):
+                                           noise_m=noise_m), full, cur, ms, before):
             lab = full
     if np.array_equal(lab, cur):
         return None
@@ -102,11 +106,17 @@ def relabel_window(xyz: np.ndarray, ms: MarkerSet, noise_m: float = 0.003,
     return perm, lab[T:]
 
 
-def _misfits(fit, lab: np.ndarray, cur: np.ndarray, ms: MarkerSet) -> list[int]:
-    """The unlabelled tracks (of `cur`) that `lab` gives a marker placed more than
-    NEW_MISFIT allowances off the set (check_fit's per-marker misfit)."""
-    new = np.nonzero((cur < 0) & (lab >= 0))[0]
-    return [int(t) for t in new if fit.misfit.get(ms.labels[lab[t]], 0.0) > NEW_MISFIT]
+def _misfits(fit, lab: np.ndarray, cur: np.ndarray, ms: MarkerSet, before) -> list[int]:
+    """The tracks `lab` labels anew against the set's word (check_fit's per-marker
+    misfit, `before` that of `cur`): those given a marker placed more than NEW_MISFIT
+    allowances off the set, unless the tracks relabelled fitted worse before (a marker
+    this body carries elsewhere, 85_02's RSHN, is off the set under its right label too,
+    and worse under a wrong one)."""
+    new = np.nonzero((lab >= 0) & (lab != cur))[0]
+    z = np.array([fit.misfit.get(ms.labels[lab[t]], 0.0) for t in new])
+    was = [before.misfit.get(ms.labels[cur[t]], 0.0) for t in new if cur[t] >= 0]
+    bound = max([NEW_MISFIT, *was])
+    return [int(t) for t in new[z > bound]]
 
 
 class _Keeps:
@@ -116,14 +126,24 @@ class _Keeps:
     `barred` (found not to fit)."""
 
     def __init__(self, cur: np.ndarray, n: int) -> None:
+        self.cur = cur
         self.held = cur[cur >= 0]
         self.tracks = np.nonzero(cur >= 0)[0]
         self.barred = np.zeros(0, int)
         self.n = n
 
+    def bar(self, tracks: list[int]) -> None:
+        """Tracks that keep what they have: their label, or none."""
+        self.barred = np.concatenate([self.barred, tracks]).astype(int)
+
     def __call__(self, mt: np.ndarray) -> bool:
-        return bool((mt[self.held] >= 0).all() and np.isin(self.tracks, mt).all()
-                    and not np.isin(self.barred, mt).any())
+        if not ((mt[self.held] >= 0).all() and np.isin(self.tracks, mt).all()):
+            return False
+        b = self.barred
+        if not len(b):
+            return True
+        had = self.cur[b]
+        return bool(np.all(np.where(had >= 0, mt[np.maximum(had, 0)] == b, ~np.isin(b, mt))))
 
     def labels(self, lab: np.ndarray) -> bool:
         mt = np.full(self.n, -1)
@@ -306,6 +326,26 @@ def carry_back(per_frame: list[np.ndarray], labels: dict, windows: list[list[int
     return done
 
 
+def taken_up(gained: np.ndarray, X: np.ndarray, per_frame: list[np.ndarray], labels: dict,
+             win: list[int], n: int) -> tuple | None:
+    """What the tracker needs to follow the markers unlabelled tracks took in a window
+    it has just labelled (ending at its frame): per marker its last point in the window,
+    its motion a frame, how many frames ago, and where the (relabelled) window had every
+    marker then (`Labeller.found`); None if no track took one."""
+    e = np.nonzero(gained >= 0)[0]
+    if not len(e):
+        return None
+    seen = np.isfinite(X[e]).all(2)                                       # (m, W)
+    last = len(win) - 1 - np.argmax(seen[:, ::-1], axis=1)
+    m = np.arange(len(e))
+    before = np.maximum(last - 1, 0)
+    ok = seen[m, before] & (last > 0)
+    xyz = X[e, last]
+    vel = np.where(ok[:, None], xyz - X[e, before], 0.0)
+    window = window_labels(per_frame, labels, win, n, extra=False)[0]        # relabelled
+    return gained[e], xyz, vel, len(win) - 1 - last, window[last]
+
+
 def verify_labels(per_frame: list[np.ndarray], labels: dict, frames: range, ms: MarkerSet,
                   width: int = WINDOW, stride: int = STRIDE, noise_m: float = 0.003) -> int:
     """Check the labels (frame index -> (marker per point, confidence)) over `frames`,
@@ -375,12 +415,9 @@ class Verification:
             return
         perm, gained, X, _ = got
         lab.relabel(perm)
-        # markers that unlabelled tracks took: the tracker starts them where their track
-        # is in the window's last frames (the window ends at the tracker's frame)
-        e = np.nonzero((gained >= 0) & np.isfinite(X[:, -1]).all(1))[0]
-        if len(e):
-            v = np.where(np.isfinite(X[e, -2]).all(1)[:, None], X[e, -1] - X[e, -2], 0.0)
-            lab.found(gained[e], X[e, -1], v)
+        found = taken_up(gained, X, self.per_frame, self.labels, self.windows[k], self.ms.n)
+        if found is not None:
+            lab.found(*found)
         # the windows before it back to a right one: checked if they were not, and
         # renamed as this one was if they cannot tell
         b, src = k - 1, k
