@@ -25,7 +25,6 @@ from __future__ import annotations
 import numpy as np
 
 from daemon.markers.label_assign import (
-    BodyTerms,
     Compat,
     assign,
     body_scale,
@@ -36,6 +35,7 @@ from daemon.markers.label_assign import (
     polish,
     to_marker_track,
 )
+from daemon.markers.label_body import BodyTerms
 from daemon.markers.label_start import link_window
 from daemon.markers.markerset import MarkerSet, signed_volume
 from daemon.markers.markerset_fit import check_fit
