@@ -258,13 +258,15 @@ def module_moves(terms: BodyTerms) -> list[tuple[np.ndarray, int]]:
 
 
 def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
-           rounds: int = 30, near: float = 2.0, max_swaps: int = 60, allowed=None
-           ) -> tuple[np.ndarray, float]:
+           rounds: int = 30, near: float = 2.0, max_swaps: int = 60, allowed=None,
+           every_order: bool = False) -> tuple[np.ndarray, float]:
     """Local search on the whole-body score (compatibility, handedness and module
     shapes): swaps of two markers' tracks that the compatibility leaves within `near` of
-    the best, mirror moves of a part of the body and reorderings inside a rigid module;
-    the best improving move at a time. `allowed(mt)` (marker -> track), if given, says
-    which labellings the search may move to."""
+    the best, mirror moves of a part of the body and reorderings inside a rigid module
+    (of a module whose shape fits as it is, only with `every_order`: a tracker can turn
+    a nearly symmetric foot half round, heel for toe and ankle for 5th metatarsal, and
+    its shape still fits); the best improving move at a time. `allowed(mt)` (marker ->
+    track), if given, says which labellings the search may move to."""
     ok = allowed or (lambda mt: True)
     T, n = cp.T, cp.n
     C4 = cp.C.reshape(T, n, T, n)
@@ -329,7 +331,7 @@ def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
                 if s > best + 1e-6:
                     best, arg = s, m2
         for perm, k in moves:
-            if k >= 0 and terms.cost[k] < len(terms.modules[k]):
+            if k >= 0 and terms.cost[k] < len(terms.modules[k]) and not every_order:
                 continue                   # the module fits as it is: leave its order
             m2 = mt[perm]
             ch = np.nonzero(m2 != mt)[0]

@@ -179,9 +179,10 @@ def score_labels(X: np.ndarray, ms: MarkerSet, lab, noise_m: float = 0.003):
 def improve(X: np.ndarray, ms: MarkerSet, lab: np.ndarray, noise_m: float = 0.003,
             allowed=None) -> tuple[np.ndarray, float]:
     """The labelling `lab` (T,) of tracks X (T, W, 3) improved by the local search of
-    `assign` (swaps, mirror moves of a part of the body, reorderings inside a module),
-    and how much its whole-body score rose: the cheap check of labels that tracking
-    gave, which are right nearly always. `allowed` as for `polish`."""
+    `assign` (swaps, mirror moves of a part of the body, every reordering inside a
+    module, also of one whose shape fits), and how much its whole-body score rose: the
+    cheap check of labels that tracking gave, which are right nearly always. `allowed`
+    as for `polish`."""
     D, S = pair_stats(X)
     judge = Compat(ms, D, S, body_scale(D, ms), noise_m)
     terms = BodyTerms(X, ms, noise_m=noise_m)
@@ -190,7 +191,7 @@ def improve(X: np.ndarray, ms: MarkerSet, lab: np.ndarray, noise_m: float = 0.00
     got = np.nonzero(lab >= 0)[0]
     P[got, lab[got]] = 1.0
     before = judge.score(P) + terms(to_marker_track(P))
-    Q, after = polish(judge, P, terms, moves, allowed=allowed)
+    Q, after = polish(judge, P, terms, moves, allowed=allowed, every_order=True)
     out = np.full(len(X), -1)
     r, c = np.nonzero(Q)
     out[r] = c
