@@ -304,21 +304,21 @@ class LiveLabeller:
         return LabelledMarkers(self.set_name, self.names, labels[keep].astype(np.int64),
                                xyz[keep], conf[keep], ids[keep])
 
-    def _run(self, job: str, fn) -> list:
-        """Run a search: inline (its result now), or on the worker thread (the results of
-        earlier ones that arrived since, for this labeller's generation)."""
+    def _run(self, job: str, fn) -> tuple[bool, list]:
+        """Run a search `fn` (None: none due): inline (its result now), or on the worker
+        thread. Returns whether it was taken (the worker may still be busy with another)
+        and the results that arrived since for this labeller's generation."""
         gen = self.generation
         if self.worker is None:
-            return [(job, fn())] if fn is not None else []
-        if fn is not None:
-            self.worker.submit((job, gen), fn)
+            return True, ([(job, fn())] if fn is not None else [])
+        taken = fn is not None and self.worker.submit((job, gen), fn)
         out = []
         for (name, g), res in self.worker.results():
             if isinstance(res, BaseException):
                 raise res
             if g == gen:
                 out.append((name, res))
-        return out
+        return taken, out
 
     def _started(self, xyz: np.ndarray, ids: np.ndarray) -> bool:
         """Advance the start with this frame; True when the labeller is ready for it."""
@@ -332,9 +332,9 @@ class LiveLabeller:
         try:
             start = self.start
             due = start.offer(xyz, ids) and not start.searching
-            start.searching |= due
-            done = any(job == "start" for job, _ in self._run(
-                "start", start.search if due else None))
+            taken, results = self._run("start", start.search if due else None)
+            start.searching |= due and taken   # else again on the next frame
+            done = any(job == "start" for job, _ in results)
             if not done:
                 return False
             self.labeller = start.labeller(xyz, ids)
@@ -352,7 +352,7 @@ class LiveLabeller:
             return
         frames = self.verify.add(xyz, ids, labels)
         fn = None if frames is None else (lambda v=self.verify, f=frames: v.check(f))
-        for job, found in self._run("verify", fn):
+        for job, found in self._run("verify", fn)[1]:
             if job == "verify":
                 self.checked += 1
                 if found is not None:

@@ -109,14 +109,17 @@ def relabel_window(xyz: np.ndarray, ms: MarkerSet, noise_m: float = 0.003,
 def _misfits(fit, lab: np.ndarray, cur: np.ndarray, ms: MarkerSet, before) -> list[int]:
     """The tracks `lab` labels anew against the set's word (check_fit's per-marker
     misfit, `before` that of `cur`): those given a marker placed more than NEW_MISFIT
-    allowances off the set, unless the tracks relabelled fitted worse before (a marker
-    this body carries elsewhere, 85_02's RSHN, is off the set under its right label too,
-    and worse under a wrong one)."""
+    allowances off the set, unless the tracks relabelled fit better on the whole than
+    before (a marker this body carries elsewhere, 85_02's RSHN, is off the set under its
+    right name too, and its track fits worse under a wrong one)."""
     new = np.nonzero((lab >= 0) & (lab != cur))[0]
     z = np.array([fit.misfit.get(ms.labels[lab[t]], 0.0) for t in new])
+    if not (z > NEW_MISFIT).any():
+        return []
     was = [before.misfit.get(ms.labels[cur[t]], 0.0) for t in new if cur[t] >= 0]
-    bound = max([NEW_MISFIT, *was])
-    return [int(t) for t in new[z > bound]]
+    if was and z.mean() < np.mean(was):
+        return []
+    return [int(t) for t in new[z > NEW_MISFIT]]
 
 
 class _Keeps:
