@@ -151,6 +151,23 @@ def test_stage_searches_again_after_losing_the_subject_and_survives_a_failure():
     assert stage.starts == 3 and _score(out, frames[-1][1])[0] >= 39
 
 
+def test_stage_start_waits_for_a_busy_worker():
+    """A start due while the worker thread is still busy (a check of the labeller before
+    the subject was lost) is submitted again on a later frame, not dropped."""
+    stage = LiveLabeller(load(SET), 120.0, background=True, window_s=0.1)
+    frames = list(_frames(200, hide=False))
+    stage.worker.busy = True                      # another search running
+    for r, _ in frames[:40]:
+        assert len(stage(r).index) == 0
+    stage.worker.busy = False
+    first = None
+    for i, (r, _) in enumerate(frames[40:]):
+        if len(stage(r).index) and first is None:
+            first = i
+        time.sleep(1 / 240)
+    assert first is not None and stage.starts == 1 and stage.failures == 0
+
+
 def _cmu_tracks(name, pattern, ms):
     """A CMU take as the daemon's tracker hands it over, 10 % of marker-frames hidden in
     0.1-1 s spans and 2 ghosts a frame: a marker's track gets a new id after each gap,
