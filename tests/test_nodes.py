@@ -48,6 +48,114 @@ def test_blobs_message_round_trips_and_refuses_what_it_is_not():
         wire.decode_blobs(b"XX" + data[2:])
 
 
+def _frames(rng, counts):
+    return [(f"cam{k}".encode(), 100 + k, 10**12 + k, 10**12 + 50 + k, 2**40 + k, 7 + k,
+             rng.uniform(0, 640, (n, 2)), rng.uniform(2, 50, n), rng.uniform(10, 255, n))
+            for k, n in enumerate(counts)]
+
+
+def test_blob_sets_message_round_trips_and_refuses_what_it_is_not():
+    rng = np.random.default_rng(2)
+    frames = _frames(rng, [5, 0, 12, 1])
+    data = wire.encode_sets(0xFEEDF00D, 77, 10**12 + 999, frames)
+    got = wire.decode_sets(data)
+    assert [n for n, _ in got] == ["cam0", "cam1", "cam2", "cam3"]
+    for (_, m), f in zip(got, frames, strict=True):
+        assert (m.boot, m.seq, m.sent_ns) == (0xFEEDF00D, 77, 10**12 + 999)
+        assert (m.index, m.t_ns, m.arrival_ns, m.device_time_ns, m.device_frame_id) == f[1:6]
+        assert m.uv.shape == (len(f[6]), 2)
+        np.testing.assert_allclose(m.uv, f[6], atol=1e-4 * 640)  # float32 on the wire
+        np.testing.assert_allclose(m.area, f[7].astype(np.float32))
+        np.testing.assert_allclose(m.peak, f[8].astype(np.float32))
+    assert wire.decode_sets(wire.encode_sets(1, 0, 0, [])) == []
+    with pytest.raises(wire.WireError, match="does not hold"):
+        wire.decode_sets(data[:-3])
+    with pytest.raises(wire.WireError, match="does not hold"):
+        wire.decode_sets(data + b"\0")
+    with pytest.raises(wire.WireError, match="ends inside"):
+        wire.decode_sets(data[:wire.SETS_HEAD.size + 10])
+    with pytest.raises(wire.WireError, match="not a version"):
+        wire.decode_sets(wire.encode_blobs(1, 0, 0, 0, 0, 0, -1, -1, np.zeros((0, 2)),
+                                           np.zeros(0), np.zeros(0)))
+
+
+class _Pub:
+    """Stands in for a Zenoh publisher: keeps what is put, with when."""
+
+    def __init__(self):
+        self.sent = []
+
+    def put(self, data):
+        self.sent.append((time.monotonic_ns(), wire.decode_sets(data)))
+
+
+class _Session:
+    def __init__(self):
+        self.pub = _Pub()
+
+    def declare_publisher(self, key, **_):
+        return self.pub
+
+
+def _sample(camera, index, arrival):
+    from daemon.sources import CameraSample
+
+    uv = np.full((2, 2), float(camera))
+    return CameraSample(camera, index, arrival, arrival, uv, np.ones(2), np.ones(2), -1, -1)
+
+
+def test_a_node_sends_one_set_per_trigger_as_soon_as_its_last_frame_is_in():
+    """Four cameras: each trigger's four frames leave in one message when the fourth
+    comes, not before; a camera whose frame does not come is waited for set_wait_ms and
+    the set leaves without it; a camera silent for longer is not waited for; a camera's
+    next frame closes the set its last one is in."""
+    from daemon.nodes.node import STALE_NS, NodeTime, SetPublisher
+
+    session = _Session()
+    sets = SetPublisher(session, "k", 5, NodeTime(), ["a", "b", "c", "d"], wait_ns=3_000_000)
+    sets.start()
+    sent = session.pub.sent
+    try:
+        for k in range(4):  # the first trigger: cameras not known yet are not waited for
+            sets.add(k, _sample(k, 0, time.monotonic_ns()))
+        time.sleep(0.02)  # what waited for a camera has timed out
+        first = len(sent)
+        assert sorted(n for _, f in sent for n, _ in f) == ["a", "b", "c", "d"]
+        for g in (1, 2):  # all four known now: one message per trigger
+            for k in (2, 0, 3, 1):
+                before = len(sent)
+                sets.add(k, _sample(k, g, time.monotonic_ns()))
+                assert len(sent) == before + (k == 1)  # out with its last frame only
+        assert [[n for n, _ in f] for _, f in sent[first:]] == [["a", "b", "c", "d"]] * 2
+        # camera d misses trigger 3: the set waits 3 ms, then leaves without it
+        t0 = time.monotonic_ns()
+        for k in (0, 1, 2):
+            sets.add(k, _sample(k, 3, t0))
+        end = time.monotonic() + 1.0
+        while len(sent) == first + 2 and time.monotonic() < end:
+            time.sleep(0.0005)
+        when, frames = sent[-1]
+        assert [n for n, _ in frames] == ["a", "b", "c"]
+        assert 3_000_000 <= when - t0 < 100_000_000
+        assert sets.short == 1
+        # camera a's next frame closes the open set it is in, and opens the next
+        sets.add(0, _sample(0, 4, time.monotonic_ns()))
+        sets.add(0, _sample(0, 5, time.monotonic_ns()))
+        assert [n for n, _ in sent[-1][1]] == ["a"] and sent[-1][1][0][1].index == 4
+        # d has been silent past STALE_NS: a set no longer waits for it
+        time.sleep(STALE_NS * 1e-9 + 0.01)
+        for k in (0, 1, 2):
+            sets.add(k, _sample(k, 6, time.monotonic_ns()))
+        for k in (0, 1, 2):
+            sets.add(k, _sample(k, 7, time.monotonic_ns()))
+        assert [[n for n, _ in f] for _, f in sent[-1:]] == [["a", "b", "c"]]
+        assert sent[-1][1][0][1].index == 7
+    finally:
+        sets.close()
+        sets.timer.join(1.0)
+    assert not sets.timer.is_alive()
+
+
 def test_clock_and_pose_messages_round_trip():
     assert wire.decode_ping(wire.encode_ping(5, 123)) == (5, 123)
     assert wire.decode_pong(wire.encode_pong(9, 5, 1, 2, 3)) == (9, 5, 1, 2, 3)
@@ -113,6 +221,11 @@ def test_zenoh_settings_are_checked_with_one_line_errors(tmp_path):
         parse_config({"zenoh": {"cameras": "all"}})
     with pytest.raises(UserError, match="name: node name 'a/b' cannot go into a Zenoh key"):
         parse_node_config({"name": "a/b"})
+    with pytest.raises(UserError, match="publish: must be one of sets, cameras; got 'frames'"):
+        parse_node_config({"publish": "frames"})
+    with pytest.raises(UserError, match="set_wait_ms: must be between 0.0 and 1000.0"):
+        parse_node_config({"set_wait_ms": -1})
+    assert parse_node_config({}).publish == "sets"
     cfg = parse_config({"camera": [{"name": "cam0", "source": "zenoh:left"}]})
     assert cfg.zenoh is not None and cfg.zenoh.session.listen == ("tcp/0.0.0.0:7447",)
     assert parse_camera_list("0-2,cam5", [f"cam{i}" for i in range(8)]) == (
@@ -127,6 +240,11 @@ def test_node_with_a_bad_endpoint_exits_with_one_line():
                        timeout=60, env=dict(os.environ, PYTHONPATH=str(ROOT)))
     assert r.returncode != 0
     assert "expected a Zenoh endpoint" in r.stderr and "Traceback" not in r.stderr
+    r = subprocess.run([sys.executable, "-m", "daemon.cli", "node", "--sim", "--publish",
+                        "frames"], cwd=ROOT, capture_output=True, text=True,
+                       timeout=60, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    assert r.returncode != 0 and "Traceback" not in r.stderr
+    assert "--publish must be one of sets, cameras, got 'frames'" in r.stderr
 
 
 # ---- nodes as processes ------------------------------------------------------------------------
@@ -201,14 +319,16 @@ def cameras_live(d, names) -> bool:
 
 def test_two_nodes_feed_one_daemon_clocks_estimated_and_bodies_tracked(tmp_path):
     """Two node processes serve four cameras each, their clocks 12.5 ms ahead and 50 ppm
-    fast, and 7 ms behind and 30 ppm slow; the daemon pairs their frames into full sets,
+    fast, and 7 ms behind and 30 ppm slow, one publishing sets and the other single
+    frames; the daemon pairs their frames into full sets,
     tracks the scene's bodies as well as with local cameras, and its estimate of each
     node's clock is within 0.2 ms of the truth on loopback."""
     port, rig = free_port(), "two"
     ep = f"tcp/127.0.0.1:{port}"
     d = DaemonThread(tmp_path, port, rig, 12.0).start()
-    nodes = [start_node("a", rig, ep, "0-3", 12.5, 50.0, seconds=40),
-             start_node("b", rig, ep, "4-7", -7.0, -30.0, seconds=40)]
+    nodes = [start_node("a", rig, ep, "0-3", 12.5, 50.0, seconds=40),  # a set per trigger
+             start_node("b", rig, ep, "4-7", -7.0, -30.0, seconds=40,
+                        extra=("--publish", "cameras"))]  # a message per camera frame
     truth = {"a": (12.5, 50.0), "b": (-7.0, -30.0)}
     try:
         names = [f"cam{i}" for i in range(8)]
