@@ -269,6 +269,10 @@ def run_link(tmp: Path, seconds: float) -> dict:
             "rtt_ms_median": float(np.median(rtts))}
 
 
+def _cell(v) -> str:
+    return f"{v:.3f}" if isinstance(v, float) else str(v)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=20.0)
@@ -309,8 +313,9 @@ def main() -> None:
         cells = []
         for r in runs.values():
             ratio = r[key] / lv if isinstance(lv, float) and lv else None
-            cells.append(f"{r[key]}" + ("" if ratio is None else f" ({ratio:.2f})"))
-        rows.append([key + (" (whole run)" if key == "sets_complete" else ""), lv, *cells, "-"])
+            cells.append(_cell(r[key]) + ("" if ratio is None else f" ({ratio:.2f})"))
+        rows.append([key + (" (whole run)" if key == "sets_complete" else ""), _cell(lv),
+                     *cells, "-"])
     print_table(rows, [f"{a.cameras} cameras, 240 fps", "local", *(f"{n} (/local)"
                                                                    for n in names), "target"])
 

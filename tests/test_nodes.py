@@ -106,10 +106,19 @@ def _sample(camera, index, arrival):
 
 def test_a_node_sends_one_set_per_trigger_as_soon_as_its_last_frame_is_in():
     """Four cameras: each trigger's four frames leave in one message when the fourth
-    comes, not before; a camera whose frame does not come is waited for set_wait_ms and
-    the set leaves without it; a camera silent for longer is not waited for; a camera's
-    next frame closes the set its last one is in."""
+    comes, not before; a camera whose frame does not come is waited for set_wait_ms, the
+    set leaves marked short without it, and its late frame leaves alone the moment it
+    comes; a camera's next frame closes the set its last one is in; a camera silent past
+    STALE_NS is no longer waited for."""
     from daemon.nodes.node import STALE_NS, NodeTime, SetPublisher
+
+    period, t0 = 4_166_667, time.monotonic_ns()
+
+    def add(k, g):
+        sets.add(k, _sample(k, g, t0 + g * period + k * 1000))
+
+    def names(i=-1):
+        return [n for n, _ in sent[i][1]]
 
     session = _Session()
     sets = SetPublisher(session, "k", 5, NodeTime(), ["a", "b", "c", "d"], wait_ns=3_000_000)
@@ -117,43 +126,85 @@ def test_a_node_sends_one_set_per_trigger_as_soon_as_its_last_frame_is_in():
     sent = session.pub.sent
     try:
         for k in range(4):  # the first trigger: cameras not known yet are not waited for
-            sets.add(k, _sample(k, 0, time.monotonic_ns()))
+            add(k, 0)
         time.sleep(0.02)  # what waited for a camera has timed out
-        first = len(sent)
         assert sorted(n for _, f in sent for n, _ in f) == ["a", "b", "c", "d"]
+        first, short = len(sent), sets.short
         for g in (1, 2):  # all four known now: one message per trigger
             for k in (2, 0, 3, 1):
                 before = len(sent)
-                sets.add(k, _sample(k, g, time.monotonic_ns()))
+                add(k, g)
                 assert len(sent) == before + (k == 1)  # out with its last frame only
         assert [[n for n, _ in f] for _, f in sent[first:]] == [["a", "b", "c", "d"]] * 2
-        # camera d misses trigger 3: the set waits 3 ms, then leaves without it
-        t0 = time.monotonic_ns()
+        # camera d is late at trigger 3: the set waits 3 ms, then leaves without it
+        opened = time.monotonic_ns()
         for k in (0, 1, 2):
-            sets.add(k, _sample(k, 3, t0))
+            add(k, 3)
         end = time.monotonic() + 1.0
         while len(sent) == first + 2 and time.monotonic() < end:
             time.sleep(0.0005)
-        when, frames = sent[-1]
-        assert [n for n, _ in frames] == ["a", "b", "c"]
-        assert 3_000_000 <= when - t0 < 100_000_000
-        assert sets.short == 1
-        # camera a's next frame closes the open set it is in, and opens the next
-        sets.add(0, _sample(0, 4, time.monotonic_ns()))
-        sets.add(0, _sample(0, 5, time.monotonic_ns()))
-        assert [n for n, _ in sent[-1][1]] == ["a"] and sent[-1][1][0][1].index == 4
-        # d has been silent past STALE_NS: a set no longer waits for it
-        time.sleep(STALE_NS * 1e-9 + 0.01)
-        for k in (0, 1, 2):
-            sets.add(k, _sample(k, 6, time.monotonic_ns()))
-        for k in (0, 1, 2):
-            sets.add(k, _sample(k, 7, time.monotonic_ns()))
-        assert [[n for n, _ in f] for _, f in sent[-1:]] == [["a", "b", "c"]]
-        assert sent[-1][1][0][1].index == 7
+        assert names() == ["a", "b", "c"] and sets.short == short + 1
+        assert sent[-1][1][0][1].flags & wire.SET_SHORT
+        assert 3_000_000 <= sent[-1][0] - opened < 100_000_000
+        add(3, 3)  # d's late frame of that trigger leaves at once, alone
+        assert names() == ["d"] and sent[-1][1][0][1].index == 3
+        assert not sent[-1][1][0][1].flags & wire.SET_SHORT
+        for k in range(4):
+            add(k, 4)
+        assert names() == ["a", "b", "c", "d"] and not sent[-1][1][0][1].flags
+        # camera a's next frame closes the open set it is in
+        before = len(sent)
+        add(0, 5)
+        add(0, 6)
+        assert len(sent) == before + 1 and names() == ["a"]
+        assert sent[-1][1][0][1].index == 5
+        # d silent past STALE_NS: sets no longer wait for it
+        time.sleep(STALE_NS * 1e-9 + 0.02)
+        for g in (7, 8, 9):
+            for k in (0, 1, 2):
+                add(k, g)
+        assert names() == ["a", "b", "c"] and sent[-1][1][0][1].index == 9
+        assert not sent[-1][1][0][1].flags & wire.SET_SHORT
     finally:
         sets.close()
         sets.timer.join(1.0)
     assert not sets.timer.is_alive()
+
+
+def test_a_simulated_node_serves_its_cameras_from_one_thread_on_time():
+    """SimNodeCapture: every camera's frames, trigger after trigger, none before it is
+    due (taken + the camera's transfer delay) and late by little; a camera that
+    disconnects (simulated) is reopened, its frames counting from 0 again."""
+    from daemon.config import SimConfig
+    from daemon.synthetic.node_sim import SimNodeCapture
+    from daemon.synthetic.scene import SimCamera, SimScene
+
+    scene = SimScene(SimConfig(cameras=4, drop_camera="cam1", drop_from_s=0.5,
+                               drop_for_s=0.1), n_frames=480)  # cam1 opens after 0.3 s
+    t0 = time.monotonic_ns()
+    got = [[] for _ in range(4)]
+    cams = [SimCamera(scene, c, t0) for c in range(4)]
+    group = SimNodeCapture(cams, [got[c].append for c in range(4)], retry_s=0.05)
+    group.start()
+    time.sleep(1.0)
+    group.stop()
+    group.join(1.0)
+    assert not group.thread.is_alive()
+    for c in range(4):
+        assert len(got[c]) > 60, c
+        late = np.array([s.arrival_ns - scene.taken_ns(s) - scene.transfer_ns[c]
+                         for s in got[c]])
+        assert late.min() >= 0 and np.median(late) < 1_000_000, (c, np.median(late))
+        triggers = np.array([scene.trigger_of(s) for s in got[c]])
+        steps = np.diff(triggers)
+        if c != 1:
+            assert np.all(steps == 1) and group.states[c].failures == 0
+    # cam1 was away 0.5-0.6 s after trigger 0: reopened, its frame ids from 0 again
+    assert group.states[1].failures >= 1 and group.states[1].connected  # each failed open
+    ids = [s.device_frame_id for s in got[1]]
+    assert ids.count(0) == 2
+    t = np.array([scene.trigger_of(s) for s in got[1]]) / scene.fps
+    assert not np.any((t >= 0.5) & (t < 0.6)) and t.min() < 0.5 and t.max() > 0.65
 
 
 def test_clock_and_pose_messages_round_trip():

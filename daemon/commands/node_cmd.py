@@ -53,7 +53,7 @@ def register(app: typer.Typer) -> None:
         from daemon.nodes.node import Node, NodeTime, live_sources
         from daemon.nodes.session import ZenohSettings, check_endpoint, check_name
         from daemon.nodes.settings import PUBLISH, load_node_config, parse_camera_list
-        from daemon.synthetic.node_sim import sim_sources
+        from daemon.synthetic.node_sim import sim_capture, sim_sources
 
         setup_logging(verbose)
         cfg = load_node_config(config)
@@ -75,7 +75,7 @@ def register(app: typer.Typer) -> None:
             cfg = replace(cfg, session=s)
         except ValueError as exc:
             raise UserError(str(exc)) from None
-        clock = NodeTime()
+        clock, capture = NodeTime(), None
         if sim:
             sc = cfg.sim or SimConfig()
             sc = replace(sc, **{k: v for k, v in (("cameras", sim_cameras), ("fps", sim_fps),
@@ -95,10 +95,10 @@ def register(app: typer.Typer) -> None:
             if abs(drift) > 1000:
                 raise UserError(f"--clock-drift-ppm must be within +-1000, got {drift}")
             clock = NodeTime(round(offset * 1e6), drift)
-            sources = sim_sources(cfg)
+            sources, capture = sim_sources(cfg), sim_capture
         else:
             sources = live_sources(cfg)
-        n = Node(cfg, sources, clock)
+        n = Node(cfg, sources, clock, capture)
         signal.signal(signal.SIGTERM, lambda *_: n.stop_event.set())
         signal.signal(signal.SIGINT, lambda *_: n.stop_event.set())
         n.run(duration)

@@ -72,21 +72,26 @@ class SetPublisher:
     Why: the daemon's interpreter wakes for every message it gets; 32 cameras at 240 fps
     sent one frame a message are 7680 wake-ups a second, most of the time a frame spends
     between node and daemon. A set goes out, on the capture thread of its last frame, as
-    soon as every camera that is delivering has a frame in it; a camera whose frame has
-    not come is waited for at most `wait_ns` (then the set goes without it, from a thread
-    of its own), and a camera's next frame closes the set its last one is in. A camera
-    with no frame for STALE_NS is not waited for. The daemon's multiplexer pairs frames by
-    their capture times, so a set split by a late frame costs nothing but a message."""
+    soon as every camera that is delivering has a frame in it. A camera whose frame has
+    not come is waited for at most `wait_ns`: the set then goes without it (from a thread
+    of its own, marked short), and the late frame, when it comes, goes out alone at once,
+    as the rest of that set (by its capture time: within half its camera's frame period of
+    the set's). A camera's next frame closes the set its last one is in; a camera with no
+    frame for STALE_NS is not waited for. The daemon's multiplexer pairs frames by their
+    capture times, so a split set costs a message, never a frame's time."""
 
     def __init__(self, session, key: str, boot: int, clock: NodeTime, names: list[str],
                  wait_ns: int) -> None:
         self.pub = _publisher(session, key)
         self.boot, self.clock, self.wait_ns = boot, clock, int(wait_ns)
         self.names = [n.encode("ascii") for n in names]
-        self.last = [0] * len(names)  # each camera's latest frame, machine clock (ns)
+        self.last = [0] * len(names)  # each camera's latest frame came (machine clock, ns)
+        self.last_t = [0] * len(names)  # and was taken (its t_ns)
+        self.period = [0] * len(names)  # between its last two frames' t_ns
         self.pending: dict[int, object] = {}  # camera slot -> its sample in the open set
         self.expect: set[int] = set()
         self.opened = 0  # when the open set got its first frame (machine clock, ns)
+        self.missed: tuple[int, set] = (0, set())  # the last short set: its time, who missed
         self.seq = 0
         self.sent = 0  # messages
         self.short = 0  # sets sent without a camera that was waited for
@@ -110,6 +115,15 @@ class SetPublisher:
         now = time.monotonic_ns()
         with self.cond:
             self.last[slot] = now
+            if self.last_t[slot]:
+                self.period[slot] = s.t_ns - self.last_t[slot]
+            self.last_t[slot] = s.t_ns
+            t_set, missed = self.missed
+            if slot in missed:
+                missed.discard(slot)
+                if 2 * abs(s.t_ns - t_set) < self.period[slot]:  # the short set's own
+                    self._publish({slot: s}, short=False)
+                    return
             if slot in self.pending:  # its next frame: the open set gets no more
                 self._send()
             if not self.pending:
@@ -134,14 +148,19 @@ class SetPublisher:
 
     def _send(self) -> None:
         """Publishes the open set (the lock held: sets leave in order)."""
-        if len(self.pending) < len(self.expect):
+        missing = self.expect.difference(self.pending)
+        if missing:
             self.short += 1
+            self.missed = (min(s.t_ns for s in self.pending.values()), missing)
+        pending, self.pending = self.pending, {}
+        self._publish(pending, short=bool(missing))
+
+    def _publish(self, frames: dict, short: bool) -> None:
         of = self.clock.of
-        frames = [(self.names[k], s.index, of(s.t_ns), of(s.arrival_ns), s.device_time_ns,
-                   s.device_frame_id, s.uv, s.area, s.peak)
-                  for k, s in sorted(self.pending.items())]
-        self.pending = {}
-        data = wire.encode_sets(self.boot, self.seq, self.clock.now(), frames)
+        rows = [(self.names[k], s.index, of(s.t_ns), of(s.arrival_ns), s.device_time_ns,
+                 s.device_frame_id, s.uv, s.area, s.peak) for k, s in sorted(frames.items())]
+        data = wire.encode_sets(self.boot, self.seq, self.clock.now(), rows,
+                                wire.SET_SHORT if short else 0)
         self.seq += 1
         self.pub.put(data)
         self.sent += 1
@@ -169,13 +188,19 @@ class CapturePublisher:
 class Node:
     """The node's session, capture threads, clock answers and announcements."""
 
-    def __init__(self, cfg: NodeConfig, sources, clock: NodeTime | None = None) -> None:
+    def __init__(self, cfg: NodeConfig, sources, clock: NodeTime | None = None,
+                 capture=None) -> None:
+        """`capture(sources, pushes)`: what runs the cameras, as (runners with start, stop
+        and join; per camera, a state with connected and frames); by default a capture
+        thread each (daemon.pipeline.CaptureThread), both roles in one."""
         self.cfg, self.sources = cfg, list(sources)
+        self.capture = capture or _capture_threads
         self.clock = clock or NodeTime()
         self.boot = random.SystemRandom().getrandbits(32)
         self.scheduling = "normal"  # what its threads run at, once started (daemon.realtime)
         self.stop_event = threading.Event()
-        self.captures: list[CaptureThread] = []
+        self.runners: list = []
+        self.captures: list = []  # per camera: connected, frames
         self.sets: SetPublisher | None = None
         self.session = None
         self.pings = 0
@@ -221,13 +246,12 @@ class Node:
                                      self.clock, [s.name for s in self.sources],
                                      round(self.cfg.set_wait_ms * 1e6))
             self.sets.start()
-        for k, src in enumerate(self.sources):
-            push = (self.sets.push_for(k) if self.sets is not None else
-                    CapturePublisher(self.session, blobs_key(rig, src.name), self.boot,
-                                     self.clock))
-            self.captures.append(CaptureThread(src, push))
-        for cap in self.captures:
-            cap.start()
+        pushes = [self.sets.push_for(k) if self.sets is not None else
+                  CapturePublisher(self.session, blobs_key(rig, src.name), self.boot,
+                                   self.clock) for k, src in enumerate(self.sources)]
+        self.runners, self.captures = self.capture(self.sources, pushes)
+        for runner in self.runners:
+            runner.start()
         log.info("node %s (boot %08x): %d cameras on mocap/%s/ (%s)", self.cfg.name,
                  self.boot, len(self.sources), rig,
                  ", ".join(self.cfg.session.connect + self.cfg.session.listen))
@@ -245,16 +269,21 @@ class Node:
             self.close()
 
     def close(self) -> None:
-        for cap in self.captures:
-            cap.stop()
-        for cap in self.captures:
-            cap.join(0.5)
+        for runner in self.runners:
+            runner.stop()
+        for runner in self.runners:
+            runner.join(0.5)
         if self.sets is not None:
             self.sets.close()
         if self.session is not None:
             self.session.close()
             self.session = None
         restore_normal()
+
+
+def _capture_threads(sources, pushes):
+    threads = [CaptureThread(src, push) for src, push in zip(sources, pushes, strict=True)]
+    return threads, threads
 
 
 def live_sources(cfg: NodeConfig):

@@ -218,7 +218,8 @@ class NodeHub:
 
     def _take(self, frames) -> None:
         """A message's frames, their times mapped to the daemon's clock, to their cameras'
-        captures; its hop (the node got its newest frame -> the daemon has them all)."""
+        captures; its hop (the node got its newest frame, or sent a short set -> the
+        daemon has them all)."""
         node = self.nodes.get(frames[0][1].boot)
         if node is None or not node.clock.ready:
             if node is not None:
@@ -238,8 +239,12 @@ class NodeHub:
                 cap.deliver(CameraSample(cam.index, m.index, to_daemon(m.t_ns),
                                          to_daemon(m.arrival_ns), m.uv, m.area, m.peak,
                                          m.device_time_ns, m.device_frame_id), node, has)
-        newest = max(m.arrival_ns for _, m in frames)
-        node.hop_ns.append(time.monotonic_ns() - to_daemon(newest))
+        m = frames[0][1]
+        # a set that left short waited for a late camera on purpose (set_wait_ms): what
+        # the link and the daemon add is counted from when it left, the wait is the
+        # frames' in-node time (and a set whose late frame follows was not complete before)
+        ready = m.sent_ns if m.flags & wire.SET_SHORT else max(f.arrival_ns for _, f in frames)
+        node.hop_ns.append(time.monotonic_ns() - to_daemon(ready))
 
     # ---- figures -----------------------------------------------------------------------------
 

@@ -33,6 +33,7 @@ BLOBS_HEAD = struct.Struct("<2sBBIIIqqqqqH")
 BLOB = np.dtype([("u", "<f4"), ("v", "<f4"), ("area", "<f4"), ("peak", "<f4")])
 # magic, version, flags, boot, seq, sent_ns, camera count
 SETS_HEAD = struct.Struct("<2sBBIIqH")
+SET_SHORT = 1  # flags: the set left without a camera it waited for (set_wait_ms passed)
 # per frame: index, t_ns, arrival_ns, device_time_ns, device_frame_id, blob count; then per
 # frame its camera's name (a u8 length and ASCII), then every frame's blobs in order
 SETS_FRAME = np.dtype([("index", "<u4"), ("t_ns", "<i8"), ("arrival_ns", "<i8"),
@@ -54,16 +55,17 @@ class BlobsMessage(NamedTuple):
     named tuple: the daemon makes 7680 of them a second with 32 remote cameras."""
 
     boot: int  # the node process's random id: a new one means it restarted
-    seq: int  # the node's count of messages for this camera
+    seq: int  # the node's count of messages (for this camera, or of sets)
     index: int  # the camera's frame count since it opened
     t_ns: int  # the node's estimate of the capture time
     arrival_ns: int  # when the node got the frame
     sent_ns: int  # when the node published it
     device_time_ns: int  # the camera's own timestamp (-1: none)
     device_frame_id: int  # the camera's own counter (-1: none)
-    uv: np.ndarray  # (N, 2) float32 distorted pixels
+    uv: np.ndarray  # (N, 2) distorted pixels
     area: np.ndarray
     peak: np.ndarray
+    flags: int = 0  # of a blob-sets message: SET_SHORT
 
 
 def _blob_bytes(uv, area, peak) -> bytes:
@@ -107,7 +109,7 @@ def decode_blobs(data: bytes) -> BlobsMessage:
     return BlobsMessage(boot, seq, index, t_ns, arrival, sent, device, fid, uv, area, peak)
 
 
-def encode_sets(boot: int, seq: int, sent_ns: int, frames) -> bytes:
+def encode_sets(boot: int, seq: int, sent_ns: int, frames, flags: int = 0) -> bytes:
     """One message of a node's frames: `frames` are (camera name as bytes, index, t_ns,
     arrival_ns, device_time_ns, device_frame_id, uv, area, peak). The frames' fixed fields
     come first as one table, then the names, then every frame's blobs back to back: the
@@ -120,7 +122,7 @@ def encode_sets(boot: int, seq: int, sent_ns: int, frames) -> bytes:
         table[k] = (index & 0xFFFFFFFF, t_ns, arrival, device, fid, len(uv))
         names += [bytes((len(name),)), name]
         blobs.append(_blob_bytes(uv, area, peak))
-    return b"".join([SETS_HEAD.pack(SETS_MAGIC, VERSION, 0, boot & 0xFFFFFFFF,
+    return b"".join([SETS_HEAD.pack(SETS_MAGIC, VERSION, flags, boot & 0xFFFFFFFF,
                                     seq & 0xFFFFFFFF, sent_ns, len(frames)),
                      table.tobytes(), *names, *blobs])
 
@@ -130,7 +132,7 @@ def decode_sets(data: bytes) -> list[tuple[str, BlobsMessage]]:
     size = len(data)
     if size < SETS_HEAD.size:
         raise WireError(f"a blob-sets message of {size} bytes is shorter than its header")
-    magic, version, _, boot, seq, sent, count = SETS_HEAD.unpack_from(data)
+    magic, version, flags, boot, seq, sent, count = SETS_HEAD.unpack_from(data)
     if magic != SETS_MAGIC or version != VERSION:
         raise WireError(f"not a version {VERSION} blob-sets message ({magic!r} v{version})")
     at = SETS_HEAD.size + count * SETS_FRAME.itemsize
@@ -153,7 +155,7 @@ def decode_sets(data: bytes) -> list[tuple[str, BlobsMessage]]:
     rows = table.tolist()
     for name, (index, t_ns, arrival, device, fid, _n), b in zip(names, rows, ends, strict=True):
         out.append((name, BlobsMessage(boot, seq, index, t_ns, arrival, sent, device, fid,
-                                       uv[a:b], area[a:b], peak[a:b])))
+                                       uv[a:b], area[a:b], peak[a:b], flags)))
         a = b
     return out
 
