@@ -28,6 +28,7 @@ import time
 from calibkit.cameras import missing_plugins
 from calibkit.core.errors import UserError
 from calibkit.vision.detect import DetectorConfig
+from daemon import heap
 from daemon.nodes import wire
 from daemon.nodes.session import announce_key, blobs_key, ping_key, pong_key, sets_key
 from daemon.nodes.settings import NodeConfig
@@ -250,6 +251,7 @@ class Node:
                   CapturePublisher(self.session, blobs_key(rig, src.name), self.boot,
                                    self.clock) for k, src in enumerate(self.sources)]
         self.runners, self.captures = self.capture(self.sources, pushes)
+        heap.freeze_startup()  # as the daemon does (daemon.heap)
         for runner in self.runners:
             runner.start()
         log.info("node %s (boot %08x): %d cameras on mocap/%s/ (%s)", self.cfg.name,
@@ -279,6 +281,7 @@ class Node:
             self.session.close()
             self.session = None
         restore_normal()
+        heap.release()
 
 
 def _capture_threads(sources, pushes):
