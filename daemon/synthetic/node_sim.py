@@ -12,12 +12,12 @@ from __future__ import annotations
 
 import heapq
 import logging
-import threading
 import time
 
 from calibkit.core.errors import UserError
 from daemon.nodes.settings import NodeConfig
 from daemon.sources import fine_timer_slack
+from daemon.worker import Worker
 
 log = logging.getLogger("mocapd.node")
 
@@ -51,7 +51,7 @@ class _CameraState:
         self.failures = 0
 
 
-class SimNodeCapture:
+class SimNodeCapture(Worker):
     """All of a simulated node's cameras on one thread.
 
     Why: a node stands for a computer of its own, but the nodes of a test or benchmark
@@ -67,17 +67,7 @@ class SimNodeCapture:
         self.cameras, self.pushes = list(cameras), list(pushes)
         self.retry_ns = int(retry_s * 1e9)
         self.states = [_CameraState(c.name) for c in self.cameras]
-        self._stop = threading.Event()
-        self.thread = threading.Thread(target=self._run, name="sim-cameras", daemon=True)
-
-    def start(self) -> None:
-        self.thread.start()
-
-    def stop(self) -> None:
-        self._stop.set()
-
-    def join(self, timeout: float = 1.0) -> None:
-        self.thread.join(timeout)
+        super().__init__("sim-cameras")
 
     def _open(self, heap: list, slot: int) -> None:
         session = self.cameras[slot].session()
