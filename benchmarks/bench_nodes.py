@@ -14,15 +14,21 @@ Runs, each a set of separate processes on this machine (loopback only):
   3.7 s ahead and 50 ppm fast; the daemon's clock estimate is read every half second
   from `mocapd status` and scored against the node's true clock.
 
-Figures: frame sets complete (sets with all 32 cameras / sets), tracking against the
+Figures: frame sets complete (sets with all 32 cameras / sets) once every camera is in
+and its clock settled (a camera that has just joined is left out of the sets for its
+first ~0.1 s, local or remote: that transient is reported apart), tracking against the
 simulator's truth (bodies valid, position RMS) beside the local run's; the hop a node adds
-(its frame's arrival there -> the daemon's capture thread has it, through the daemon's
-clock estimate, whose error is the clock figure below); the clock's offset error and
+(the node got a message's newest frame -> the daemon has the message's frames in its
+multiplexer, through the daemon's clock estimate, whose error is the clock figure below;
+a frame set cannot be complete before its newest frame, so this is what the node adds to
+it; a frame's whole time in its node, waiting for its set's other frames included, is
+reported beside it); the clock's offset error and
 drift; the killed node's cameras back in the frame sets after its restart, counted from
 its first message (and from the process start, which includes building the simulated
 scene).
 
-    python benchmarks/bench_nodes.py [--seconds 20] [--cameras 32] [--no-link] [--json out.json]
+    python benchmarks/bench_nodes.py [--seconds 20] [--cameras 32] [--no-link]
+                                     [--publish sets|cameras|both] [--json out.json]
 """
 
 from __future__ import annotations
@@ -63,10 +69,11 @@ def daemon(conf: Path, seconds: float, out: Path, extra=()):
                             stderr=subprocess.DEVNULL)
 
 
-def node(name, rig, endpoint, cameras, clock, n_cameras=32, seconds=120):
+def node(name, rig, endpoint, cameras, clock, n_cameras=32, seconds=120, publish="sets"):
     return subprocess.Popen(
         [sys.executable, "-m", "daemon.cli", "node", "--sim", "--sim-cameras", str(n_cameras),
          "--cameras", cameras, "--name", name, "--rig", rig, "--connect", endpoint,
+         "--publish", publish,
          "--clock-offset-ms", str(clock[0]), "--clock-drift-ppm", str(clock[1]),
          "--duration", str(seconds)], cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL)
@@ -89,6 +96,36 @@ def wait_status(runtime, ok, timeout_s):
             return st, time.monotonic()
         time.sleep(0.05)
     return None, time.monotonic()
+
+
+def steady_sets(runtime, seconds: float) -> dict | None:
+    """Frame sets over `seconds` once every camera is in and settled: from when no sample
+    has been left out for its camera's clock settling for a second (a camera that has
+    just joined is left out of the sets for its first ~0.1 s, local or remote alike; how
+    long all that took is `settle_s`)."""
+    t0 = time.monotonic()
+    st, _ = wait_status(runtime, lambda s: all(c["connected"] for c in s["cameras"]), 120)
+    if st is None or st.get("multiplexer") is None:
+        return None
+    last, since = st["multiplexer"]["settling_samples"], time.monotonic()
+    while time.monotonic() - since < 1.0:
+        time.sleep(0.1)
+        st = status(runtime)
+        if st is None:
+            return None
+        if st["multiplexer"]["settling_samples"] != last:
+            last, since = st["multiplexer"]["settling_samples"], time.monotonic()
+    settled = time.monotonic() - t0 - 1.0
+    time.sleep(seconds)
+    st1 = status(runtime)
+    if st1 is None:
+        return None
+    m0, m1 = st["multiplexer"], st1["multiplexer"]
+    made = (st1["frames"] - st["frames"]) + (m1["skipped_behind"] - m0["skipped_behind"])
+    return {"sets": made, "settle_s": settled,
+            "complete": 1 - (m1["incomplete_sets"] - m0["incomplete_sets"]) / max(made, 1),
+            "late_samples": m1["late_samples"] - m0["late_samples"],
+            "skipped_behind": m1["skipped_behind"] - m0["skipped_behind"]}
 
 
 def stop(procs):
@@ -126,15 +163,22 @@ def sim_toml(path: Path, runtime: Path, rig: str | None, port: int | None, camer
 
 
 def run_local(tmp: Path, seconds: float, cameras: int) -> dict:
-    conf, out = tmp / "local.toml", tmp / "local.json"
-    sim_toml(conf, tmp / "run-local", None, None, cameras)
-    daemon(conf, seconds, out).wait()
     import json
 
-    return tracking(json.loads(out.read_text()))
+    conf, out, runtime = tmp / "local.toml", tmp / "local.json", tmp / "run-local"
+    sim_toml(conf, runtime, None, None, cameras)
+    d = daemon(conf, seconds, out)
+    try:
+        steady = steady_sets(runtime, seconds * 0.3)
+        d.wait(seconds * 3 + 120)
+    finally:
+        stop([d])
+    res = tracking(json.loads(out.read_text()))
+    res["steady"] = steady
+    return res
 
 
-def run_nodes(tmp: Path, seconds: float, cameras: int) -> dict:
+def run_nodes(tmp: Path, seconds: float, cameras: int, publish: str = "sets") -> dict:
     import json
 
     port, rig = free_port(), "bench"
@@ -143,8 +187,8 @@ def run_nodes(tmp: Path, seconds: float, cameras: int) -> dict:
     sim_toml(conf, runtime, rig, port, cameras)
     d = daemon(conf, seconds, out)
     per = cameras // 4
-    nodes = [node(f"n{k}", rig, ep, f"{per * k}-{per * k + per - 1}", CLOCKS[k], cameras)
-             for k in range(4)]
+    nodes = [node(f"n{k}", rig, ep, f"{per * k}-{per * k + per - 1}", CLOCKS[k], cameras,
+                  publish=publish) for k in range(4)]
     procs = [d, *nodes]
     rejoin, before = {}, None
     try:
@@ -152,17 +196,7 @@ def run_nodes(tmp: Path, seconds: float, cameras: int) -> dict:
                             and len(s.get("nodes") or []) == 4, 120)
         if st is None:
             raise SystemExit(f"the {cameras} cameras never all came in")
-        t_all = time.monotonic()
-        time.sleep(seconds * 0.3)
-        st0 = status(runtime)
-        before = None
-        if st0 is not None and st["multiplexer"] is not None:  # the sets in that span
-            m0, m1 = st["multiplexer"], st0["multiplexer"]
-            made = (st0["frames"] - st["frames"]) + (m1["skipped_behind"]
-                                                     - m0["skipped_behind"])
-            before = {"sets": made, "complete": 1 - (m1["incomplete_sets"]
-                                                     - m0["incomplete_sets"]) / max(made, 1),
-                      "seconds": time.monotonic() - t_all}
+        before = steady_sets(runtime, seconds * 0.3)
         victim = nodes[3]
         victim.send_signal(signal.SIGKILL)
         victim.wait(10)
@@ -171,7 +205,8 @@ def run_nodes(tmp: Path, seconds: float, cameras: int) -> dict:
                                                        for c in s["cameras"][last]), 5)
         old = {n["boot"] for n in st["nodes"] if n["name"] == "n3"} if st else set()
         started = time.monotonic()
-        procs.append(node("n3", rig, ep, f"{3 * per}-{4 * per - 1}", CLOCKS[3], cameras))
+        procs.append(node("n3", rig, ep, f"{3 * per}-{4 * per - 1}", CLOCKS[3], cameras,
+                          publish=publish))
         st, first = wait_status(runtime, lambda s: any(n["name"] == "n3" and n["boot"] not in old
                                                        for n in s["nodes"]), 120)
         st, back = wait_status(runtime, lambda s: all(c["connected"]
@@ -184,7 +219,7 @@ def run_nodes(tmp: Path, seconds: float, cameras: int) -> dict:
     fig = json.loads(out.read_text())
     res = tracking(fig)
     res["rejoin"] = rejoin
-    res["before_kill"] = before
+    res["steady"] = before
     res["nodes"] = fig["nodes"]
     errs = []
     for n in fig["nodes"]:
@@ -234,51 +269,86 @@ def run_link(tmp: Path, seconds: float) -> dict:
             "rtt_ms_median": float(np.median(rtts))}
 
 
+def _cell(v) -> str:
+    return f"{v:.3f}" if isinstance(v, float) else str(v)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--cameras", type=int, default=32, help="in all, on 4 nodes (4-32)")
     ap.add_argument("--no-link", action="store_true", help="skip the delayed-link run")
+    ap.add_argument("--publish", choices=("sets", "cameras", "both"), default="sets",
+                    help="how the nodes publish: a message per trigger (sets, their default), "
+                         "per camera frame, or both runs one after the other")
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args()
+    kinds = ("sets", "cameras") if a.publish == "both" else (a.publish,)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         local = run_local(tmp, a.seconds, a.cameras)
-        nodes = run_nodes(tmp, a.seconds, a.cameras)
+        runs = {}
+        for k in kinds:
+            (tmp / k).mkdir()
+            runs[k] = run_nodes(tmp / k, a.seconds, a.cameras, k)
         link = None if a.no_link else run_link(tmp, a.seconds)
-    rows = []
+    names = [f"nodes ({k})" for k in kinds]
+
+    def steady(r, key, fmt):
+        return "-" if r["steady"] is None else format(r["steady"][key], fmt)
+
+    rows = [["frame sets complete, all cameras in and settled",
+             steady(local, "complete", ".4f"),
+             *(steady(r, "complete", ".4f") for r in runs.values()), "1"],
+            ["  sets in that window, late samples",
+             f"{steady(local, 'sets', 'd')}, {steady(local, 'late_samples', 'd')}",
+             *(f"{steady(r, 'sets', 'd')}, {steady(r, 'late_samples', 'd')}"
+               for r in runs.values()), "-"],
+            ["  from all cameras in to settled (s)", steady(local, "settle_s", ".2f"),
+             *(steady(r, "settle_s", ".2f") for r in runs.values()), "-"]]
     for key in ("frames", "rate_hz", "sets_complete", "skipped_behind", "valid_fraction_min",
                 "position_error_mm_rms", "gross_error_frames", "latency_to_poses_ms_median",
                 "latency_to_poses_ms_p99"):
-        lv, nv = local[key], nodes[key]
-        ratio = nv / lv if isinstance(lv, float) and lv else None
-        rows.append([key, lv, nv, "-" if ratio is None else f"{ratio:.2f}"])
-    print_table(rows, [f"{a.cameras} cameras, 240 fps", "local", "4 nodes", "nodes/local"])
-    link_rows = [] if link is None else [
-        ["clock error, 1 ms +- 0.2 ms link, median (us)",
-         f"{link['offset_error_us_median']:.1f}", "<= 50"],
-        ["clock error, 1 ms +- 0.2 ms link, p95 / max (us)",
-         f"{link['offset_error_us_p95']:.1f} / {link['offset_error_us_max']:.1f}", "<= 50"],
-        ["drift of a 50 ppm node, median / worst error (ppm)",
-         f"{link['drift_ppm_median']:.1f} / {link['drift_error_ppm_max']:.1f}", "followed"]]
+        lv = local[key]
+        cells = []
+        for r in runs.values():
+            ratio = r[key] / lv if isinstance(lv, float) and lv else None
+            cells.append(_cell(r[key]) + ("" if ratio is None else f" ({ratio:.2f})"))
+        rows.append([key + (" (whole run)" if key == "sets_complete" else ""), _cell(lv),
+                     *cells, "-"])
+    print_table(rows, [f"{a.cameras} cameras, 240 fps", "local", *(f"{n} (/local)"
+                                                                   for n in names), "target"])
+
+    def each(fmt):
+        return [fmt(r) for r in runs.values()]
+
     print_table([
-        ["hop node -> daemon, median of nodes (ms)", f"{nodes['hop_ms_median']:.3f}", "<= 0.3"],
-        ["hop node -> daemon, worst node's p99 (ms)", f"{nodes['hop_ms_p99']:.3f}", "<= 1"],
-        ["  of which in the node (arrival -> published), median / p99 (ms)",
-         f"{nodes['in_node_ms_median']:.3f} / {nodes['in_node_ms_p99']:.3f}", "-"],
-        ["clock error on loopback, worst node (us)", f"{nodes['clock_error_us_loopback_max']:.1f}",
-         "-"],
-        ["frame sets complete, all nodes up (before the kill)",
-         "-" if nodes["before_kill"] is None else f"{nodes['before_kill']['complete']:.3f}",
-         "1"],
-        *link_rows,
+        ["hop node -> daemon, median of nodes (ms)",
+         *each(lambda r: f"{r['hop_ms_median']:.3f}"), "<= 0.3"],
+        ["hop node -> daemon, worst node's p99 (ms)",
+         *each(lambda r: f"{r['hop_ms_p99']:.3f}"), "<= 1"],
+        ["  a frame in its node (arrival -> published), median / p99 (ms)",
+         *each(lambda r: f"{r['in_node_ms_median']:.3f} / {r['in_node_ms_p99']:.3f}"), "-"],
+        ["clock error on loopback, worst node (us)",
+         *each(lambda r: f"{r['clock_error_us_loopback_max']:.1f}"), "-"],
         ["killed node's cameras back, from its first message (s)",
-         f"{nodes['rejoin'].get('from_first_message_s') or float('nan'):.2f}", "<= 2"],
+         *each(lambda r: f"{r['rejoin'].get('from_first_message_s') or float('nan'):.2f}"),
+         "<= 2"],
         ["  ... from its process start (s)",
-         f"{nodes['rejoin'].get('from_process_start_s') or float('nan'):.2f}", "-"],
-    ], ["figure", "measured", "target"])
+         *each(lambda r: f"{r['rejoin'].get('from_process_start_s') or float('nan'):.2f}"),
+         "-"],
+    ], ["figure", *names, "target"])
+    if link is not None:
+        print_table([
+            ["clock error, 1 ms +- 0.2 ms link, median (us)",
+             f"{link['offset_error_us_median']:.1f}", "<= 50"],
+            ["clock error, 1 ms +- 0.2 ms link, p95 / max (us)",
+             f"{link['offset_error_us_p95']:.1f} / {link['offset_error_us_max']:.1f}", "<= 50"],
+            ["drift of a 50 ppm node, median / worst error (ppm)",
+             f"{link['drift_ppm_median']:.1f} / {link['drift_error_ppm_max']:.1f}",
+             "followed"]], ["figure (one node through a delaying relay)", "measured", "target"])
     if a.json:
-        write_json(a.json, {"local": local, "nodes": nodes, "link": link})
+        write_json(a.json, {"local": local, "nodes": runs, "link": link})
 
 
 if __name__ == "__main__":

@@ -29,6 +29,7 @@ import numpy as np
 from daemon.multiplexer import FrameSet, Multiplexer, blob_velocity
 from daemon.rigid import BodyPoses, RigidTracker
 from daemon.tracker import Tracker, TrackFrame
+from daemon.worker import Worker
 
 __all__ = ["CaptureThread", "FrameResult", "FrameSet", "Multiplexer", "Pipeline", "Stats",
            "blob_velocity", "latency_figures"]
@@ -62,7 +63,7 @@ class FrameResult:
 
 # ---- capture ---------------------------------------------------------------------------------
 
-class CaptureThread:
+class CaptureThread(Worker):
     """Reads one camera's blob source; on failure logs, waits and reopens."""
 
     def __init__(self, source, push, retry_s: float = 0.2, on_open=None) -> None:
@@ -76,17 +77,7 @@ class CaptureThread:
         self.failures = 0
         self.last_error = ""
         self.times: deque = deque(maxlen=256)
-        self._stop = threading.Event()
-        self.thread = threading.Thread(target=self._run, name=f"cam-{self.name}", daemon=True)
-
-    def start(self) -> None:
-        self.thread.start()
-
-    def stop(self) -> None:
-        self._stop.set()
-
-    def join(self, timeout: float = 1.0) -> None:
-        self.thread.join(timeout)
+        super().__init__(f"cam-{self.name}")
 
     def rate_hz(self) -> float:
         t = list(self.times)

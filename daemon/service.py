@@ -28,6 +28,7 @@ from calibkit.vision.correspondence import match_frame
 from calibkit.vision.detect import DetectorConfig, detect
 from calibkit.vision.gates import correspondence_config, rig_residual, tracker_gates
 from calibkit.vision.masks import load_mask
+from daemon import heap
 from daemon.config import Config, default_runtime_dir, load_config, parse_config
 from daemon.control import ControlServer
 from daemon.nodes.remote import make_hub
@@ -379,6 +380,7 @@ class Daemon:
                 self.shutdown()
         finally:
             restore_normal()
+            heap.release()
         return self.figures()
 
     def _run_fast(self, frames, duration_s, progress) -> None:
@@ -435,6 +437,7 @@ class Daemon:
 
         self.mux = Multiplexer(n, cfg.mode, fps, cfg.timeout_frames, connected=connected,
                                tolerance_frames=cfg.pair_tolerance, origin_ns=t0)
+        heap.freeze_startup()  # a full collection would stop every thread for tens of ms
         for cap in self.captures:
             cap.push = self.mux.push
             cap.on_open = self.mux.reset_camera

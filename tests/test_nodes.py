@@ -48,6 +48,165 @@ def test_blobs_message_round_trips_and_refuses_what_it_is_not():
         wire.decode_blobs(b"XX" + data[2:])
 
 
+def _frames(rng, counts):
+    return [(f"cam{k}".encode(), 100 + k, 10**12 + k, 10**12 + 50 + k, 2**40 + k, 7 + k,
+             rng.uniform(0, 640, (n, 2)), rng.uniform(2, 50, n), rng.uniform(10, 255, n))
+            for k, n in enumerate(counts)]
+
+
+def test_blob_sets_message_round_trips_and_refuses_what_it_is_not():
+    rng = np.random.default_rng(2)
+    frames = _frames(rng, [5, 0, 12, 1])
+    data = wire.encode_sets(0xFEEDF00D, 77, 10**12 + 999, frames)
+    got = wire.decode_sets(data)
+    assert [n for n, _ in got] == ["cam0", "cam1", "cam2", "cam3"]
+    for (_, m), f in zip(got, frames, strict=True):
+        assert (m.boot, m.seq, m.sent_ns) == (0xFEEDF00D, 77, 10**12 + 999)
+        assert (m.index, m.t_ns, m.arrival_ns, m.device_time_ns, m.device_frame_id) == f[1:6]
+        assert m.uv.shape == (len(f[6]), 2)
+        np.testing.assert_allclose(m.uv, f[6], atol=1e-4 * 640)  # float32 on the wire
+        np.testing.assert_allclose(m.area, f[7].astype(np.float32))
+        np.testing.assert_allclose(m.peak, f[8].astype(np.float32))
+    assert wire.decode_sets(wire.encode_sets(1, 0, 0, [])) == []
+    with pytest.raises(wire.WireError, match="does not hold"):
+        wire.decode_sets(data[:-3])
+    with pytest.raises(wire.WireError, match="does not hold"):
+        wire.decode_sets(data + b"\0")
+    with pytest.raises(wire.WireError, match="ends inside"):
+        wire.decode_sets(data[:wire.SETS_HEAD.size + 10])
+    with pytest.raises(wire.WireError, match="not a version"):
+        wire.decode_sets(wire.encode_blobs(1, 0, 0, 0, 0, 0, -1, -1, np.zeros((0, 2)),
+                                           np.zeros(0), np.zeros(0)))
+
+
+class _Pub:
+    """Stands in for a Zenoh publisher: keeps what is put, with when."""
+
+    def __init__(self):
+        self.sent = []
+
+    def put(self, data):
+        self.sent.append((time.monotonic_ns(), wire.decode_sets(data)))
+
+
+class _Session:
+    def __init__(self):
+        self.pub = _Pub()
+
+    def declare_publisher(self, key, **_):
+        return self.pub
+
+
+def _sample(camera, index, arrival):
+    from daemon.sources import CameraSample
+
+    uv = np.full((2, 2), float(camera))
+    return CameraSample(camera, index, arrival, arrival, uv, np.ones(2), np.ones(2), -1, -1)
+
+
+def test_a_node_sends_one_set_per_trigger_as_soon_as_its_last_frame_is_in():
+    """Four cameras: each trigger's four frames leave in one message when the fourth
+    comes, not before; a camera whose frame does not come is waited for set_wait_ms, the
+    set leaves marked short without it, and its late frame leaves alone the moment it
+    comes; a camera's next frame closes the set its last one is in; a camera silent past
+    STALE_NS is no longer waited for."""
+    from daemon.nodes.node import STALE_NS, NodeTime, SetPublisher
+
+    period, t0 = 4_166_667, time.monotonic_ns()
+
+    def add(k, g):
+        sets.add(k, _sample(k, g, t0 + g * period + k * 1000))
+
+    def names(i=-1):
+        return [n for n, _ in sent[i][1]]
+
+    session = _Session()
+    sets = SetPublisher(session, "k", 5, NodeTime(), ["a", "b", "c", "d"], wait_ns=3_000_000)
+    sets.start()
+    sent = session.pub.sent
+    try:
+        for k in range(4):  # the first trigger: cameras not known yet are not waited for
+            add(k, 0)
+        time.sleep(0.02)  # what waited for a camera has timed out
+        assert sorted(n for _, f in sent for n, _ in f) == ["a", "b", "c", "d"]
+        first, short = len(sent), sets.short
+        for g in (1, 2):  # all four known now: one message per trigger
+            for k in (2, 0, 3, 1):
+                before = len(sent)
+                add(k, g)
+                assert len(sent) == before + (k == 1)  # out with its last frame only
+        assert [[n for n, _ in f] for _, f in sent[first:]] == [["a", "b", "c", "d"]] * 2
+        # camera d is late at trigger 3: the set waits 3 ms, then leaves without it
+        opened = time.monotonic_ns()
+        for k in (0, 1, 2):
+            add(k, 3)
+        end = time.monotonic() + 1.0
+        while len(sent) == first + 2 and time.monotonic() < end:
+            time.sleep(0.0005)
+        assert names() == ["a", "b", "c"] and sets.short == short + 1
+        assert sent[-1][1][0][1].flags & wire.SET_SHORT
+        assert 3_000_000 <= sent[-1][0] - opened < 100_000_000
+        add(3, 3)  # d's late frame of that trigger leaves at once, alone
+        assert names() == ["d"] and sent[-1][1][0][1].index == 3
+        assert not sent[-1][1][0][1].flags & wire.SET_SHORT
+        for k in range(4):
+            add(k, 4)
+        assert names() == ["a", "b", "c", "d"] and not sent[-1][1][0][1].flags
+        # camera a's next frame closes the open set it is in
+        before = len(sent)
+        add(0, 5)
+        add(0, 6)
+        assert len(sent) == before + 1 and names() == ["a"]
+        assert sent[-1][1][0][1].index == 5
+        # d silent past STALE_NS: sets no longer wait for it
+        time.sleep(STALE_NS * 1e-9 + 0.02)
+        for g in (7, 8, 9):
+            for k in (0, 1, 2):
+                add(k, g)
+        assert names() == ["a", "b", "c"] and sent[-1][1][0][1].index == 9
+        assert not sent[-1][1][0][1].flags & wire.SET_SHORT
+    finally:
+        sets.close()
+        sets.timer.join(1.0)
+    assert not sets.timer.is_alive()
+
+
+def test_a_simulated_node_serves_its_cameras_from_one_thread_on_time():
+    """SimNodeCapture: every camera's frames, trigger after trigger, none before it is
+    due (taken + the camera's transfer delay) and late by little; a camera that
+    disconnects (simulated) is reopened, its frames counting from 0 again."""
+    from daemon.config import SimConfig
+    from daemon.synthetic.node_sim import SimNodeCapture
+    from daemon.synthetic.scene import SimCamera, SimScene
+
+    scene = SimScene(SimConfig(cameras=4, drop_camera="cam1", drop_from_s=0.5,
+                               drop_for_s=0.1), n_frames=480)  # cam1 opens after 0.3 s
+    t0 = time.monotonic_ns()
+    got = [[] for _ in range(4)]
+    cams = [SimCamera(scene, c, t0) for c in range(4)]
+    group = SimNodeCapture(cams, [got[c].append for c in range(4)], retry_s=0.05)
+    group.start()
+    time.sleep(1.0)
+    group.stop()
+    group.join(1.0)
+    assert not group.thread.is_alive()
+    for c in range(4):
+        assert len(got[c]) > 60, c
+        late = np.array([s.arrival_ns - scene.taken_ns(s) - scene.transfer_ns[c]
+                         for s in got[c]])
+        assert late.min() >= 0 and np.median(late) < 1_000_000, (c, np.median(late))
+        triggers = np.array([scene.trigger_of(s) for s in got[c]])
+        steps = np.diff(triggers)
+        if c != 1:
+            assert np.all(steps == 1) and group.states[c].failures == 0
+    # cam1 was away 0.5-0.6 s after trigger 0: reopened, its frame ids from 0 again
+    assert group.states[1].failures >= 1 and group.states[1].connected  # each failed open
+    ids = [s.device_frame_id for s in got[1]]
+    assert ids.count(0) == 2
+    t = np.array([scene.trigger_of(s) for s in got[1]]) / scene.fps
+    assert not np.any((t >= 0.5) & (t < 0.6)) and t.min() < 0.5 and t.max() > 0.65
+
+
 def test_clock_and_pose_messages_round_trip():
     assert wire.decode_ping(wire.encode_ping(5, 123)) == (5, 123)
     assert wire.decode_pong(wire.encode_pong(9, 5, 1, 2, 3)) == (9, 5, 1, 2, 3)
@@ -113,6 +272,11 @@ def test_zenoh_settings_are_checked_with_one_line_errors(tmp_path):
         parse_config({"zenoh": {"cameras": "all"}})
     with pytest.raises(UserError, match="name: node name 'a/b' cannot go into a Zenoh key"):
         parse_node_config({"name": "a/b"})
+    with pytest.raises(UserError, match="publish: must be one of sets, cameras; got 'frames'"):
+        parse_node_config({"publish": "frames"})
+    with pytest.raises(UserError, match="set_wait_ms: must be between 0.0 and 1000.0"):
+        parse_node_config({"set_wait_ms": -1})
+    assert parse_node_config({}).publish == "sets"
     cfg = parse_config({"camera": [{"name": "cam0", "source": "zenoh:left"}]})
     assert cfg.zenoh is not None and cfg.zenoh.session.listen == ("tcp/0.0.0.0:7447",)
     assert parse_camera_list("0-2,cam5", [f"cam{i}" for i in range(8)]) == (
@@ -127,6 +291,11 @@ def test_node_with_a_bad_endpoint_exits_with_one_line():
                        timeout=60, env=dict(os.environ, PYTHONPATH=str(ROOT)))
     assert r.returncode != 0
     assert "expected a Zenoh endpoint" in r.stderr and "Traceback" not in r.stderr
+    r = subprocess.run([sys.executable, "-m", "daemon.cli", "node", "--sim", "--publish",
+                        "frames"], cwd=ROOT, capture_output=True, text=True,
+                       timeout=60, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    assert r.returncode != 0 and "Traceback" not in r.stderr
+    assert "--publish must be one of sets, cameras, got 'frames'" in r.stderr
 
 
 # ---- nodes as processes ------------------------------------------------------------------------
@@ -201,14 +370,16 @@ def cameras_live(d, names) -> bool:
 
 def test_two_nodes_feed_one_daemon_clocks_estimated_and_bodies_tracked(tmp_path):
     """Two node processes serve four cameras each, their clocks 12.5 ms ahead and 50 ppm
-    fast, and 7 ms behind and 30 ppm slow; the daemon pairs their frames into full sets,
+    fast, and 7 ms behind and 30 ppm slow, one publishing sets and the other single
+    frames; the daemon pairs their frames into full sets,
     tracks the scene's bodies as well as with local cameras, and its estimate of each
     node's clock is within 0.2 ms of the truth on loopback."""
     port, rig = free_port(), "two"
     ep = f"tcp/127.0.0.1:{port}"
     d = DaemonThread(tmp_path, port, rig, 12.0).start()
-    nodes = [start_node("a", rig, ep, "0-3", 12.5, 50.0, seconds=40),
-             start_node("b", rig, ep, "4-7", -7.0, -30.0, seconds=40)]
+    nodes = [start_node("a", rig, ep, "0-3", 12.5, 50.0, seconds=40),  # a set per trigger
+             start_node("b", rig, ep, "4-7", -7.0, -30.0, seconds=40,
+                        extra=("--publish", "cameras"))]  # a message per camera frame
     truth = {"a": (12.5, 50.0), "b": (-7.0, -30.0)}
     try:
         names = [f"cam{i}" for i in range(8)]

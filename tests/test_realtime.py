@@ -113,3 +113,22 @@ def test_a_notify_socket_nobody_reads_never_blocks_the_frame_loop(tmp_path, monk
         rx.close()
     assert sent[0] and not sent[-1]  # the first went, the queue filled and later ones dropped
     assert took < 2.0  # a blocking send would hang here for good
+
+
+def test_a_live_run_keeps_its_start_up_out_of_the_collector_and_gives_it_back(tmp_path):
+    """While a live daemon tracks, what it built to start (scene, rig, trackers, modules)
+    is frozen out of the cycle collector's full passes (daemon/heap.py), and an
+    in-process run gives it back when it ends."""
+    import gc
+
+    from daemon.config import parse_config
+    from daemon.service import Daemon
+
+    assert gc.get_freeze_count() == 0
+    frozen = []
+    d = Daemon(parse_config({"runtime_dir": str(tmp_path / "run"), "sim": {"cameras": 4},
+                             "pipeline": {"realtime_priority": 0}}))
+    d.run(duration_s=1.5, progress=lambda _frames: frozen.append(gc.get_freeze_count()))
+    assert len(frozen) > 5  # it tracked
+    assert min(frozen) > 50_000, min(frozen)  # what starting up made: kept aside
+    assert gc.get_freeze_count() == 0

@@ -40,6 +40,9 @@ def register(app: typer.Typer) -> None:
             "--clock-offset-ms", help="--sim: the node's clock against this machine's.")] = None,
         clock_drift_ppm: Annotated[float | None, typer.Option(
             "--clock-drift-ppm", help="--sim: how fast the node's clock runs.")] = None,
+        publish: Annotated[str | None, typer.Option(
+            "--publish", help="sets: one message per trigger with all the node's cameras "
+                              "(default); cameras: one message per camera frame.")] = None,
         duration: Annotated[float | None, typer.Option(
             "--duration", help="Stop after this many seconds.")] = None,
         verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Debug log.")] = False,
@@ -49,14 +52,19 @@ def register(app: typer.Typer) -> None:
         from daemon.logs import setup_logging
         from daemon.nodes.node import Node, NodeTime, live_sources
         from daemon.nodes.session import ZenohSettings, check_endpoint, check_name
-        from daemon.nodes.settings import load_node_config, parse_camera_list
-        from daemon.synthetic.node_sim import sim_sources
+        from daemon.nodes.settings import PUBLISH, load_node_config, parse_camera_list
+        from daemon.synthetic.node_sim import sim_capture, sim_sources
 
         setup_logging(verbose)
         cfg = load_node_config(config)
         try:
             if name is not None:
                 cfg = replace(cfg, name=check_name(name, "--name"))
+            if publish is not None:
+                if publish not in PUBLISH:
+                    raise ValueError(f"--publish must be one of {', '.join(PUBLISH)}, "
+                                     f"got {publish!r}")
+                cfg = replace(cfg, publish=publish)
             s = cfg.session
             if rig is not None or connect or listen:
                 s = ZenohSettings(check_name(rig, "--rig") if rig is not None else s.rig,
@@ -67,7 +75,7 @@ def register(app: typer.Typer) -> None:
             cfg = replace(cfg, session=s)
         except ValueError as exc:
             raise UserError(str(exc)) from None
-        clock = NodeTime()
+        clock, capture = NodeTime(), None
         if sim:
             sc = cfg.sim or SimConfig()
             sc = replace(sc, **{k: v for k, v in (("cameras", sim_cameras), ("fps", sim_fps),
@@ -87,10 +95,10 @@ def register(app: typer.Typer) -> None:
             if abs(drift) > 1000:
                 raise UserError(f"--clock-drift-ppm must be within +-1000, got {drift}")
             clock = NodeTime(round(offset * 1e6), drift)
-            sources = sim_sources(cfg)
+            sources, capture = sim_sources(cfg), sim_capture
         else:
             sources = live_sources(cfg)
-        n = Node(cfg, sources, clock)
+        n = Node(cfg, sources, clock, capture)
         signal.signal(signal.SIGTERM, lambda *_: n.stop_event.set())
         signal.signal(signal.SIGINT, lambda *_: n.stop_event.set())
         n.run(duration)

@@ -2,11 +2,13 @@
 
 Each camera runs on a capture thread as in the daemon (daemon.pipeline.CaptureThread: a
 camera that fails is reopened), with the daemon's detector and per-camera settings
-(daemon.sources.DetectCamera). Every frame's blobs go out at once, one message per camera
-frame, stamped on the node's clock (daemon.nodes.wire); the node answers the daemon's
-clock pings and announces its cameras once a second. Publishing never blocks: a message
-the link cannot take is dropped (Zenoh's CongestionControl.DROP), so a slow link costs
-frames, never the cameras' pace.
+(daemon.sources.DetectCamera). The frames of one trigger from all the node's cameras go out
+as one message (SetPublisher) as soon as the last of them is in, stamped on the node's
+clock (daemon.nodes.wire); with `publish = "cameras"` each frame goes out alone on its
+camera's key (CapturePublisher). The node answers the daemon's clock pings and announces
+its cameras once a second. Publishing never blocks: a message the link cannot take is
+dropped (Zenoh's CongestionControl.DROP), so a slow link costs frames, never the cameras'
+pace.
 
 With `--sim` the node serves cameras of the simulated rig (daemon.synthetic.node_sim), on
 a clock (NodeTime) that can be given an offset and a drift against the machine's, so the
@@ -26,8 +28,9 @@ import time
 from calibkit.cameras import missing_plugins
 from calibkit.core.errors import UserError
 from calibkit.vision.detect import DetectorConfig
+from daemon import heap
 from daemon.nodes import wire
-from daemon.nodes.session import announce_key, blobs_key, ping_key, pong_key
+from daemon.nodes.session import announce_key, blobs_key, ping_key, pong_key, sets_key
 from daemon.nodes.settings import NodeConfig
 from daemon.pipeline import CaptureThread
 from daemon.realtime import raise_priority, restore_normal
@@ -35,6 +38,7 @@ from daemon.sources import DetectCamera
 
 log = logging.getLogger("mocapd.node")
 ANNOUNCE_S = 1.0
+STALE_NS = 100_000_000  # a camera with no frame for this long is not waited for
 
 
 class NodeTime:
@@ -54,16 +58,120 @@ class NodeTime:
         return self.of(time.monotonic_ns())
 
 
+def _publisher(session, key: str):
+    # deferred on purpose: loads Zenoh only where used
+    import zenoh
+
+    return session.declare_publisher(key, express=True,
+                                     congestion_control=zenoh.CongestionControl.DROP,
+                                     priority=zenoh.Priority.INTERACTIVE_HIGH)
+
+
+class SetPublisher:
+    """Gathers the node's cameras' frames of one trigger into one message.
+
+    Why: the daemon's interpreter wakes for every message it gets; 32 cameras at 240 fps
+    sent one frame a message are 7680 wake-ups a second, most of the time a frame spends
+    between node and daemon. A set goes out, on the capture thread of its last frame, as
+    soon as every camera that is delivering has a frame in it. A camera whose frame has
+    not come is waited for at most `wait_ns`: the set then goes without it (from a thread
+    of its own, marked short), and the late frame, when it comes, goes out alone at once,
+    as the rest of that set (by its capture time: within half its camera's frame period of
+    the set's). A camera's next frame closes the set its last one is in; a camera with no
+    frame for STALE_NS is not waited for. The daemon's multiplexer pairs frames by their
+    capture times, so a split set costs a message, never a frame's time."""
+
+    def __init__(self, session, key: str, boot: int, clock: NodeTime, names: list[str],
+                 wait_ns: int) -> None:
+        self.pub = _publisher(session, key)
+        self.boot, self.clock, self.wait_ns = boot, clock, int(wait_ns)
+        self.names = [n.encode("ascii") for n in names]
+        self.last = [0] * len(names)  # each camera's latest frame came (machine clock, ns)
+        self.last_t = [0] * len(names)  # and was taken (its t_ns)
+        self.period = [0] * len(names)  # between its last two frames' t_ns
+        self.pending: dict[int, object] = {}  # camera slot -> its sample in the open set
+        self.expect: set[int] = set()
+        self.opened = 0  # when the open set got its first frame (machine clock, ns)
+        self.missed: tuple[int, set] = (0, set())  # the last short set: its time, who missed
+        self.seq = 0
+        self.sent = 0  # messages
+        self.short = 0  # sets sent without a camera that was waited for
+        self.cond = threading.Condition()
+        self.closed = False
+        self.timer = threading.Thread(target=self._time_out, name="set-timer", daemon=True)
+
+    def start(self) -> None:
+        self.timer.start()
+
+    def close(self) -> None:
+        with self.cond:
+            self.closed = True
+            self.cond.notify()
+
+    def push_for(self, slot: int):
+        """The capture thread's push for camera `slot`."""
+        return lambda s: self.add(slot, s)
+
+    def add(self, slot: int, s) -> None:
+        now = time.monotonic_ns()
+        with self.cond:
+            self.last[slot] = now
+            if self.last_t[slot]:
+                self.period[slot] = s.t_ns - self.last_t[slot]
+            self.last_t[slot] = s.t_ns
+            t_set, missed = self.missed
+            if slot in missed:
+                missed.discard(slot)
+                if 2 * abs(s.t_ns - t_set) < self.period[slot]:  # the short set's own
+                    self._publish({slot: s}, short=False)
+                    return
+            if slot in self.pending:  # its next frame: the open set gets no more
+                self._send()
+            if not self.pending:
+                self.opened = now
+                self.expect = {i for i, t in enumerate(self.last) if now - t < STALE_NS}
+                self.cond.notify()
+            self.pending[slot] = s
+            if len(self.pending) >= len(self.expect) and self.expect.issubset(self.pending):
+                self._send()
+
+    def _time_out(self) -> None:
+        with self.cond:
+            while not self.closed:
+                if not self.pending:
+                    self.cond.wait(0.5)
+                    continue
+                left = self.opened + self.wait_ns - time.monotonic_ns()
+                if left > 0:
+                    self.cond.wait(left * 1e-9)
+                    continue
+                self._send()
+
+    def _send(self) -> None:
+        """Publishes the open set (the lock held: sets leave in order)."""
+        missing = self.expect.difference(self.pending)
+        if missing:
+            self.short += 1
+            self.missed = (min(s.t_ns for s in self.pending.values()), missing)
+        pending, self.pending = self.pending, {}
+        self._publish(pending, short=bool(missing))
+
+    def _publish(self, frames: dict, short: bool) -> None:
+        of = self.clock.of
+        rows = [(self.names[k], s.index, of(s.t_ns), of(s.arrival_ns), s.device_time_ns,
+                 s.device_frame_id, s.uv, s.area, s.peak) for k, s in sorted(frames.items())]
+        data = wire.encode_sets(self.boot, self.seq, self.clock.now(), rows,
+                                wire.SET_SHORT if short else 0)
+        self.seq += 1
+        self.pub.put(data)
+        self.sent += 1
+
+
 class CapturePublisher:
     """Pushes one camera's samples out as blobs messages (called on its capture thread)."""
 
     def __init__(self, session, key: str, boot: int, clock: NodeTime) -> None:
-        # deferred on purpose: loads Zenoh only where used
-        import zenoh
-
-        self.pub = session.declare_publisher(
-            key, express=True, congestion_control=zenoh.CongestionControl.DROP,
-            priority=zenoh.Priority.INTERACTIVE_HIGH)
+        self.pub = _publisher(session, key)
         self.boot, self.clock = boot, clock
         self.seq = 0
         self.sent = 0
@@ -81,13 +189,20 @@ class CapturePublisher:
 class Node:
     """The node's session, capture threads, clock answers and announcements."""
 
-    def __init__(self, cfg: NodeConfig, sources, clock: NodeTime | None = None) -> None:
+    def __init__(self, cfg: NodeConfig, sources, clock: NodeTime | None = None,
+                 capture=None) -> None:
+        """`capture(sources, pushes)`: what runs the cameras, as (runners with start, stop
+        and join; per camera, a state with connected and frames); by default a capture
+        thread each (daemon.pipeline.CaptureThread), both roles in one."""
         self.cfg, self.sources = cfg, list(sources)
+        self.capture = capture or _capture_threads
         self.clock = clock or NodeTime()
         self.boot = random.SystemRandom().getrandbits(32)
         self.scheduling = "normal"  # what its threads run at, once started (daemon.realtime)
         self.stop_event = threading.Event()
-        self.captures: list[CaptureThread] = []
+        self.runners: list = []
+        self.captures: list = []  # per camera: connected, frames
+        self.sets: SetPublisher | None = None
         self.session = None
         self.pings = 0
 
@@ -127,12 +242,18 @@ class Node:
             congestion_control=zenoh.CongestionControl.DROP,
             priority=zenoh.Priority.REAL_TIME)
         self._ping_sub = self.session.declare_subscriber(ping_key(rig), self._on_ping)
-        for src in self.sources:
-            push = CapturePublisher(self.session, blobs_key(rig, src.name), self.boot,
-                                    self.clock)
-            self.captures.append(CaptureThread(src, push))
-        for cap in self.captures:
-            cap.start()
+        if self.cfg.publish == "sets":
+            self.sets = SetPublisher(self.session, sets_key(rig, self.cfg.name), self.boot,
+                                     self.clock, [s.name for s in self.sources],
+                                     round(self.cfg.set_wait_ms * 1e6))
+            self.sets.start()
+        pushes = [self.sets.push_for(k) if self.sets is not None else
+                  CapturePublisher(self.session, blobs_key(rig, src.name), self.boot,
+                                   self.clock) for k, src in enumerate(self.sources)]
+        self.runners, self.captures = self.capture(self.sources, pushes)
+        heap.freeze_startup()  # as the daemon does (daemon.heap)
+        for runner in self.runners:
+            runner.start()
         log.info("node %s (boot %08x): %d cameras on mocap/%s/ (%s)", self.cfg.name,
                  self.boot, len(self.sources), rig,
                  ", ".join(self.cfg.session.connect + self.cfg.session.listen))
@@ -150,14 +271,22 @@ class Node:
             self.close()
 
     def close(self) -> None:
-        for cap in self.captures:
-            cap.stop()
-        for cap in self.captures:
-            cap.join(0.5)
+        for runner in self.runners:
+            runner.stop()
+        for runner in self.runners:
+            runner.join(0.5)
+        if self.sets is not None:
+            self.sets.close()
         if self.session is not None:
             self.session.close()
             self.session = None
         restore_normal()
+        heap.release()
+
+
+def _capture_threads(sources, pushes):
+    threads = [CaptureThread(src, push) for src, push in zip(sources, pushes, strict=True)]
+    return threads, threads
 
 
 def live_sources(cfg: NodeConfig):

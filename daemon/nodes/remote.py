@@ -1,8 +1,9 @@
 """The daemon's side of the nodes: remote cameras whose blobs come over Zenoh.
 
 One NodeHub per daemon holds the Zenoh session: it pings the nodes for their clocks
-(daemon.nodes.clock), hears their announcements, and hands every blobs message, its times
-mapped to the daemon's clock, to its camera's capture (RemoteCapture), which pushes it to
+(daemon.nodes.clock), hears their announcements, and hands every frame of a message (a
+node's set of one trigger, or one camera's frame), its times mapped to the daemon's clock,
+to its camera's capture (RemoteCapture), which pushes it to
 the multiplexer as a local camera's capture thread does: the multiplexer pairs, drops and
 re-joins it unchanged. A camera whose node has died goes silent and the hub's watchdog
 drops it after `timeout_ms`; a node that restarts (a new boot id) ends the camera's
@@ -32,7 +33,7 @@ import numpy as np
 from calibkit.core.errors import UserError
 from daemon.nodes import wire
 from daemon.nodes.clock import NodeClock
-from daemon.nodes.session import all_blobs_key, check_name, ping_key
+from daemon.nodes.session import all_blobs_key, all_sets_key, check_name, ping_key
 from daemon.nodes.zenoh_table import DaemonZenoh, is_remote
 from daemon.sources import CameraSample
 
@@ -63,8 +64,10 @@ class _Node:
         self.samples = 0
         self.waiting_clock = 0  # samples that came before its clock was known
         self.late = 0  # samples later than max_lag_ms
-        self.hop_ns: deque = deque(maxlen=4096)  # node arrival -> daemon has it, ns
-        self.in_node_ns: deque = deque(maxlen=4096)  # of which in the node: arrival -> sent
+        # per message: the node got its newest frame -> the daemon has its frames, ns
+        self.hop_ns: deque = deque(maxlen=4096)
+        # per frame: the node got it -> sent it (waiting for the set's other frames too)
+        self.in_node_ns: deque = deque(maxlen=4096)
         self.lag_ns = 0  # the latest sample's node arrival -> daemon
 
 
@@ -82,7 +85,6 @@ class NodeHub:
         self.session = None
         self.unknown = 0  # blobs of cameras the daemon does not take
         self.bad = 0  # messages that failed to decode
-        self.records: deque = deque(maxlen=200_000)  # (boot, node arrival, daemon has it)
         self._stop = threading.Event()
         self._seq = 0
         self._captures: list[RemoteCapture] | None = None
@@ -106,6 +108,7 @@ class NodeHub:
             priority=zenoh.Priority.REAL_TIME)
         self._subs = [
             self.session.declare_subscriber(all_blobs_key(self.rig), self._on_blobs),
+            self.session.declare_subscriber(all_sets_key(self.rig), self._on_sets),
             self.session.declare_subscriber(f"mocap/{self.rig}/_nodes/*/clock", self._on_pong),
             self.session.declare_subscriber(f"mocap/{self.rig}/_nodes/*/announce",
                                             self._on_announce)]
@@ -194,30 +197,54 @@ class NodeHub:
             log.warning(message, *args)
 
     def _on_blobs(self, sample) -> None:
+        """One camera's frame (a node with `publish = "cameras"`)."""
         name = str(sample.key_expr).split("/")[-2]
-        cam = self.cameras.get(name)
-        if cam is None:
-            self.unknown += 1
-            return
         try:
             m = wire.decode_blobs(sample.payload.to_bytes())
         except wire.WireError:
             self.bad += 1
             return
-        node = self.nodes.get(m.boot)
+        self._take(((name, m),))
+
+    def _on_sets(self, sample) -> None:
+        """The frames of one trigger from all of a node's cameras."""
+        try:
+            frames = wire.decode_sets(sample.payload.to_bytes())
+        except wire.WireError:
+            self.bad += 1
+            return
+        if frames:
+            self._take(frames)
+
+    def _take(self, frames) -> None:
+        """A message's frames, their times mapped to the daemon's clock, to their cameras'
+        captures; its hop (the node got its newest frame, or sent a short set -> the
+        daemon has them all)."""
+        node = self.nodes.get(frames[0][1].boot)
         if node is None or not node.clock.ready:
             if node is not None:
-                node.waiting_clock += 1
-            return
-        node.samples += 1
-        node.in_node_ns.append(m.sent_ns - m.arrival_ns)
-        cap = cam.capture
-        if cap is None:
+                node.waiting_clock += len(frames)
             return
         to_daemon = node.clock.to_daemon
-        cap.deliver(CameraSample(cam.index, m.index, to_daemon(m.t_ns), to_daemon(m.arrival_ns),
-                                 m.uv, m.area, m.peak, m.device_time_ns, m.device_frame_id),
-                    node, m.arrival_ns)
+        has = time.monotonic_ns()
+        for name, m in frames:
+            cam = self.cameras.get(name)
+            if cam is None:
+                self.unknown += 1
+                continue
+            node.samples += 1
+            node.in_node_ns.append(m.sent_ns - m.arrival_ns)
+            cap = cam.capture
+            if cap is not None:
+                cap.deliver(CameraSample(cam.index, m.index, to_daemon(m.t_ns),
+                                         to_daemon(m.arrival_ns), m.uv, m.area, m.peak,
+                                         m.device_time_ns, m.device_frame_id), node, has)
+        m = frames[0][1]
+        # a set that left short waited for a late camera on purpose (set_wait_ms): what
+        # the link and the daemon add is counted from when it left, the wait is the
+        # frames' in-node time (and a set whose late frame follows was not complete before)
+        ready = m.sent_ns if m.flags & wire.SET_SHORT else max(f.arrival_ns for _, f in frames)
+        node.hop_ns.append(time.monotonic_ns() - to_daemon(ready))
 
     # ---- figures -----------------------------------------------------------------------------
 
@@ -343,9 +370,9 @@ class RemoteCapture:
 
     # ---- driven by the hub --------------------------------------------------------------------
 
-    def deliver(self, s: CameraSample, node: _Node, node_arrival: int) -> None:
-        """One sample, on Zenoh's thread: to the multiplexer unless late."""
-        has = time.monotonic_ns()
+    def deliver(self, s: CameraSample, node: _Node, has: int) -> None:
+        """One sample the daemon has had since `has`, on Zenoh's thread: to the multiplexer
+        unless late."""
         lag = has - s.arrival_ns
         node.lag_ns = lag
         with self._lock:
@@ -366,8 +393,6 @@ class RemoteCapture:
             self._last_good = has
             self.frames += 1
             self.times.append(s.arrival_ns)
-        node.hop_ns.append(lag)
-        self.hub.records.append((node.boot, node_arrival, has))
         self.push(s)
 
     def check(self, now_ns: int) -> None:

@@ -78,6 +78,14 @@ def blobs_key(rig: str, camera: str) -> str:
     return f"mocap/{rig}/{camera}/blobs"
 
 
+def sets_key(rig: str, node: str) -> str:
+    return f"mocap/{rig}/_nodes/{node}/blobs"
+
+
+def all_sets_key(rig: str) -> str:
+    return f"mocap/{rig}/_nodes/*/blobs"
+
+
 def all_blobs_key(rig: str) -> str:
     return f"mocap/{rig}/*/blobs"
 

@@ -3,7 +3,8 @@
 Checked up front as mocapd.toml is (daemon.config): one line naming the file, the key and
 the problem, before anything opens.
 
-    node.toml     name, realtime_priority, [zenoh] (rig, listen, connect, multicast_scouting),
+    node.toml     name, realtime_priority, publish, set_wait_ms,
+                  [zenoh] (rig, listen, connect, multicast_scouting),
                   [[camera]] (as mocapd.toml's), [sim] (as mocapd.toml's),
                   [node_sim] cameras, clock_offset_ms, clock_drift_ppm
 """
@@ -21,6 +22,8 @@ from daemon.config_check import _check_keys, _list, _number, _string, _table, _W
 from daemon.nodes.session import ZenohSettings, check_name
 from daemon.nodes.zenoh_table import DEFAULT_PORT, _session
 
+PUBLISH = ("sets", "cameras")
+
 
 @dataclass(frozen=True)
 class NodeConfig:
@@ -36,15 +39,21 @@ class NodeConfig:
     clock_offset_ms: float = 0.0  # --sim: the node's own clock against the machine's
     clock_drift_ppm: float = 0.0
     realtime_priority: int = 10  # SCHED_RR of the node's threads, as the daemon's (0: normal)
+    # "sets": one message per trigger with every camera's frame (daemon.nodes.node.SetPublisher);
+    # "cameras": one message per camera frame, on the camera's own key
+    publish: str = "sets"
+    set_wait_ms: float = 2.0  # how long a set waits for a camera whose frame has not come
 
 
 def parse_node_config(data: dict, path: Path | None = None,
                       base: Path | None = None) -> NodeConfig:
     w = _Where(path)
-    _check_keys(w, data, {"name", "realtime_priority", "zenoh", "camera", "sim", "node_sim"},
-                "")
+    _check_keys(w, data, {"name", "realtime_priority", "publish", "set_wait_ms", "zenoh",
+                          "camera", "sim", "node_sim"}, "")
     name = _string(w, data, "name", "", "node")
     priority = _number(w, data, "realtime_priority", "", 10, kind=int, lo=0, hi=99)
+    publish = _string(w, data, "publish", "", "sets", choices=PUBLISH)
+    set_wait = _number(w, data, "set_wait_ms", "", 2.0, lo=0.0, hi=1000.0)
     try:
         check_name(name, "node name")
     except ValueError as exc:
@@ -72,7 +81,7 @@ def parse_node_config(data: dict, path: Path | None = None,
     return NodeConfig(name, path, session, cameras, sim, tuple(serve),
                       _number(w, ns, "clock_offset_ms", "node_sim.", 0.0, lo=-1e9, hi=1e9),
                       _number(w, ns, "clock_drift_ppm", "node_sim.", 0.0, lo=-1000,
-                              hi=1000), priority)
+                              hi=1000), priority, publish, set_wait)
 
 
 def load_node_config(path: str | Path | None) -> NodeConfig:

@@ -21,7 +21,7 @@ scorers in daemon.synthetic.evaluator and daemon.synthetic.labelling.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import numpy as np
 
@@ -312,12 +312,24 @@ class SimCamera:
     def open(self) -> Iterator[CameraSample]:
         fine_timer_slack()
         now, sleep = self.now, self.sleep
+        for due, take in self.session():
+            wait = due - now()
+            if wait > 0:
+                sleep(wait * 1e-9)
+            yield take(now())
+
+    def session(self) -> Iterator[tuple[int, Callable[[int], CameraSample]]]:
+        """One session's frames as (when it arrives, ns on `now`'s clock; the frame given
+        its arrival time), without waiting: open() sleeps between them, and a simulated
+        node serves all its cameras from one thread by merging theirs
+        (daemon.synthetic.node_sim). Taking a frame while the camera is disconnected
+        raises OSError."""
         sc, c = self.scene, self.camera
         period = 1e9 / sc.fps
         session, self.sessions = self.sessions, self.sessions + 1
         rng = np.random.default_rng([sc.cfg.seed, 6, c, session])
         phase = int(sc.offsets_ns[c])  # free-running cameras: a fixed phase
-        start = now()
+        start = self.now()
         if session == 0:
             start = max(start, self.t0_ns + int(sc.open_delay_ns[c]))
         g = max(0, int(np.ceil((start - self.t0_ns - phase) / period)))
@@ -328,13 +340,13 @@ class SimCamera:
         while True:
             taken = self.t0_ns + round(g * period) + phase
             due = taken + int(sc.transfer_ns[c]) + round(rng.exponential(JITTER_NS))
-            wait = due - now()
-            if wait > 0:
-                sleep(wait * 1e-9)
-            if sc.dropped(c, g):
-                raise OSError("camera disconnected (simulated)")
-            arrival = now()
             device = epoch + round((taken - first) * rate)
-            yield sc.deliver(c, g, k, device, arrival, arrival, taken)
+
+            def take(arrival: int, g=g, k=k, device=device, taken=taken) -> CameraSample:
+                if sc.dropped(c, g):
+                    raise OSError("camera disconnected (simulated)")
+                return sc.deliver(c, g, k, device, arrival, arrival, taken)
+
+            yield due, take
             g += 1
             k += 1
