@@ -28,8 +28,8 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
+from calibkit.core.assignment import linear_sum_assignment
 from daemon.markers.label_modules import module_template, rigid_modules, template_sigma
 from daemon.markers.label_neighbours import BIG, NeighbourEvidence
 from daemon.markers.label_reid import ModuleReidentification

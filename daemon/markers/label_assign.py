@@ -26,8 +26,8 @@ from __future__ import annotations
 from itertools import permutations
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
+from calibkit.core.assignment import linear_sum_assignment
 from daemon.markers.label_body import BodyTerms
 from daemon.markers.markerset import MarkerSet
 

@@ -13,8 +13,8 @@ The window's labelled frames then start the tracker as labelled start frames wou
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
+from calibkit.core.assignment import linear_sum_assignment
 from daemon.markers.label_assign import assign, pair_stats
 from daemon.markers.markerset import MarkerSet
 
