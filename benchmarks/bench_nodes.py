@@ -69,7 +69,7 @@ def daemon(conf: Path, seconds: float, out: Path, extra=()):
                             stderr=subprocess.DEVNULL)
 
 
-def node(name, rig, endpoint, cameras, clock, n_cameras=32, seconds=120, publish="sets"):
+def node(name, rig, endpoint, cameras, clock, n_cameras=32, seconds=120, publish="cameras"):
     return subprocess.Popen(
         [sys.executable, "-m", "daemon.cli", "node", "--sim", "--sim-cameras", str(n_cameras),
          "--cameras", cameras, "--name", name, "--rig", rig, "--connect", endpoint,
@@ -178,7 +178,7 @@ def run_local(tmp: Path, seconds: float, cameras: int) -> dict:
     return res
 
 
-def run_nodes(tmp: Path, seconds: float, cameras: int, publish: str = "sets") -> dict:
+def run_nodes(tmp: Path, seconds: float, cameras: int, publish: str = "cameras") -> dict:
     import json
 
     port, rig = free_port(), "bench"
@@ -278,12 +278,12 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--cameras", type=int, default=32, help="in all, on 4 nodes (4-32)")
     ap.add_argument("--no-link", action="store_true", help="skip the delayed-link run")
-    ap.add_argument("--publish", choices=("sets", "cameras", "both"), default="sets",
-                    help="how the nodes publish: a message per trigger (sets, their default), "
-                         "per camera frame, or both runs one after the other")
+    ap.add_argument("--publish", choices=("cameras", "sets", "both"), default="cameras",
+                    help="how the nodes publish: a message per camera frame (cameras, their "
+                         "default), per trigger (sets), or both runs one after the other")
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args()
-    kinds = ("sets", "cameras") if a.publish == "both" else (a.publish,)
+    kinds = ("cameras", "sets") if a.publish == "both" else (a.publish,)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         local = run_local(tmp, a.seconds, a.cameras)

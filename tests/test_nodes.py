@@ -272,11 +272,11 @@ def test_zenoh_settings_are_checked_with_one_line_errors(tmp_path):
         parse_config({"zenoh": {"cameras": "all"}})
     with pytest.raises(UserError, match="name: node name 'a/b' cannot go into a Zenoh key"):
         parse_node_config({"name": "a/b"})
-    with pytest.raises(UserError, match="publish: must be one of sets, cameras; got 'frames'"):
+    with pytest.raises(UserError, match="publish: must be one of cameras, sets; got 'frames'"):
         parse_node_config({"publish": "frames"})
     with pytest.raises(UserError, match="set_wait_ms: must be between 0.0 and 1000.0"):
         parse_node_config({"set_wait_ms": -1})
-    assert parse_node_config({}).publish == "sets"
+    assert parse_node_config({}).publish == "cameras"
     cfg = parse_config({"camera": [{"name": "cam0", "source": "zenoh:left"}]})
     assert cfg.zenoh is not None and cfg.zenoh.session.listen == ("tcp/0.0.0.0:7447",)
     assert parse_camera_list("0-2,cam5", [f"cam{i}" for i in range(8)]) == (
@@ -295,7 +295,7 @@ def test_node_with_a_bad_endpoint_exits_with_one_line():
                         "frames"], cwd=ROOT, capture_output=True, text=True,
                        timeout=60, env=dict(os.environ, PYTHONPATH=str(ROOT)))
     assert r.returncode != 0 and "Traceback" not in r.stderr
-    assert "--publish must be one of sets, cameras, got 'frames'" in r.stderr
+    assert "--publish must be one of cameras, sets, got 'frames'" in r.stderr
 
 
 # ---- nodes as processes ------------------------------------------------------------------------
@@ -377,9 +377,9 @@ def test_two_nodes_feed_one_daemon_clocks_estimated_and_bodies_tracked(tmp_path)
     port, rig = free_port(), "two"
     ep = f"tcp/127.0.0.1:{port}"
     d = DaemonThread(tmp_path, port, rig, 12.0).start()
-    nodes = [start_node("a", rig, ep, "0-3", 12.5, 50.0, seconds=40),  # a set per trigger
-             start_node("b", rig, ep, "4-7", -7.0, -30.0, seconds=40,
-                        extra=("--publish", "cameras"))]  # a message per camera frame
+    nodes = [start_node("a", rig, ep, "0-3", 12.5, 50.0, seconds=40,
+                        extra=("--publish", "sets")),  # a set per trigger
+             start_node("b", rig, ep, "4-7", -7.0, -30.0, seconds=40)]  # a frame a message
     truth = {"a": (12.5, 50.0), "b": (-7.0, -30.0)}
     try:
         names = [f"cam{i}" for i in range(8)]

@@ -2,13 +2,13 @@
 
 Each camera runs on a capture thread as in the daemon (daemon.pipeline.CaptureThread: a
 camera that fails is reopened), with the daemon's detector and per-camera settings
-(daemon.sources.DetectCamera). The frames of one trigger from all the node's cameras go out
-as one message (SetPublisher) as soon as the last of them is in, stamped on the node's
-clock (daemon.nodes.wire); with `publish = "cameras"` each frame goes out alone on its
-camera's key (CapturePublisher). The node answers the daemon's clock pings and announces
-its cameras once a second. Publishing never blocks: a message the link cannot take is
-dropped (Zenoh's CongestionControl.DROP), so a slow link costs frames, never the cameras'
-pace.
+(daemon.sources.DetectCamera). Each frame goes out alone on its camera's key as soon as it
+is detected (CapturePublisher), stamped on the node's clock (daemon.nodes.wire); with
+`publish = "sets"` the frames of one trigger from all the node's cameras go out as one
+message when the last of them is in (SetPublisher). The node answers the daemon's clock
+pings and announces its cameras once a second. Publishing never blocks: a message the link
+cannot take is dropped (Zenoh's CongestionControl.DROP), so a slow link costs frames,
+never the cameras' pace.
 
 With `--sim` the node serves cameras of the simulated rig (daemon.synthetic.node_sim), on
 a clock (NodeTime) that can be given an offset and a drift against the machine's, so the

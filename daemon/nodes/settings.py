@@ -22,7 +22,7 @@ from daemon.config_check import _check_keys, _list, _number, _string, _table, _W
 from daemon.nodes.session import ZenohSettings, check_name
 from daemon.nodes.zenoh_table import DEFAULT_PORT, _session
 
-PUBLISH = ("sets", "cameras")
+PUBLISH = ("cameras", "sets")
 
 
 @dataclass(frozen=True)
@@ -39,9 +39,9 @@ class NodeConfig:
     clock_offset_ms: float = 0.0  # --sim: the node's own clock against the machine's
     clock_drift_ppm: float = 0.0
     realtime_priority: int = 10  # SCHED_RR of the node's threads, as the daemon's (0: normal)
-    # "sets": one message per trigger with every camera's frame (daemon.nodes.node.SetPublisher);
-    # "cameras": one message per camera frame, on the camera's own key
-    publish: str = "sets"
+    # "cameras": one message per camera frame, on the camera's own key; "sets": one message
+    # per trigger with every camera's frame (daemon.nodes.node.SetPublisher)
+    publish: str = "cameras"
     set_wait_ms: float = 2.0  # how long a set waits for a camera whose frame has not come
 
 
@@ -52,7 +52,7 @@ def parse_node_config(data: dict, path: Path | None = None,
                           "camera", "sim", "node_sim"}, "")
     name = _string(w, data, "name", "", "node")
     priority = _number(w, data, "realtime_priority", "", 10, kind=int, lo=0, hi=99)
-    publish = _string(w, data, "publish", "", "sets", choices=PUBLISH)
+    publish = _string(w, data, "publish", "", "cameras", choices=PUBLISH)
     set_wait = _number(w, data, "set_wait_ms", "", 2.0, lo=0.0, hi=1000.0)
     try:
         check_name(name, "node name")

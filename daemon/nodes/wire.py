@@ -6,10 +6,10 @@ with a two-byte magic and a version, so a consumer can refuse what it does not k
 
 Blobs (`mocap/<rig>/<camera>/blobs`): one message per camera frame, times in ns on the
 node's clock (the daemon maps them to its own, daemon.nodes.clock). Blob sets
-(`mocap/<rig>/_nodes/<node>/blobs`, what nodes send by default): the frames of one trigger
-from all the node's cameras in one message, each as a blobs record without its magic and
-with the camera's name: eight cameras at 240 fps are 240 messages a second rather than
-1920, and every message is a wake-up of the daemon's interpreter. Clock exchanges
+(`mocap/<rig>/_nodes/<node>/blobs`, a node with `publish = "sets"`): the frames of one
+trigger from all the node's cameras in one message, their fields as one table, then their
+names and blobs: eight cameras at 240 fps are 240 messages a second rather than 1920, and
+every message is a wake-up of the daemon's interpreter. Clock exchanges
 (`mocap/<rig>/_clock/ping`, `mocap/<rig>/_nodes/<node>/clock`): the four NTP-style stamps.
 """
 
