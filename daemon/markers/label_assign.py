@@ -171,10 +171,15 @@ def softassign(cps: list[Compat], P0: np.ndarray, betas=(0.5, 1, 2, 4, 8, 16, 32
     """Graduated assignment: soft matches from the gradient, Sinkhorn-balanced (with a
     slack row and column for unmatched tracks and markers), sharpened step by step.
     Runs for each table of `cps` its starts P0[k] (R, T, n) (the start's restarts at
-    its scales) together: one product with each table, one balancing for all."""
+    its scales) together: one product with each table, one balancing for all.
+
+    The balancing keeps the table fixed and scales its rows (u) and columns (v), the
+    slack row's and column's scale held at 1 (they are never normalised): two batched
+    products a step instead of four passes over the table, the same soft matches."""
     K, R, T, n = P0.shape
     P = P0
     Q = np.ones((K, R, T + 1, n + 1))
+    Qt = np.swapaxes(Q, 2, 3)
     G = np.empty((K, R, T * n))
     for beta in betas:
         slack = np.exp(-beta * 4.0 * 0.7)
@@ -186,10 +191,12 @@ def softassign(cps: list[Compat], P0: np.ndarray, betas=(0.5, 1, 2, 4, 8, 16, 32
             Q[:, :, :T, n] = slack
             Q[:, :, T, :n] = slack
             Q[:, :, T, n] = 1.0
+            u = np.ones((K, R, T + 1, 1))
+            v = np.ones((K, R, n + 1, 1))
             for _ in range(30):
-                Q[:, :, :T] /= Q[:, :, :T].sum(3, keepdims=True)
-                Q[:, :, :, :n] /= Q[:, :, :, :n].sum(2, keepdims=True)
-            P = Q[:, :, :T, :n].copy()
+                u[:, :, :T] = 1.0 / (Q[:, :, :T] @ v)
+                v[:, :, :n] = 1.0 / (Qt[:, :, :n] @ u)
+            P = u[:, :, :T] * Q[:, :, :T, :n] * v[:, :, :n, 0][:, :, None, :]
     return P
 
 
