@@ -6,7 +6,8 @@ labelled start frames, on both CMU takes (labels stripped, points shuffled).
 Prints frames/s of CPU time (median of the repeats, after a warm-up run). --command: the
 whole `mocapd label POINTS.csv --markerset cmu41 --out X.c3d` instead, Python's start and
 imports included (user + system CPU time of the child process, best of the repeats: the
-least disturbed by the machine's other work), on the takes' points written as CSV.
+least disturbed by the machine's other work), on the takes' points written as CSV, after
+one untimed run that caches the bytecode of every module the command loads.
 
 To compare with another version of the labeller, run the same script
 with PYTHONPATH at that version's tree (e.g. `git archive REV daemon calibkit projector
@@ -79,19 +80,24 @@ def command_table(cmu, repeats: int) -> None:
 
     rows = []
     env = dict(os.environ, PYTHONPATH=str(ROOT))
+    # bytecode cached as on any installed machine (pip compiles it; an editable install
+    # writes it on the first run): a shell that sets PYTHONDONTWRITEBYTECODE would
+    # otherwise have every timed run compile the labeller from source (about 45 ms)
+    env.pop("PYTHONDONTWRITEBYTECODE", None)
     with tempfile.TemporaryDirectory() as tmp:
         for name in ("85_02", "01_01"):
             take = read_c3d(DATA / f"{name}.c3d").select(cmu.labels)
             csv = Path(tmp) / f"{name}.csv"
             write_points_csv(csv, Points.from_take(take, seed=1))
             cpu = []
-            for _ in range(repeats):
+            for _ in range(repeats + 1):              # the first run caches bytecode
                 before = resource.getrusage(resource.RUSAGE_CHILDREN)
                 subprocess.run([sys.executable, "-m", "daemon.cli", "label", str(csv),
                                 "--markerset", "cmu41", "--out", str(Path(tmp) / "out.c3d")],
                                check=True, env=env, capture_output=True)
                 after = resource.getrusage(resource.RUSAGE_CHILDREN)
                 cpu.append(after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime)
+            cpu = cpu[1:]
             rows.append([name, take.n_frames, round(min(cpu), 2), round(take.n_frames / min(cpu)),
                          round(take.n_frames / float(np.median(cpu)))])
             print(*rows[-1], flush=True, file=sys.stderr)
