@@ -11,7 +11,9 @@ Cases, each with the same subscriber (this process, real-time scheduling as the 
   frames 0.1-0.5 ms after each 240 Hz trigger as the simulated cameras' are, each process
   on its own trigger phase (a quarter period apart);
 - publishers, together: the same with every process on the same triggers, as a rig's
-  cameras are.
+  cameras are;
+- sim cameras: the node's simulated cameras (`SimNodeCapture` serving `SimCamera`s, on
+  the rig's triggers) through the same publisher, without the rest of a node.
 
 The median of the runs' medians per case, and its ratio to "publishers, apart". If the
 "together" case costs what the nodes do, the hop is the processes' wake-ups landing at
@@ -84,6 +86,33 @@ def publisher(port: int, k: int, seconds: float, together: bool) -> None:
     session.close()
 
 
+def sim_publisher(port: int, k: int, seconds: float) -> None:
+    """One publishing process: the simulated cameras a node serves, without the node."""
+    from dataclasses import replace
+
+    from daemon.config import SimConfig
+    from daemon.nodes.node import CapturePublisher, NodeTime
+    from daemon.nodes.session import ZenohSettings
+    from daemon.nodes.settings import NodeConfig
+    from daemon.realtime import raise_priority
+    from daemon.synthetic.node_sim import SimNodeCapture, sim_sources
+
+    sys.setswitchinterval(1e-4)
+    raise_priority(10)
+    first = CAMERAS * k
+    cfg = replace(NodeConfig(), sim=replace(SimConfig(), cameras=CAMERAS * PROCESSES),
+                  sim_cameras=tuple(f"cam{i}" for i in range(first, first + CAMERAS)))
+    sources = sim_sources(cfg)
+    session = ZenohSettings(RIG, (), (f"tcp/127.0.0.1:{port}",)).open()
+    pushes = [CapturePublisher(session, f"mocap/{RIG}/{src.name}/blobs", k, NodeTime())
+              for src in sources]
+    capture = SimNodeCapture(sources, pushes)
+    capture.start()
+    time.sleep(seconds)
+    capture.stop()
+    session.close()
+
+
 def subscribe(port: int, seconds: float, start) -> np.ndarray:
     """Hop (ms) of every message that came within `seconds`, the first third left out."""
     import zenoh
@@ -116,7 +145,14 @@ def subscribe(port: int, seconds: float, start) -> np.ndarray:
 
 def run_case(case: str, seconds: float) -> np.ndarray:
     port = free_port()
-    if case == "nodes":
+    if case == "sim cameras":
+        def start():
+            return [subprocess.Popen(
+                [sys.executable, __file__, "--sim-publisher", str(k), "--port", str(port),
+                 "--seconds", str(seconds + 30)], cwd=ROOT, env=ENV)
+                for k in range(PROCESSES)]
+        wait = seconds + 8  # the simulated scene is built first
+    elif case == "nodes":
         def start():
             return [subprocess.Popen(
                 [sys.executable, "-m", "daemon.cli", "node", "--sim", "--sim-cameras",
@@ -144,18 +180,21 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=12.0)
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--publisher", type=int, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--sim-publisher", type=int, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--port", type=int, default=0, help=argparse.SUPPRESS)
     ap.add_argument("--together", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.publisher is not None:
         return publisher(args.port, args.publisher, args.seconds, args.together)
+    if args.sim_publisher is not None:
+        return sim_publisher(args.port, args.sim_publisher, args.seconds)
 
     from calibkit.clitools import print_table
     from daemon.realtime import raise_priority, restore_normal
 
     sys.setswitchinterval(1e-4)  # as the daemon's hub
     print(f"subscriber: {raise_priority(10)}", file=sys.stderr)
-    cases = ["publishers, apart", "publishers, together", "nodes"]
+    cases = ["publishers, apart", "publishers, together", "sim cameras", "nodes"]
     got: dict[str, list] = {c: [] for c in cases}
     try:
         for r in range(args.repeats):  # interleaved: the machine's drift hits every case
