@@ -35,6 +35,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from bench_nodes import free_port  # noqa: E402 - a sibling script: this folder is on the path
+
 ENV = dict(os.environ, PYTHONPATH=str(ROOT))
 RIG = "linkbench"
 FPS = 240.0
@@ -42,27 +44,26 @@ CAMERAS = 8  # per process
 PROCESSES = 4
 
 
-def free_port() -> int:
-    import socket
+def node_publishers(port: int, k: int, names: list[str]):
+    """A Zenoh session and a node's publisher per camera name, set up as `mocapd node`
+    sets them up (its switch interval, real-time scheduling, Zenoh settings)."""
+    from daemon.nodes.node import CapturePublisher, NodeTime
+    from daemon.nodes.session import ZenohSettings
+    from daemon.realtime import raise_priority
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    sys.setswitchinterval(1e-4)
+    raise_priority(10)  # before the session: its threads inherit it
+    session = ZenohSettings(RIG, (), (f"tcp/127.0.0.1:{port}",)).open()
+    return session, [CapturePublisher(session, f"mocap/{RIG}/{name}/blobs", k, NodeTime())
+                     for name in names]
 
 
 def publisher(port: int, k: int, seconds: float, together: bool) -> None:
     """One publishing process: CAMERAS cameras' blobs through the node's own publisher."""
-    from daemon.nodes.node import CapturePublisher, NodeTime
-    from daemon.nodes.session import ZenohSettings
-    from daemon.realtime import raise_priority
     from daemon.sources import CameraSample, fine_timer_slack
 
-    sys.setswitchinterval(1e-4)  # as the node
-    raise_priority(10)
+    session, pubs = node_publishers(port, k, [f"p{k}c{i}" for i in range(CAMERAS)])
     fine_timer_slack()
-    session = ZenohSettings(RIG, (), (f"tcp/127.0.0.1:{port}",)).open()
-    pubs = [CapturePublisher(session, f"mocap/{RIG}/p{k}c{i}/blobs", k, NodeTime())
-            for i in range(CAMERAS)]
     rng = np.random.default_rng(k)
     transfer = rng.uniform(100e3, 500e3, CAMERAS)
     uv = rng.random((12, 2)) * 1000
@@ -91,21 +92,14 @@ def sim_publisher(port: int, k: int, seconds: float) -> None:
     from dataclasses import replace
 
     from daemon.config import SimConfig
-    from daemon.nodes.node import CapturePublisher, NodeTime
-    from daemon.nodes.session import ZenohSettings
     from daemon.nodes.settings import NodeConfig
-    from daemon.realtime import raise_priority
     from daemon.synthetic.node_sim import SimNodeCapture, sim_sources
 
-    sys.setswitchinterval(1e-4)
-    raise_priority(10)
     first = CAMERAS * k
     cfg = replace(NodeConfig(), sim=replace(SimConfig(), cameras=CAMERAS * PROCESSES),
                   sim_cameras=tuple(f"cam{i}" for i in range(first, first + CAMERAS)))
     sources = sim_sources(cfg)
-    session = ZenohSettings(RIG, (), (f"tcp/127.0.0.1:{port}",)).open()
-    pushes = [CapturePublisher(session, f"mocap/{RIG}/{src.name}/blobs", k, NodeTime())
-              for src in sources]
+    session, pushes = node_publishers(port, k, [src.name for src in sources])
     capture = SimNodeCapture(sources, pushes)
     capture.start()
     time.sleep(seconds)
