@@ -6,6 +6,12 @@ aligned to the first by the similarity that best maps its camera centres; that t
 is reported, and the differences are what remains. The grid figure is the one users feel:
 a grid of points filling the volume is projected with rig A and triangulated with rig B,
 and the RMS of the 3D differences is what B's errors cost in millimetres.
+
+A similarity absorbs a scale error: a rig 0.3 % too large aligns onto the truth with a grid
+RMS of a few hundredths of a millimetre, yet measures 12 mm too much over 4 m. So the scale
+is always fitted and judged on its own (what it alone moves the grid points by, in the
+grid's own millimetres), and the verdict counts the worse of the two; `scale=False` aligns
+with rotation and translation only, leaving the scale error in the grid RMS.
 """
 
 from __future__ import annotations
@@ -25,8 +31,10 @@ def _angle_deg(R: np.ndarray) -> float:
     return math.degrees(float(np.linalg.norm(rvec_from_rotation(R))))
 
 
-def similarity_from_rigs(a: list[Camera], b: list[Camera]) -> tuple[np.ndarray, np.ndarray, float]:
-    """(R, t, s) with s R c_b + t ~ c_a for the cameras' centres.
+def similarity_from_rigs(a: list[Camera], b: list[Camera], scale: bool = True
+                         ) -> tuple[np.ndarray, np.ndarray, float]:
+    """(R, t, s) with s R c_b + t ~ c_a for the cameras' centres (s = 1 without `scale`:
+    a rigid transform, so that a scale error stays in what is compared).
 
     Three or more cameras not on a line fix it from the centres alone (Umeyama); with fewer,
     the rotation comes from the cameras' orientations (the mean of R_a^T R_b, made a
@@ -36,14 +44,14 @@ def similarity_from_rigs(a: list[Camera], b: list[Camera]) -> tuple[np.ndarray, 
     cb = np.array([c.centre for c in b])
     spread = np.linalg.svd(cb - cb.mean(axis=0), compute_uv=False) if len(cb) >= 3 else None
     if spread is not None and spread[1] > 1e-6 * max(spread[0], 1e-12):
-        return rigid_fit(cb, ca, scale=True)
+        return rigid_fit(cb, ca, scale=scale)
     M = sum(ca_.R.T @ cb_.R for ca_, cb_ in zip(a, b, strict=True))
     U, _, Vt = np.linalg.svd(M)
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
     R = U @ D @ Vt
     da = np.linalg.norm(ca - ca.mean(axis=0), axis=1).sum()
     db = np.linalg.norm(cb - cb.mean(axis=0), axis=1).sum()
-    s = float(da / db) if db > 1e-12 else 1.0
+    s = float(da / db) if db > 1e-12 and scale else 1.0
     return R, ca.mean(axis=0) - s * R @ cb.mean(axis=0), s
 
 
@@ -83,11 +91,11 @@ def grid_points(rig: Rig, steps: int = GRID_STEPS) -> np.ndarray:
 GROSS_MM = 10.0  # a grid point further than this from the truth is a gross error
 
 
-def grid_rms_mm(a: Rig, b: Rig) -> tuple[float, int, int]:
-    """RMS 3D distance (mm) between grid points and their triangulation with rig b from
-    rig a's exact projections, the number of grid points used, and how many of them are
-    gross errors (over GROSS_MM, or not triangulated at all)."""
-    pts = grid_points(a)
+def grid_rms_mm(a: Rig, b: Rig, pts: np.ndarray | None = None) -> tuple[float, int, int]:
+    """RMS 3D distance (mm) between grid points (default: grid_points(a)) and their
+    triangulation with rig b from rig a's exact projections, the number of grid points
+    used, and how many of them are gross errors (over GROSS_MM, or not triangulated)."""
+    pts = grid_points(a) if pts is None else pts
     point, camera, uv = [], [], []
     b_index = {name: i for i, name in enumerate(b.names)}
     for cam in a:
@@ -111,17 +119,70 @@ def grid_rms_mm(a: Rig, b: Rig) -> tuple[float, int, int]:
     return float(np.sqrt(np.mean(d**2)) * 1000.0), int(len(d)), gross
 
 
-def compare_rigs(a: Rig, b: Rig, align: bool = True) -> dict:
+# The verdict's levels, each the largest grid RMS (mm) it allows: 0.3 mm is the chain's
+# target against the truth, 1 mm the target with 0.5 % / 2 px intrinsic error going in
+# (docs/simulator.md), GROSS_MM the line past which a point counts as a gross error.
+GRADES = (("excellent", 0.3), ("good", 1.0), ("usable", GROSS_MM))
+
+
+def scale_figures(s: float | None, grid: np.ndarray) -> dict:
+    """What the alignment's scale s (B mapped onto A: s R x_b + t) says about B's lengths.
+
+    error_ppm: how much longer B measures a length than A does (1/s - 1). length_error_mm:
+    that error over the grid's diagonal (span_m), the longest length measured in the volume.
+    grid_rms_mm: how far the scale alone moves the grid points, RMS about their middle (the
+    least any alignment leaves): the currency of the grid RMS, so the verdict can weigh it.
+    None values when one camera cannot show a scale."""
+    span = float(np.linalg.norm(np.ptp(grid, axis=0))) if len(grid) else 0.0
+    rms_radius = float(np.sqrt(np.mean(np.sum((grid - grid.mean(axis=0)) ** 2, axis=1)))) \
+        if len(grid) else 0.0
+    if s is None or not math.isfinite(s) or s <= 0:
+        return {"factor": None, "error_ppm": None, "length_error_mm": None, "span_m": span,
+                "grid_rms_mm": None}
+    err = 1.0 / s - 1.0
+    return {"factor": float(s), "error_ppm": float(err * 1e6),
+            "length_error_mm": float(abs(err) * span * 1000.0), "span_m": span,
+            "grid_rms_mm": float(abs(err) * rms_radius * 1000.0)}
+
+
+def verdict(grid_rms_mm: float, gross: int, scale_rms_mm: float | None) -> dict:
+    """One grade for B against A: the level the worse of the grid RMS and the scale's own
+    grid RMS reaches (a grid point off by more than GROSS_MM caps it at "usable"), and the
+    reason in a sentence."""
+    worst = max(grid_rms_mm, scale_rms_mm or 0.0) if math.isfinite(grid_rms_mm) else math.inf
+    grade = next((name for name, limit in GRADES if worst <= limit), "poor")
+    order = [name for name, _ in GRADES] + ["poor"]
+    if gross and order.index(grade) < order.index("usable"):
+        grade = "usable"
+    if not math.isfinite(grid_rms_mm):
+        reason = "no grid point was seen by two cameras of both rigs"
+    elif gross:
+        reason = f"{gross} grid points are off by more than {GROSS_MM:g} mm"
+    elif scale_rms_mm is not None and scale_rms_mm > grid_rms_mm:
+        reason = (f"the scale alone moves the grid points by {scale_rms_mm:.3f} mm RMS, more "
+                  f"than the grid RMS of {grid_rms_mm:.3f} mm")
+    else:
+        reason = f"grid RMS {grid_rms_mm:.3f} mm"
+    limits = ", ".join(f"{name} <= {limit:g} mm" for name, limit in GRADES)
+    return {"grade": grade, "reason": reason, "limits": limits}
+
+
+def compare_rigs(a: Rig, b: Rig, align: bool = True, scale: bool = True) -> dict:
     """Per-camera differences of rig b from rig a (cameras matched by name), the grid RMS,
-    and the alignment applied to b. Raises UserError when the rigs share no camera."""
+    the alignment applied to b (a similarity, or with scale=False a rigid transform), the
+    scale B's lengths are off by (fitted whether or not it is applied), and a verdict.
+    Raises UserError when the rigs share no camera."""
     common = [name for name in a.names if name in set(b.names)]
     if not common:
         raise UserError(f"the two rigs have no camera name in common ({', '.join(a.names)} vs "
                         f"{', '.join(b.names)})")
     cams_a = [a[name] for name in common]
     cams_b = [b[name] for name in common]
-    if align:
-        R, t, s = similarity_from_rigs(cams_a, cams_b)
+    fitted = similarity_from_rigs(cams_a, cams_b) if len(common) >= 2 else None
+    if align and (scale and fitted is not None):
+        R, t, s = fitted
+    elif align:
+        R, t, s = similarity_from_rigs(cams_a, cams_b, scale=False)
     else:
         R, t, s = np.eye(3), np.zeros(3), 1.0
     aligned = [transform_camera(c, R, t, s) for c in cams_b]
@@ -137,15 +198,21 @@ def compare_rigs(a: Rig, b: Rig, align: bool = True) -> dict:
         })
     rig_b = Rig(tuple(aligned))
     rig_a = Rig(tuple(cams_a), meta=dict(a.meta))
-    rms, n, gross = grid_rms_mm(rig_a, rig_b)
+    grid = grid_points(rig_a)
+    rms, n, gross = grid_rms_mm(rig_a, rig_b, grid)
+    scale_fig = scale_figures(None if fitted is None else fitted[2], grid)
+    scale_fig["applied"] = bool(align and scale and fitted is not None)
     return {
         "cameras": rows,
         "grid_rms_mm": rms,
         "grid_points": n,
         "grid_gross_points": gross,
-        "alignment": {"applied": bool(align), "rotation_deg": _angle_deg(R),
+        "alignment": {"applied": bool(align), "with_scale": scale_fig["applied"],
+                      "rotation_deg": _angle_deg(R),
                       "rotation_vector": rvec_from_rotation(R).tolist(),
                       "translation_m": np.asarray(t, dtype=float).tolist(), "scale": float(s)},
+        "scale": scale_fig,
+        "verdict": verdict(rms, gross, scale_fig["grid_rms_mm"]),
         "only_in_a": [n_ for n_ in a.names if n_ not in set(common)],
         "only_in_b": [n_ for n_ in b.names if n_ not in set(common)],
     }
