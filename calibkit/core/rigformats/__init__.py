@@ -1,0 +1,1 @@
+"""Other tools' calibration files read into a Rig, and the TOML ones written back."""
