@@ -137,6 +137,8 @@ class RigidTracker:
         self.prev_valid = np.zeros(n, dtype=bool)
         self.prev_R = np.tile(np.eye(3), (n, 1, 1))
         self.prev_t = np.zeros((n, 3))
+        # the last fit belongs to the old definitions: its shapes no longer match
+        self._last = (None, None, None)
 
     def update(self, tracks: TrackFrame, uv: np.ndarray | None = None,
                cameras=None) -> BodyPoses:
@@ -187,7 +189,7 @@ class RigidTracker:
         seen this frame: where the body's pose puts them. Handed back to the tracker, an
         occluded marker's track follows its body instead of coasting straight on, so it
         reappears inside its gate and a passing marker is not taken for it."""
-        R, t, valid = getattr(self, "_last", (None, None, None))
+        R, t, valid = self._last
         if R is None or not np.any(valid) or not len(tracks):
             return np.zeros(0, np.int64), np.zeros((0, 3))
         row = self._rows(tracks, self.assigned)

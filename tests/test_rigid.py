@@ -207,6 +207,28 @@ def test_hidden_markers_of_a_tracked_body_follow_its_pose():
     np.testing.assert_allclose(tr.xyz[:3], xyz[:3])
 
 
+@pytest.mark.parametrize("keep", [0, 1, 3])
+def test_new_definitions_between_frames_never_mix_with_the_old_fit(keep):
+    """A reload that removes every body (or some, or adds one) swaps the definitions
+    between two frames: the hidden markers of the next frame come from the new ones."""
+    rng = np.random.default_rng(3)
+    shapes = [rng.uniform(-0.1, 0.1, (4, 3)) for _ in range(3)]
+    bodies = [BodyDef(f"b{i}", i + 1, m, np.zeros(3), 3, 3) for i, m in enumerate(shapes)]
+    rt = RigidTracker(bodies, RigidConfig(refine=False))
+    ids = np.arange(1, 13)
+    xyz = np.concatenate([m + [i, 0, 1] for i, m in enumerate(shapes)])
+    rt.update(_frame(ids, xyz))
+    seen = np.ones(12, bool)
+    seen[[3, 7]] = False
+    rt.set_bodies(bodies[:keep])
+    hid, where = rt.hidden_markers(_frame(ids, xyz, seen))
+    assert len(hid) == 0 and where.shape == (0, 3)
+    poses = rt.update(_frame(ids, xyz, seen))
+    assert len(poses.valid) == keep
+    hid, _ = rt.hidden_markers(_frame(ids, xyz, seen))
+    assert set(hid.tolist()) <= {4, 8}
+
+
 def test_compiled_fit_matches_numpy_with_releases():
     """The compiled body fit (daemon.rigid_kernel) against the numpy path: weights from
     the tracks' sigma, a marker knocked 3 cm off (released), a body with nothing seen."""
