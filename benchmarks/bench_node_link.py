@@ -153,7 +153,7 @@ def run_case(case: str, seconds: float) -> np.ndarray:
                  str(CAMERAS * PROCESSES), "--cameras",
                  f"{CAMERAS * k}-{CAMERAS * k + CAMERAS - 1}", "--name", f"n{k}", "--rig", RIG,
                  "--connect", f"tcp/127.0.0.1:{port}", "--publish", "cameras",
-                 "--duration", str(seconds + 30)], cwd=ROOT, env=ENV,
+                 "--duration", str(seconds + 30), "--realtime"], cwd=ROOT, env=ENV,
                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
                 for k in range(PROCESSES)]
         wait = seconds + 8  # the nodes build their simulated scene first

@@ -65,7 +65,7 @@ def true_offset_ms(offset_ms, drift_ppm, t_ns):
 def daemon(conf: Path, seconds: float, out: Path, extra=()):
     return subprocess.Popen([sys.executable, "-m", "daemon.cli", "start", "--config",
                              str(conf), "--duration", str(seconds), "--json", str(out),
-                             *extra], cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL,
+                             "--realtime", *extra], cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
 
 
@@ -75,7 +75,7 @@ def node(name, rig, endpoint, cameras, clock, n_cameras=32, seconds=120, publish
          "--cameras", cameras, "--name", name, "--rig", rig, "--connect", endpoint,
          "--publish", publish,
          "--clock-offset-ms", str(clock[0]), "--clock-drift-ppm", str(clock[1]),
-         "--duration", str(seconds)], cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL,
+         "--duration", str(seconds), "--realtime"], cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL)
 
 

@@ -269,7 +269,7 @@ def latency(seconds: float, size: str, nice: int = 0) -> dict:
            "--sim-cameras", str(N_CAMERAS), "--sim-bodies", str(N_BODIES),
            "--sim-fps", str(FPS), "--noise-px", str(NOISE_PX),
            "--udp", f"127.0.0.1:{rx.getsockname()[1]}", "--duration", str(seconds),
-           "--runtime-dir", f"/tmp/mocapd-bench-{rx.getsockname()[1]}"]
+           "--runtime-dir", f"/tmp/mocapd-bench-{rx.getsockname()[1]}", "--realtime"]
     cfg = ROOT / "benchmarks" / f".bench_tracking_{size}.toml"
     w, h = SIZES[size]
     cfg.write_text(f"[sim]\nmarkers_per_body = {PER_BODY}\nsize = [{w}, {h}]\n")

@@ -187,7 +187,7 @@ class Config:
     timeout_frames: float = 1.5  # triggered: wait this many frame periods for a full set
     pair_tolerance: float = 0.5  # a set gathers samples within this many frame periods
     # live runs: SCHED_RR priority of the daemon's threads (0: normal scheduling)
-    realtime_priority: int = 10
+    realtime_priority: int = 0  # SCHED_RR priority; 0: normal (`--realtime` turns it on)
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     # the [tracker] keys the file sets: the pixel gates it leaves out follow the rig's
     # residual (calibkit.vision.gates), the ones it sets stay as set
@@ -300,7 +300,7 @@ def parse_config(data: dict, path: Path | None = None, base: Path | None = None)
                                         hi=100)
     changes["pair_tolerance"] = _number(w, pipe, "pair_tolerance", "pipeline.", 0.5, lo=0.05,
                                         hi=0.5)
-    changes["realtime_priority"] = _number(w, pipe, "realtime_priority", "pipeline.", 10,
+    changes["realtime_priority"] = _number(w, pipe, "realtime_priority", "pipeline.", 0,
                                            kind=int, lo=0, hi=99)
     changes["tracker"] = _dataclass_table(w, _table(w, data, "tracker"), TrackerConfig,
                                           TrackerConfig(), "tracker.")

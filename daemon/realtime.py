@@ -23,7 +23,8 @@ log = logging.getLogger("mocapd.realtime")
 
 HOW_TO_ALLOW = ("allow it with LimitRTPRIO={p} in the systemd unit (mocapd install-unit "
                 "writes it), `setcap cap_sys_nice+ep` on the Python binary, or an rtprio line "
-                "in /etc/security/limits.conf; or set [pipeline] realtime_priority = 0")
+                "in /etc/security/limits.conf; or leave it off (no --realtime, "
+                "[pipeline] realtime_priority = 0)")
 
 
 def raise_priority(priority: int) -> str:
@@ -32,7 +33,7 @@ def raise_priority(priority: int) -> str:
     `mocapd status`; when the system refuses, logs one warning saying how to allow it and
     goes on at normal priority."""
     if priority <= 0:
-        return "normal (realtime_priority = 0)"
+        return "normal (real-time scheduling not asked for: --realtime)"
     if not hasattr(os, "sched_setscheduler"):
         return "normal (this system has no real-time scheduling)"
     try:

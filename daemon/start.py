@@ -15,6 +15,10 @@ from calibkit.core.errors import UserError
 from daemon.config import Config, ReplayIn, SimConfig
 from daemon.console import Progress
 
+# --realtime without a [pipeline] realtime_priority: above ordinary work and interrupt
+# threads' defaults (50) stay ahead of it
+REALTIME_DEFAULT = 10
+
 
 @dataclass(frozen=True)
 class StartOverrides:
@@ -32,6 +36,7 @@ class StartOverrides:
     sim_fps: float | None = None
     noise_px: float | None = None
     seed: int | None = None
+    realtime: bool = False  # --realtime: SCHED_RR at the file's priority, else REALTIME_DEFAULT
 
     def apply(self, cfg: Config) -> Config:
         changes = {}
@@ -41,6 +46,8 @@ class StartOverrides:
             changes["runtime_dir"] = self.runtime_dir
         if self.mode is not None:
             changes["mode"] = self.mode
+        if self.realtime and cfg.realtime_priority == 0:
+            changes["realtime_priority"] = REALTIME_DEFAULT
         if self.replay is not None:
             changes["replay"] = ReplayIn(self.replay, realtime=not self.fast)
         elif self.fast and cfg.replay is not None:

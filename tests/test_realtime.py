@@ -60,14 +60,22 @@ def test_a_refused_priority_is_one_warning_with_the_remedy(monkeypatch, caplog):
 
 def test_priority_zero_leaves_scheduling_alone():
     assert _in_thread(lambda: (raise_priority(0), current_policy())) == (
-        "normal (realtime_priority = 0)", "SCHED_OTHER")
+        "normal (real-time scheduling not asked for: --realtime)", "SCHED_OTHER")
 
 
-def test_the_configuration_key(tmp_path, start_refused):
+def test_the_configuration_key_and_the_flag(tmp_path, start_refused):
+    """Real-time scheduling only where it is asked for: a file's priority or --realtime
+    (which the system unit passes); a run in a terminal or --sim stays normal."""
+    from daemon.start import REALTIME_DEFAULT, StartOverrides
+
     good = tmp_path / "good.toml"
-    good.write_text("[pipeline]\nrealtime_priority = 0\n")
-    assert load_config(good).realtime_priority == 0
-    assert load_config(None).realtime_priority == 10
+    good.write_text("[pipeline]\nrealtime_priority = 20\n")
+    assert load_config(good).realtime_priority == 20
+    assert load_config(None).realtime_priority == 0
+    assert StartOverrides(sim=True).apply(load_config(None)).realtime_priority == 0
+    assert StartOverrides(realtime=True).apply(load_config(None)).realtime_priority == \
+        REALTIME_DEFAULT
+    assert StartOverrides(realtime=True).apply(load_config(good)).realtime_priority == 20
     bad = tmp_path / "bad.toml"
     bad.write_text("[pipeline]\nrealtime_priority = 100\n")
     assert "pipeline.realtime_priority: must be between 0 and 99, got 100" in start_refused(bad)
@@ -78,7 +86,7 @@ def test_a_live_run_tracks_real_time_reports_its_stages_and_returns_normal(tmp_p
                                                                           mocapd_cli):
     out = tmp_path / "fig.json"
     r = mocapd_cli("start", "--sim", "--duration", 2.5, "--sim-fps", 120, "--json", out,
-                   "--runtime-dir", tmp_path / "rt", "--udp", "127.0.0.1:9")
+                   "--runtime-dir", tmp_path / "rt", "--udp", "127.0.0.1:9", "--realtime")
     assert r.code == 0, r.err
     fig = json.loads(out.read_text())
     assert fig["scheduling"] == "SCHED_RR 10"

@@ -44,7 +44,8 @@ def test_system_unit_quotes_its_paths_and_says_the_system_commands(tmp_path, moc
     config, printed = _unit(tmp_path, mocapd_cli, out)
     line = next(t for t in out.read_text().splitlines() if t.startswith("ExecStart="))
     words = systemd_words(line.removeprefix("ExecStart="))
-    assert words[-3:] == ["start", "--config", str(config.resolve())]
+    # the installed daemon is the one that runs real-time (a terminal's or --sim's is not)
+    assert words[-4:] == ["start", "--config", str(config.resolve()), "--realtime"]
     assert "--user" not in printed and "WantedBy=multi-user.target" in out.read_text()
     follow = printed.splitlines()[-1]
     assert follow.startswith("then: systemctl link ") and follow.endswith(

@@ -46,6 +46,10 @@ def register(app: typer.Typer) -> None:
         duration: Annotated[float | None, typer.Option(
             "--duration", help="Stop after this many seconds.")] = None,
         verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Debug log.")] = False,
+        realtime: Annotated[bool, typer.Option(
+            "--realtime", help="Capture and publish under real-time scheduling (SCHED_RR at "
+                               "node.toml's realtime_priority, else 10); off by default.")]
+        = False,
     ) -> None:
         """Open cameras, detect blobs and publish them over Zenoh to a mocapd elsewhere."""
         from daemon.config import SimConfig
@@ -57,6 +61,10 @@ def register(app: typer.Typer) -> None:
 
         setup_logging(verbose)
         cfg = load_node_config(config)
+        if realtime and cfg.realtime_priority == 0:
+            from daemon.start import REALTIME_DEFAULT
+
+            cfg = replace(cfg, realtime_priority=REALTIME_DEFAULT)
         try:
             if name is not None:
                 cfg = replace(cfg, name=check_name(name, "--name"))

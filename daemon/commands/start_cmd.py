@@ -178,6 +178,11 @@ def register(app: typer.Typer) -> None:
             "--noise-px", help="--sim: centroid noise sigma, px (default 0.2).")] = None,
         seed: Annotated[int | None, typer.Option("--seed", help="--sim: random seed.")] = None,
         verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Debug log.")] = False,
+        realtime: Annotated[bool, typer.Option(
+            "--realtime", help="Run the tracking threads under real-time scheduling (SCHED_RR "
+                               "at [pipeline] realtime_priority, else 10): steadier latency, "
+                               "but it takes the CPU from everything else. Off by default; "
+                               "the systemd unit (mocapd install-unit) turns it on.")] = False,
         view: Annotated[str | None, typer.Option(
             "--view", help="Serve the live web view on [HOST:]PORT (a bare port: this "
                            "computer only), e.g. 8080.")] = None,
@@ -200,7 +205,7 @@ def register(app: typer.Typer) -> None:
         extend = command_line_additions(udp, serial, mavlink, mavlink_body, mavlink_message,
                                         natnet, natnet_up, vrpn, mavlink_origin)
         overrides = StartOverrides(rig, runtime_dir, mode, replay, fast, sim, sim_bodies,
-                                   sim_cameras, sim_fps, noise_px, seed)
+                                   sim_cameras, sim_fps, noise_px, seed, realtime)
 
         def full(cfg: Config) -> Config:
             return overrides.apply(extend(cfg))

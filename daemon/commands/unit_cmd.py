@@ -45,7 +45,9 @@ def unit_text(config: Path, executable: list[str], watchdog_s: int = 5,
     # priority waits for the CPU and the latency tail grows from ~1.5 ms to tens of ms
     # (docs/tracking.md). A user manager may not raise these limits, and a unit asking for
     # them would fail to start, so user units leave them out (the daemon then says so).
+    # Both kinds pass --realtime: a user unit's daemon then says once how to allow it.
     priority = "" if wanted_by == "default.target" else "Nice=-10\nLimitRTPRIO=99\n"
+    realtime = ["--realtime"]
     return f"""[Unit]
 Description=mocapd motion-capture tracking daemon
 After=network-online.target
@@ -54,7 +56,7 @@ Wants=network-online.target
 [Service]
 Type=notify
 NotifyAccess=main
-ExecStart={exec_line([*executable, 'start', '--config', str(config)])}
+ExecStart={exec_line([*executable, 'start', '--config', str(config), *realtime])}
 ExecReload=/bin/kill -HUP $MAINPID
 RuntimeDirectory=mocapd
 RuntimeDirectoryMode=0700

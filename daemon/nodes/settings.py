@@ -38,7 +38,7 @@ class NodeConfig:
     sim_cameras: tuple[str, ...] = ()  # which of the simulated rig's cameras it serves
     clock_offset_ms: float = 0.0  # --sim: the node's own clock against the machine's
     clock_drift_ppm: float = 0.0
-    realtime_priority: int = 10  # SCHED_RR of the node's threads, as the daemon's (0: normal)
+    realtime_priority: int = 0  # SCHED_RR of the node's threads (0: normal; --realtime: 10)
     # "cameras": one message per camera frame, on the camera's own key; "sets": one message
     # per trigger with every camera's frame (daemon.nodes.node.SetPublisher)
     publish: str = "cameras"
@@ -51,7 +51,7 @@ def parse_node_config(data: dict, path: Path | None = None,
     _check_keys(w, data, {"name", "realtime_priority", "publish", "set_wait_ms", "zenoh",
                           "camera", "sim", "node_sim"}, "")
     name = _string(w, data, "name", "", "node")
-    priority = _number(w, data, "realtime_priority", "", 10, kind=int, lo=0, hi=99)
+    priority = _number(w, data, "realtime_priority", "", 0, kind=int, lo=0, hi=99)
     publish = _string(w, data, "publish", "", "cameras", choices=PUBLISH)
     set_wait = _number(w, data, "set_wait_ms", "", 2.0, lo=0.0, hi=1000.0)
     try:
