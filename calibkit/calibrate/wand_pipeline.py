@@ -3,7 +3,11 @@ camera has enough, set up the world frame, solve, write the files.
 
 Each step takes what hardware (or a recording) gives, so the command handler only parses
 and prints, and the simulator (calibkit.synthetic.wand_sim) can hand in its batches of
-frames and its floor recording without the rest knowing.
+frames and its floor recording without the rest knowing. What hardware gives is each
+camera's own frames: its own counter and capture times, frames lost on the way. They are
+recorded as they are and grouped into wand frames by capture time before the solve
+(calibkit.calibrate.pairing); older recordings that number frames by instant are read as
+they are.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import numpy as np
 from calibkit.calibrate import floor, plane_views, wand_report
 from calibkit.calibrate.extrinsic_capture import load_dots
 from calibkit.calibrate.extrinsic_solve import bundle_data
+from calibkit.calibrate.pairing import PER_CAMERA, pair_frames
 from calibkit.calibrate.wand import CaptureMonitor, WandSpec, identify
 from calibkit.cameras import open_camera
 from calibkit.core.camera import Rig
@@ -33,8 +38,9 @@ def capture(batches: Iterator[Observations], spec: WandSpec, intrinsics: Rig,
             monitor: CaptureMonitor, writer: RecordingWriter | None,
             progress) -> Observations | None:
     """Feed batches of frames through identification until every camera has enough (or
-    Ctrl-C); every batch is appended to the recording as it comes. Returns what it got.
-    progress: has update(frames, text) and finish(text) (calibkit.clitools.Progress)."""
+    Ctrl-C); every batch is appended to the recording as it comes. Returns what it got, as
+    the cameras gave it (not yet paired: pair_frames). progress: has update(frames, text)
+    and finish(text) (calibkit.clitools.Progress); frames counts the busiest camera's."""
     parts: list[Observations] = []
     frames = 0
     try:
@@ -44,7 +50,7 @@ def capture(batches: Iterator[Observations], spec: WandSpec, intrinsics: Rig,
                 monitor.add(identify(batch, spec, intrinsics))
                 if writer is not None:
                     writer.append_observations(batch)
-            frames += len(np.unique(batch.frame)) if len(batch) else 1
+            frames += _frames_in(batch)
             progress.update(frames, monitor.summary())
             if monitor.done():
                 break
@@ -55,9 +61,20 @@ def capture(batches: Iterator[Observations], spec: WandSpec, intrinsics: Rig,
     return Observations.concatenate(parts) if parts else None
 
 
+def _frames_in(batch: Observations) -> int:
+    """The frames of the camera that delivered most in a batch (1 for an empty batch)."""
+    if not len(batch):
+        return 1
+    key = np.unique(batch.camera.astype(np.int64) << 40 | (batch.frame & ((1 << 40) - 1)))
+    return int(np.bincount((key >> 40).astype(np.int64)).max())
+
+
 def live_batches(specs: list[str], rig: Rig) -> Iterator[Observations]:
     """One frame from every camera at a time, detected: cameras (calibkit.cameras specs) named
-    as in the rig, in the order given."""
+    as in the rig, in the order given. Each row keeps its camera's own frame number (the
+    device's frame counter where it gives one, else the source's count) and capture time:
+    a camera that lost a frame is a frame ahead of the others from then on, which only the
+    times tell (pair_frames)."""
     if len(specs) != len(rig):
         raise UserError(f"give one --camera per camera of the intrinsics file ({len(rig)}), "
                         f"got {len(specs)}")
@@ -65,15 +82,16 @@ def live_batches(specs: list[str], rig: Rig) -> Iterator[Observations]:
     with ExitStack() as opened:  # a camera that fails to open closes those opened before it
         sources = [opened.enter_context(open_camera(s, name=n))
                    for s, n in zip(specs, rig.names, strict=True)]
-        for index, frames in enumerate(zip(*sources, strict=False)):
+        for frames in zip(*sources, strict=False):
             rows = []
             for c, frame in enumerate(frames):
                 blobs = detect(frame.image, config)
                 n = len(blobs.uv)
+                own = frame.device_frame_id if frame.device_frame_id >= 0 else frame.index
                 rows.append(Observations(rig.names, [cam.size for cam in rig],
-                                         np.full(n, index), np.full(n, c),
+                                         np.full(n, own), np.full(n, c),
                                          np.full(n, frame.t_ns), blobs.uv, blobs.area,
-                                         blobs.peak))
+                                         blobs.peak, meta={"frames": PER_CAMERA}))
             yield Observations.concatenate(rows)
 
 
@@ -94,14 +112,27 @@ def record_capture(batches: Iterator[Observations], spec: WandSpec, intrinsics: 
                    monitor: CaptureMonitor | None = None
                    ) -> tuple[Observations, CaptureMonitor]:
     """Capture into a recording at `path` (fps: the camera rate, if known) until every
-    camera has enough; the observations and the monitor with its coverage figures (the
-    one given, e.g. one a page shows as it fills, or a new one for `targets`)."""
+    camera has enough; the observations paired into wand frames (pair_frames) and the
+    monitor with its coverage figures (the one given, e.g. one a page shows as it fills,
+    or a new one for `targets`). The recording keeps each camera's own frames and times
+    (its header says so), so reading it back pairs them the same way."""
     monitor = monitor or new_monitor(intrinsics, targets)
-    with RecordingWriter(path, intrinsics.names, [c.size for c in intrinsics], fps) as writer:
+    with RecordingWriter(path, intrinsics.names, [c.size for c in intrinsics], fps,
+                         meta={"frames": PER_CAMERA}) as writer:
         obs = capture(batches, spec, intrinsics, monitor, writer, progress)
     if obs is None:
         raise UserError("nothing was captured")
-    return obs, monitor
+    obs.fps = obs.fps or fps
+    obs.meta = {**obs.meta, "frames": PER_CAMERA}
+    return pair_frames(obs).obs, monitor
+
+
+def load_capture(path: Path, intrinsics: Rig) -> Observations:
+    """A recorded capture (--from: .mcrec or CSV) with its frames paired into wand frames:
+    by capture time when each camera counts its own, as recorded when frames already
+    name instants (pairing.frames_are_instants)."""
+    obs, _ = load_observations(path, intrinsics)
+    return pair_frames(obs).obs
 
 
 def new_monitor(intrinsics: Rig, targets: CaptureTargets) -> CaptureMonitor:
@@ -112,7 +143,7 @@ def new_monitor(intrinsics: Rig, targets: CaptureTargets) -> CaptureMonitor:
 def world_from_floor(path: Path, intrinsics: Rig, kind: str, spec: WandSpec) -> World:
     """The world frame from a recording of the L-frame, the wand or plane dots on the
     floor (--floor, --floor-kind)."""
-    obs, _ = load_observations(path, intrinsics)
+    obs = load_capture(path, intrinsics)
 
     def world(rig: Rig, _xyz: np.ndarray):
         return floor.world_from_recording(rig, obs, kind, spacing_m=spec.spacing_m)

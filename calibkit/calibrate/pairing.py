@@ -1,0 +1,185 @@
+"""Camera frames grouped into wand frames by capture time, not by each camera's counter.
+
+Real cameras open at different moments, count frames from their own start, and lose a
+frame now and then (a full USB bus, a busy computer). Pairing frame n of one camera with
+frame n of another is then wrong from the first drop on, and nothing in the numbers
+shows it: the solve just gets worse. What a capture does give is each frame's capture
+time. A wand is captured by a triggered (or at least evenly clocked) rig, so each
+camera's stamps lie on a grid of its frame period: stamp = start + period * n + jitter,
+with its own start (the transfer delay, the moment the driver's clock was mapped) and
+its own period (its crystal, tens of ppm from the nominal rate). Those two numbers are
+learned per camera from its stamps alone: the trigger count n from the rounded gaps
+between successive stamps (exact whatever the gap, since a crystal is never a tenth of
+a frame off over a capture), then a straight line through (n, stamp), refitted without
+the stamps that sit far from it (a frame handed over late). The fitted grid replaces
+each stamp, which takes the jitter out; a frame whose stamp is more than a quarter of a
+period off its camera's grid is not trusted and left unpaired.
+
+Every camera's grid is then read on the reference camera's (the one with most frames):
+a frame belongs to the reference instant nearest to it, and one that is more than half a
+period from every instant, or that shares its instant with a nearer frame of its camera,
+is left unpaired, never paired with the wrong instant. The one thing times cannot tell
+is a whole number of periods between two cameras' clocks: stamps are assumed to agree to
+within half a period at the start (one computer's clock, or device clocks mapped to it),
+and the drift that builds up after that is what the fit follows.
+
+Recordings that already number frames by instant (older calibkit recordings, other
+tools' files, cameras that share a hardware frame id) are kept as they are:
+`frames_are_instants` tells them apart by what the file says, else by whether the
+cameras' times of one frame number agree.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from calibkit.core.observations import Observations
+
+PER_CAMERA = "per camera"  # meta["frames"]: each camera's own counter (pair by time)
+INSTANTS = "instants"  # meta["frames"]: one number per instant, shared by the cameras
+TRUST_FRAC = 0.25  # a stamp this many periods off its camera's grid is not trusted
+MIN_FRAMES = 3  # a camera with fewer timed frames cannot have its grid fitted
+
+
+@dataclass(eq=False)
+class Pairing:
+    """Observations with `frame` numbering instants, and how they were paired."""
+
+    obs: Observations
+    method: str  # "time" or "as recorded"
+    stats: dict = field(default_factory=dict)
+
+
+def _records(obs: Observations) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The distinct (camera, frame) records: camera, frame, time, and each row's record."""
+    key = obs.camera.astype(np.int64) * (int(obs.frame.max()) - int(obs.frame.min()) + 1) \
+        + (obs.frame - obs.frame.min())
+    uniq, first, inv = np.unique(key, return_index=True, return_inverse=True)
+    return obs.camera[first], obs.frame[first], obs.t_ns[first], inv.reshape(-1)
+
+
+def nominal_period_ns(obs: Observations) -> float | None:
+    """The frame period: from the recording's frame rate, else the median gap between a
+    camera's successive frames (per frame counted); None when times say nothing."""
+    if obs.fps:
+        return 1e9 / float(obs.fps)
+    cam, frame, t, _ = _records(obs)
+    order = np.lexsort((frame, cam))
+    cam, frame, t = cam[order], frame[order], t[order]
+    same = cam[1:] == cam[:-1]
+    df = np.diff(frame)[same]
+    dt = np.diff(t)[same].astype(np.float64)
+    ok = (df > 0) & (dt > 0)
+    if not ok.any():
+        return None
+    return float(np.median(dt[ok] / df[ok]))
+
+
+def frames_are_instants(obs: Observations, period_ns: float | None = None) -> bool:
+    """Whether the frame numbers already name instants shared by the cameras: the file says
+    so (meta "frames"), or the cameras' capture times of each frame number agree to within
+    half a period (all but 1 % of them; times all equal, as in files without times, agree)."""
+    said = obs.meta.get("frames") if obs.meta else None
+    if said in (PER_CAMERA, INSTANTS):
+        return said == INSTANTS
+    if len(obs) == 0 or len(obs.camera_names) < 2:
+        return True
+    period = period_ns or nominal_period_ns(obs)
+    if period is None:
+        return True
+    cam, frame, t, _ = _records(obs)
+    order = np.argsort(frame, kind="stable")
+    frame, t = frame[order], t[order].astype(np.float64)
+    starts = np.flatnonzero(np.r_[True, frame[1:] != frame[:-1]])
+    counts = np.diff(np.r_[starts, len(frame)])
+    shared = np.repeat(counts >= 2, counts)
+    if not shared.any():
+        return False  # no frame number seen by two cameras: counters of their own
+    mid = np.repeat(np.minimum.reduceat(t, starts) / 2 + np.maximum.reduceat(t, starts) / 2,
+                    counts)
+    off = np.abs(t - mid)[shared] > 0.5 * period
+    return bool(np.mean(off) <= 0.01)
+
+
+def _grid(t: np.ndarray, period_ns: float) -> tuple[np.ndarray, float, float, np.ndarray]:
+    """One camera's stamps (sorted) on its own grid: (trigger count of each, start, period,
+    whether the stamp is trusted). Counts come from the rounded gaps; the line is fitted by
+    least squares, then again without the stamps more than TRUST_FRAC periods off it."""
+    gaps = np.maximum(np.rint(np.diff(t) / period_ns), 1).astype(np.int64)
+    n = np.r_[0, np.cumsum(gaps)]
+    x = n.astype(np.float64)
+    y = (t - t[0]).astype(np.float64)
+    keep = np.ones(len(t), dtype=bool)
+    start, step = 0.0, period_ns
+    for _ in range(3):
+        if keep.sum() < 2:
+            break
+        step, start = np.polyfit(x[keep], y[keep], 1)
+        resid = y - (start + step * x)
+        scale = 1.4826 * np.median(np.abs(resid[keep] - np.median(resid[keep])))
+        keep = np.abs(resid) <= min(TRUST_FRAC * period_ns, max(6 * scale, 1e-3 * period_ns))
+    resid = y - (start + step * x)
+    return n, float(t[0] + start), float(step), np.abs(resid) <= TRUST_FRAC * period_ns
+
+
+def pair_by_time(obs: Observations, period_ns: float | None = None) -> Pairing:
+    """Rows regrouped so that `frame` numbers the reference camera's instants (see the
+    module docstring); rows of frames left unpaired are dropped and counted. Stats: the
+    reference camera; per camera: its clock's offset from the reference's (ms, whole
+    periods aside), its drift against it (ppm), its frames paired and left unpaired."""
+    names = obs.camera_names
+    stats = {"cameras": list(names), "offset_ms": [None] * len(names),
+             "drift_ppm": [None] * len(names), "paired_frames": [0] * len(names),
+             "unpaired_frames": [0] * len(names)}
+    period = period_ns or nominal_period_ns(obs)
+    if len(obs) == 0 or period is None:
+        return Pairing(obs, "as recorded", stats)
+    cam, frame, t, row_rec = _records(obs)
+    n_cams = len(names)
+    counts = np.bincount(cam, minlength=n_cams)
+    grids: dict[int, tuple] = {}
+    for c in np.flatnonzero(counts >= MIN_FRAMES):  # a loop over cameras, not frames
+        idx = np.flatnonzero(cam == c)
+        idx = idx[np.argsort(t[idx], kind="stable")]
+        grids[int(c)] = (idx, *_grid(t[idx], period))
+    slot = np.full(len(cam), np.iinfo(np.int64).min)
+    off = np.full(len(cam), np.inf)
+    if grids:
+        ref = max(grids, key=lambda c: counts[c])
+        stats["reference"] = names[ref]
+        _, _, ref_start, ref_step, _ = grids[ref]
+        for c, (idx, n, start, step, trusted) in grids.items():
+            fitted = start + step * n  # the camera's grid, jitter taken out
+            at = (fitted - ref_start) / ref_step
+            s = np.rint(at).astype(np.int64)
+            slot[idx] = np.where(trusted, s, slot[idx])
+            off[idx] = np.where(trusted, np.abs(at - s), np.inf)
+            phase = (start - ref_start) / ref_step  # whole periods: its later opening
+            stats["offset_ms"][c] = round((phase - np.rint(phase)) * ref_step * 1e-6, 4)
+            stats["drift_ppm"][c] = round((step / ref_step - 1.0) * 1e6, 2)
+    ok = off <= 0.5
+    # two frames of one camera on one instant: the nearer one is kept
+    order = np.lexsort((off, slot, cam))
+    dup = np.zeros(len(cam), dtype=bool)
+    same = (cam[order][1:] == cam[order][:-1]) & (slot[order][1:] == slot[order][:-1])
+    dup[order[1:][same]] = True
+    ok &= ~dup
+    stats["paired_frames"] = np.bincount(cam[ok], minlength=n_cams).tolist()
+    stats["unpaired_frames"] = np.bincount(cam[~ok], minlength=n_cams).tolist()
+    if ok.any():
+        slot = slot - slot[ok].min()
+    keep_rows = ok[row_rec]
+    out = obs.select(keep_rows)
+    out.frame = slot[row_rec][keep_rows]
+    out.meta = {**out.meta, "frames": INSTANTS, "paired_by": "time"}
+    return Pairing(out.sorted(), "time", stats)
+
+
+def pair_frames(obs: Observations, period_ns: float | None = None) -> Pairing:
+    """Observations whose frames name instants: as recorded when they already do
+    (frames_are_instants), else paired by capture time."""
+    if frames_are_instants(obs, period_ns):
+        return Pairing(obs, "as recorded", {})
+    return pair_by_time(obs, period_ns)
