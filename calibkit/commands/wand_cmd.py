@@ -15,7 +15,6 @@ from calibkit.clitools import Progress, parse_floats, parse_view, print_table, w
 from calibkit.commands import coverage_view
 from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
-from calibkit.core.recording import load_observations
 from calibkit.synthetic.runs import truth_rig_path
 
 
@@ -147,7 +146,7 @@ def register(app: typer.Typer) -> None:
         if intr is None:
             raise UserError("--intrinsics RIG.toml (or --rig) is required")
         if source is not None:
-            obs, _ = load_observations(source, intr)
+            obs = pipeline.load_capture(source, intr)
         else:
             capture_path = save_capture or out.with_name(out.stem + ".capture.mcrec")
             monitor = pipeline.new_monitor(intr, targets)
