@@ -12,7 +12,11 @@ import pytest
 
 from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
+from calibkit.core.rigformats import detect_format, read_rig_file, write_rig_file
+from calibkit.core.rigformats.anipose import read_anipose
 from calibkit.core.rigformats.caliscope import read_caliscope, write_caliscope
+from calibkit.core.rigformats.pose2sim import read_pose2sim
+from calibkit.core.rigformats.qca import read_qca
 
 ROOT = Path(__file__).resolve().parents[1]
 CALISCOPE = ROOT / "fixtures" / "caliscope_4_cam_recording"
@@ -170,3 +174,330 @@ def test_caliscope_not_a_caliscope_file(tmp_path):
         read_caliscope(path)
     with pytest.raises(UserError, match="no such file"):
         read_caliscope(tmp_path / "none.toml")
+
+
+# ---- Pose2Sim and anipose (files written by hand from their published layouts) ------------
+
+# Pose2Sim's layout: one table per camera named after it, size [width, height] as floats,
+# k1 k2 p1 p2, Rodrigues rotation, translation in metres, fisheye = false, [metadata].
+POSE2SIM = """\
+[cam_01]
+name = "cam_01"
+size = [ 1088.0, 1920.0]
+matrix = [ [ 1681.5, 0.0, 533.0], [ 0.0, 1681.0, 948.0], [ 0.0, 0.0, 1.0]]
+distortions = [ -0.046, 0.14, 0.0006, 0.0007]
+rotation = [ 0.0, 0.0, 0.0]
+translation = [ 0.1, -0.2, 3.0]
+fisheye = false
+
+[cam_02]
+name = "cam_02"
+size = [ 1920.0, 1080.0]
+matrix = [ [ 1400.0, 0.0, 960.0], [ 0.0, 1400.0, 540.0], [ 0.0, 0.0, 1.0]]
+distortions = [ 0.01, -0.02, 0.0, 0.0]
+rotation = [ 3.141592653589793, 0.0, 0.0]
+translation = [ 0.0, 0.0, 2.0]
+fisheye = false
+
+[metadata]
+adjusted = false
+error = 0.0
+"""
+
+# aniposelib's CameraGroup.dump: [cam_N] tables in order with the camera's name inside,
+# integer size [width, height], five coefficients, no fisheye key on pinhole cameras,
+# translation in the board's unit (mm here), [metadata]; its TOML writer ends arrays ",]".
+ANIPOSE = """\
+[cam_0]
+name = "A"
+size = [ 1440, 1080,]
+matrix = [ [ 1852.4, 0.0, 719.5,], [ 0.0, 1852.4, 539.5,], [ 0.0, 0.0, 1.0,],]
+distortions = [ -0.036, 0.0, 0.0, 0.0, 0.0,]
+rotation = [ 0.0, 0.0, 0.0,]
+translation = [ 100.0, -200.0, 3000.0,]
+
+[cam_1]
+name = "B"
+size = [ 1440, 1080,]
+matrix = [ [ 1935.9, 0.0, 719.5,], [ 0.0, 1935.9, 539.5,], [ 0.0, 0.0, 1.0,],]
+distortions = [ -0.31, 0.05, 0.001, -0.002, 0.01,]
+rotation = [ 3.141592653589793, 0.0, 0.0,]
+translation = [ 0.0, 0.0, 2000.0,]
+
+[metadata]
+adjusted = true
+error = 1.668
+"""
+
+
+@pytest.fixture
+def pose2sim_file(tmp_path) -> Path:
+    path = tmp_path / "Calib.toml"
+    path.write_text(POSE2SIM)
+    return path
+
+
+@pytest.fixture
+def anipose_file(tmp_path) -> Path:
+    path = tmp_path / "calibration.toml"
+    path.write_text(ANIPOSE)
+    return path
+
+
+def test_pose2sim_values_read_by_hand(pose2sim_file):
+    rig = read_pose2sim(pose2sim_file)
+    assert rig.names == ["cam_01", "cam_02"]
+    a, b = rig
+    assert a.size == (1088, 1920) and b.size == (1920, 1080)
+    assert (a.fx, a.fy, a.cx, a.cy) == (1681.5, 1681.0, 533.0, 948.0)
+    np.testing.assert_array_equal(a.dist, [-0.046, 0.14, 0.0006, 0.0007, 0.0])
+    np.testing.assert_allclose(a.centre, [-0.1, 0.2, -3.0], atol=1e-15)  # R = I
+    # rotated pi about x: R = diag(1, -1, -1), a camera 2 m up looking down
+    np.testing.assert_allclose(b.R, np.diag([1.0, -1.0, -1.0]), atol=1e-15)
+    np.testing.assert_allclose(b.centre, [0.0, 0.0, 2.0], atol=1e-15)
+    assert rig.meta["pose2sim"] == {"adjusted": False, "error": 0.0}
+
+
+def test_anipose_values_read_by_hand_in_the_boards_unit(anipose_file):
+    rig = read_anipose(anipose_file)  # mm, anipose's examples' unit
+    assert rig.names == ["A", "B"]
+    a, b = rig
+    assert a.size == (1440, 1080) and (a.fx, a.cx, a.cy) == (1852.4, 719.5, 539.5)
+    np.testing.assert_allclose(a.centre, [-0.1, 0.2, -3.0], atol=1e-15)
+    np.testing.assert_allclose(b.centre, [0.0, 0.0, 2.0], atol=1e-15)
+    np.testing.assert_array_equal(b.dist, [-0.31, 0.05, 0.001, -0.002, 0.01])
+    np.testing.assert_allclose(read_anipose(anipose_file, "cm")["A"].t, [1.0, -2.0, 30.0],
+                               atol=1e-12)
+    np.testing.assert_allclose(read_anipose(anipose_file, "m")["A"].t, [100.0, -200.0, 3000.0])
+
+
+def test_auto_detection_tells_the_layouts_apart(pose2sim_file, anipose_file):
+    assert detect_format(pose2sim_file) == "pose2sim"
+    assert detect_format(anipose_file) == "anipose"
+    assert detect_format(CALISCOPE / "camera_array.toml") == "caliscope"
+    assert detect_format(CALISCOPE / "config.toml") == "caliscope"
+    assert detect_format(QCA) == "qca"
+    assert detect_format(ROOT / "fixtures" / "wand_rig_8cam.toml") == "calibkit"
+
+
+def test_fisheye_cameras_are_refused_clearly(anipose_file):
+    text = ANIPOSE.replace('name = "B"', 'name = "B"\nfisheye = true')
+    anipose_file.write_text(text)
+    with pytest.raises(UserError, match=r"camera \[cam_1\] is a fisheye camera"):
+        read_anipose(anipose_file)
+
+
+@pytest.mark.parametrize("edit, message", [
+    (("translation = [ 0.1, -0.2, 3.0]", "translation = [ 0.1, -0.2]"),
+     r"\[cam_01\] 'translation' must be 3 numbers"),
+    (("translation = [ 0.1, -0.2, 3.0]", "translation = [ 0.1, -0.2, inf]"),
+     "not a finite number"),
+    (("rotation = [ 0.0, 0.0, 0.0]", "rotation = [[2.0, 0, 0], [0, 1, 0], [0, 0, 1]]"),
+     "not a rotation matrix"),
+    (("rotation = [ 0.0, 0.0, 0.0]\n", ""), r"\[cam_01\]: 'rotation' is missing"),
+    (("distortions = [ -0.046, 0.14, 0.0006, 0.0007]", "distortions = [ -0.046, 0.14]"),
+     "at least 4 coefficients"),
+    (("distortions = [ -0.046, 0.14, 0.0006, 0.0007]",
+      "distortions = [ -0.046, 0.14, 0.0006, 0.0007, 0.0, 0.1, 0.0, 0.0]"),
+     "only OpenCV's five-coefficient model"),
+    (("matrix = [ [ 1681.5, 0.0, 533.0]", "matrix = [ [ 1681.5, 0.0, 533.0, 1.0]"),
+     r"'matrix' must be numbers shaped \[3, 3\]"),
+    (("size = [ 1088.0, 1920.0]", "size = [ 1088.5, 1920.0]"), "two positive whole numbers"),
+])
+def test_pose2sim_broken_file_gives_one_line(pose2sim_file, edit, message):
+    assert edit[0] in POSE2SIM
+    pose2sim_file.write_text(POSE2SIM.replace(edit[0], edit[1], 1))
+    with pytest.raises(UserError, match=message) as info:
+        read_pose2sim(pose2sim_file)
+    assert str(pose2sim_file) in str(info.value) and "\n" not in str(info.value)
+
+
+# ---- Qualisys QTM .qca -------------------------------------------------------------------
+
+QCA = ROOT / "fixtures" / "pose2sim_chessboard_4cam" / "Calib.qca.txt"
+
+
+def test_qca_values_read_by_hand():
+    rig = read_qca(QCA)
+    assert rig.names == ["cam01", "cam02", "cam03", "cam04"]
+    cam = rig["cam01"]
+    assert cam.size == (1088, 1920)  # fov_video 0..1087 x 0..1919
+    assert cam.fx == pytest.approx(107599.671875 / 64, abs=1e-9)
+    assert cam.fy == pytest.approx(107588.828125 / 64, abs=1e-9)
+    assert (cam.cx, cam.cy) == pytest.approx((34110.316406 / 64, 60680.792969 / 64), abs=1e-9)
+    np.testing.assert_array_equal(cam.dist, [-0.046183, 0.139983, 0.000608, 0.00069, 0.0])
+    np.testing.assert_allclose(cam.centre, [1.4602323709212087, -1.9091590482454608,
+                                            1.8965058524092062], atol=1e-12)
+    # Pose2Sim's own conversion of this file (its Demo's Calib_qualisys.toml, cam_01)
+    np.testing.assert_allclose(cam.rvec, [1.68827548, 1.04832205, -0.41955852], atol=1e-7)
+    np.testing.assert_allclose(cam.t, [0.32110489, 0.95633206, 2.89071305], atol=1e-7)
+    assert rig.meta["qca"]["cam04"]["avg_residual_mm"] == 0.504772
+
+
+def test_qca_cameras_look_into_the_volume():
+    """The four cameras stand around the capture area 1.7-1.9 m up: each optical axis (the
+    third row of R) points at the area's centre. Read without QTM's camera-axes flip, or
+    with the orientation transposed, they look away or past it."""
+    rig = read_qca(QCA)
+    centre = np.array([0.0, 0.0, 1.0])
+    for cam in rig:
+        towards = (centre - cam.centre) / np.linalg.norm(centre - cam.centre)
+        assert cam.R[2] @ towards > 0.9, cam.name
+        assert cam.R[1] @ [0.0, 0.0, 1.0] < 0.0, cam.name  # image y points down the world
+
+
+def _qca_text(**edits: str) -> str:
+    text = QCA.read_text()
+    for old, new in edits.values():
+        assert old in text, old
+        text = text.replace(old, new)
+    return text
+
+
+def test_qca_crop_window_pixel_units_and_video_resolution(tmp_path):
+    """A file in pixels rather than 1/64 sub-pixels, a cropped video window and a camera
+    filming at 540p of its 1080-line sensor: written by hand from the attributes' meaning."""
+    cam01 = ('<fov_video bottom="1919" left="0" right="1087" top="0"/>', None)
+    text = QCA.read_text()
+    first = text.index('serial="cam01"')
+    block_end = text.index("</camera>", first)
+    block = text[first:block_end]
+    block = block.replace('viewrotation="0"', 'viewrotation="0" video_resolution="540p"')
+    block = block.replace(cam01[0], '<fov_video bottom="1819" left="100" right="1087" top="0"/>')
+    for key, value in (("centerPointU", "34110.316406"), ("centerPointV", "60680.792969"),
+                       ("focalLengthU", "107599.671875"), ("focalLengthV", "107588.828125")):
+        block = block.replace(f'{key}="{value}"', f'{key}="{float(value) / 64!r}"')
+    path = tmp_path / "crop.qca.txt"
+    path.write_text(text[:first] + block + text[block_end:])
+    cam = read_qca(path)["cam01"]
+    assert cam.size == (494, 910)  # (988 x 1820 window) at 540 of 1080 lines
+    assert cam.fx == pytest.approx(107599.671875 / 64 / 2, abs=1e-9)
+    assert cam.cx == pytest.approx((34110.316406 / 64 - 100) / 2, abs=1e-9)
+    assert cam.cy == pytest.approx(60680.792969 / 64 / 2, abs=1e-9)
+
+
+def test_qca_inactive_camera_is_skipped_and_listed(tmp_path):
+    path = tmp_path / "Calib.qca.txt"
+    path.write_text(QCA.read_text().replace('active="1" avg-residual="0.444749"',
+                                            'active="0" avg-residual="0.444749"'))
+    rig = read_qca(path)
+    assert rig.names == ["cam01", "cam03", "cam04"]
+    assert rig.meta["skipped_cameras"] == ["cam02: active = 0"]
+
+
+@pytest.mark.parametrize("old, new, message", [
+    ('r33="0.3825762057979294"', 'r33="-0.3825762057979294"', "not a rotation matrix"),
+    ('r33="0.3825762057979294"', "", "no 'r33' attribute"),
+    ('focalLengthU="107599.671875"', 'focalLengthU="nan"', "not a finite number"),
+    ('focalLengthU="107599.671875"', 'focalLengthU="big"', "must be a number"),
+    ('<fov_video bottom="1919" left="0" right="1087" top="0"/>',
+     '<fov_video bottom="1919" left="1087" right="0" top="0"/>', "right/bottom lie before"),
+    ("</cameras>", "", "not valid XML"),
+])
+def test_qca_broken_file_gives_one_line(tmp_path, old, new, message):
+    text = QCA.read_text()
+    assert old in text
+    path = tmp_path / "Calib.qca.txt"
+    path.write_text(text.replace(old, new, 1))
+    with pytest.raises(UserError, match=message) as info:
+        read_qca(path)
+    assert str(path) in str(info.value) and "\n" not in str(info.value)
+
+
+# ---- round trips: import -> export -> import ------------------------------------------------
+
+def _sources(tmp_path) -> dict[str, Rig]:
+    (tmp_path / "p.toml").write_text(POSE2SIM)
+    (tmp_path / "a.toml").write_text(ANIPOSE)
+    return {"caliscope": read_caliscope(CALISCOPE / "camera_array.toml"),
+            "qca": read_qca(QCA), "pose2sim": read_pose2sim(tmp_path / "p.toml"),
+            "anipose": read_anipose(tmp_path / "a.toml")}
+
+
+@pytest.mark.parametrize("fmt", ["opencv", "caliscope", "pose2sim", "anipose"])
+def test_every_format_round_trips(tmp_path, fmt):
+    suffix = ".yaml" if fmt == "opencv" else ".toml"
+    for source, rig in _sources(tmp_path).items():
+        for unit in (("mm", "cm", "m") if fmt == "anipose" else ("mm",)):
+            out = tmp_path / f"{source}-{fmt}-{unit}{suffix}"
+            write_rig_file(rig, out, fmt, unit)
+            assert detect_format(out) == fmt
+            back, found = read_rig_file(out, "auto", unit)
+            assert found == fmt
+            if fmt == "caliscope" and source != "caliscope":
+                # caliscope numbers its cameras: cam_01 keeps its number, others count up
+                expected = {"qca": ["cam_0", "cam_1", "cam_2", "cam_3"],
+                            "pose2sim": ["cam_1", "cam_2"], "anipose": ["cam_0", "cam_1"]}
+                assert back.names == expected[source]
+                back = Rig(tuple(c.replace(name=n) for c, n in zip(back, rig.names,
+                                                                    strict=True)))
+            _same(rig, back)
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
+
+
+def test_export_refuses_qca_and_unknown_units(tmp_path):
+    rig = read_qca(QCA)
+    with pytest.raises(UserError, match="QTM files come from QTM"):
+        write_rig_file(rig, tmp_path / "x.qca", "qca")
+    with pytest.raises(UserError, match="--unit 'inch'"):
+        write_rig_file(rig, tmp_path / "x.toml", "anipose", "inch")
+    assert not list(tmp_path.iterdir())
+
+
+def test_unknown_files_name_themselves(tmp_path):
+    for name, text in (("notes.toml", 'title = "not a calibration"\n'),
+                       ("page.xml", "<html><body/></html>"), ("data.bin", "\x00\x01 garbage")):
+        path = tmp_path / name
+        path.write_text(text)
+        with pytest.raises(UserError, match="calibkit rea|calibkit recognises") as info:
+            detect_format(path)
+        assert str(path) in str(info.value)
+
+
+# ---- the command line ----------------------------------------------------------------------
+
+def test_cli_imports_each_format_by_content(tmp_path, calibkit_cli):
+    (tmp_path / "Calib.toml").write_text(POSE2SIM)
+    (tmp_path / "calibration.toml").write_text(ANIPOSE)
+    for src, fmt in ((CALISCOPE / "camera_array.toml", "caliscope"), (QCA, "qca"),
+                     (tmp_path / "Calib.toml", "pose2sim"),
+                     (tmp_path / "calibration.toml", "anipose")):
+        out = tmp_path / f"{fmt}.rig.toml"
+        res = calibkit_cli("rig", "import", src, "--out", out)
+        assert res.code == 0, res.err
+        assert f"from {fmt}" in res.out
+        _same(read_rig_file(src, fmt)[0], Rig.load(out))
+
+
+def test_cli_exports_and_reimports(tmp_path, calibkit_cli):
+    calibkit_cli("rig", "import", QCA, "--out", tmp_path / "rig.toml")
+    for fmt in ("caliscope", "pose2sim", "anipose"):
+        out = tmp_path / f"{fmt}.toml"
+        res = calibkit_cli("rig", "export", tmp_path / "rig.toml", "--out", out, "--format",
+                           fmt, "--unit", "cm")
+        assert res.code == 0, res.err
+        res = calibkit_cli("rig", "import", out, "--out", tmp_path / f"{fmt}.back.toml",
+                           "--unit", "cm")
+        assert res.code == 0 and f"from {fmt}" in res.out, res.err
+        back = Rig.load(tmp_path / f"{fmt}.back.toml")
+        np.testing.assert_allclose(back.centres(), read_qca(QCA).centres(), atol=1e-9)
+
+
+def test_cli_broken_file_exits_non_zero_with_one_line(tmp_path, calibkit_cli):
+    path = tmp_path / "camera_array.toml"
+    path.write_text((CALISCOPE / "camera_array.toml").read_text().replace(
+        "translation = [-0.6425176710599999,", "translation = [nan,"))
+    res = calibkit_cli("rig", "import", path, "--out", tmp_path / "rig.toml")
+    assert res.code == 2
+    lines = res.err.strip().splitlines()
+    assert len(lines) == 1 and str(path) in lines[0] and "finite" in lines[0], res.err
+    assert "Traceback" not in res.err and not (tmp_path / "rig.toml").exists()
+    for args, message in (
+            (("import", QCA, "--out", tmp_path / "r.toml", "--format", "vicon"), "'vicon'"),
+            (("export", tmp_path / "r.toml", "--out", tmp_path / "x.toml"), ".yaml or .yml"),
+            (("export", path, "--out", path, "--format", "caliscope"), "is the input file"),
+            (("export", path, "--out", tmp_path / "q.qca", "--format", "qca"), "come from QTM"),
+            (("import", tmp_path / "none.toml", "--out", tmp_path / "r.toml"), "no such file")):
+        res = calibkit_cli("rig", *args)
+        assert res.code == 2 and message in res.err, (args, res.err)
+        assert len(res.err.strip().splitlines()) == 1

@@ -1,4 +1,4 @@
-"""`calibkit rig`: show a rig file, and move rigs to and from OpenCV's FileStorage YAML."""
+"""`calibkit rig`: show a rig file, and move rigs to and from other tools' calibration files."""
 
 from __future__ import annotations
 
@@ -11,9 +11,10 @@ import typer
 from calibkit.clitools import print_table, write_json
 from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
-from calibkit.core.rigfile import export_opencv_yaml
+from calibkit.core.rigformats import READABLE, WRITABLE, read_rig_file, write_rig_file
+from calibkit.core.rigformats.anipose import DEFAULT_UNIT
 
-rig_app = typer.Typer(help="Show rig files; export to and import from OpenCV YAML.",
+rig_app = typer.Typer(help="Show rig files; import and export other tools' calibrations.",
                       no_args_is_help=True)
 
 
@@ -51,28 +52,57 @@ def show(rig_path: Annotated[Path, typer.Argument(help="rig.toml or OpenCV YAML.
             "meta": {k: v for k, v in rig.meta.items() if not isinstance(v, np.ndarray)}})
 
 
+FORMAT_HELP = ("caliscope (camera_array.toml), pose2sim (Calib.toml), anipose "
+               "(calibration.toml), qca (Qualisys QTM), opencv (FileStorage YAML)")
+UNIT_OPTION = typer.Option("--unit", help="Length unit of anipose files' translations, which "
+                           "do not say it: the unit the board was measured in (mm, cm or m).")
+
+
 @rig_app.command("export")
 def export(rig_path: Annotated[Path, typer.Argument(help="The rig.toml to export.")],
-           out: Annotated[Path, typer.Option("--out", help="OpenCV YAML file to write.")]
-           ) -> None:
-    """Write the rig as OpenCV FileStorage YAML (cameras: name, size, K, dist, R, t)."""
-    _suffix(out, (".yaml", ".yml"), "--out")
+           out: Annotated[Path, typer.Option("--out", help="File to write.")],
+           fmt: Annotated[str | None, typer.Option(
+               "--format", help="opencv, caliscope, pose2sim or anipose; default opencv for "
+               "a .yaml/.yml --out.")] = None,
+           unit: Annotated[str, UNIT_OPTION] = DEFAULT_UNIT) -> None:
+    """Write the rig for another tool: OpenCV FileStorage YAML, caliscope's
+    camera_array.toml, Pose2Sim's or anipose's calibration TOML (docs/formats.md)."""
+    if fmt is None:
+        if out.suffix.lower() not in (".yaml", ".yml"):
+            raise UserError(f"--out {out}: expected a .yaml or .yml file for OpenCV YAML, or "
+                            "give --format caliscope, pose2sim or anipose for their TOML")
+        fmt = "opencv"
+    if fmt not in WRITABLE:
+        raise UserError(f"--format {fmt!r}: export writes one of {', '.join(WRITABLE)} (QTM "
+                        "files come from QTM)")
+    _suffix(out, (".yaml", ".yml") if fmt == "opencv" else (".toml",), "--out")
     _distinct(rig_path, out)
     rig = Rig.load(rig_path)
-    export_opencv_yaml(rig, out)
-    typer.echo(f"wrote {out}: {len(rig)} cameras (OpenCV FileStorage YAML)")
+    write_rig_file(rig, out, fmt, unit)
+    extra = f", translations in {unit}" if fmt == "anipose" else ""
+    typer.echo(f"wrote {out}: {len(rig)} cameras ({fmt}{extra})")
 
 
 @rig_app.command("import")
-def import_(yaml_path: Annotated[Path, typer.Argument(help="OpenCV YAML rig to read.")],
-            out: Annotated[Path, typer.Option("--out", help="rig.toml to write.")]) -> None:
-    """Read an OpenCV FileStorage YAML rig and write it as rig.toml."""
-    _suffix(yaml_path, (".yaml", ".yml"), "the input")
+def import_(in_path: Annotated[Path, typer.Argument(help="Calibration file to read: "
+                                                    + FORMAT_HELP + ".")],
+            out: Annotated[Path, typer.Option("--out", help="rig.toml to write.")],
+            fmt: Annotated[str, typer.Option(
+                "--format", help="auto (by content), opencv, caliscope, pose2sim, anipose "
+                "or qca.")] = "auto",
+            unit: Annotated[str, UNIT_OPTION] = DEFAULT_UNIT) -> None:
+    """Read another tool's calibration and write it as rig.toml (conventions converted:
+    poses world-to-camera, metres, OpenCV distortion)."""
+    if fmt != "auto" and fmt not in READABLE:
+        raise UserError(f"--format {fmt!r}: use auto or one of {', '.join(READABLE)}")
     _suffix(out, (".toml",), "--out")
-    _distinct(yaml_path, out)
-    rig = Rig.load(yaml_path)
+    _distinct(in_path, out)
+    rig, found = read_rig_file(in_path, fmt, unit)
     rig.save(out)
-    typer.echo(f"wrote {out}: {len(rig)} cameras")
+    extra = f", translations read as {unit}" if found == "anipose" else ""
+    typer.echo(f"wrote {out}: {len(rig)} cameras from {found}{extra}")
+    for note in rig.meta.get("skipped_cameras", []):
+        typer.echo(f"skipped {note}")
 
 
 def register(app: typer.Typer) -> None:
