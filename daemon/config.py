@@ -155,7 +155,9 @@ class MavlinkOut:
 
 @dataclass(frozen=True)
 class NatnetOut:
-    interface: str = "0.0.0.0"  # local address: command port, multicast interface
+    # local address: command port, multicast interface; loopback unless one is given, so a
+    # server is on a network only on purpose
+    interface: str = "127.0.0.1"
     command_port: int = 1510
     data_port: int = 1511
     multicast: bool = True
@@ -171,7 +173,7 @@ class NatnetOut:
 
 @dataclass(frozen=True)
 class VrpnOut:
-    host: str = "0.0.0.0"
+    host: str = "127.0.0.1"  # a bare port serves this computer only; give an address to expose
     port: int = 3883
     rate_hz: float = 0.0
     udp: bool = True

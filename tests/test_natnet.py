@@ -577,8 +577,9 @@ def test_configuration_tables_and_their_errors():
             natnet_pub.multicast, natnet_pub.up_axis) == ("127.0.0.1", 1600, 1511, False, "y")
     assert [b.name for b in natnet_pub.bodies] == ["body0", "body1"]
     assert natnet_pub._marker_model is None
+    # a table without an address serves this computer only
     assert (v1.host, v1.port, v1.use_udp, v2.host, v2.port) == ("127.0.0.1", 4000, False,
-                                                                "0.0.0.0", 3883)
+                                                                "127.0.0.1", 3883)
     assert v2.body_names == ["body0", "body1"]
     for bad, words in (({"natnet": {"group": "10.0.0.1"}}, "natnet.group"),
                        ({"natnet": {"interface": "eth0"}}, "natnet.interface"),
@@ -602,11 +603,12 @@ def test_flags_add_to_the_configuration():
     n = cfg.natnet  # the flag's address and ports, the table's other settings
     assert (n.interface, n.command_port, n.data_port, n.multicast, n.up_axis) == (
         "127.0.0.1", 2000, 2001, False, "y")
-    assert [(v.host, v.port) for v in cfg.vrpn] == [("127.0.0.1", 3883), ("0.0.0.0", 4000),
+    # a bare port is loopback: the network is reached only by naming an address
+    assert [(v.host, v.port) for v in cfg.vrpn] == [("127.0.0.1", 3883), ("127.0.0.1", 4000),
                                                    ("127.0.0.1", 4001)]
     up = command_line_additions([], [], [], None, None, natnet_up="y")(parse_config({}))
     assert (up.natnet.interface, up.natnet.command_port, up.natnet.up_axis) == (
-        "0.0.0.0", 1510, "y")
+        "127.0.0.1", 1510, "y")
 
 
 _FUZZED = nn.NatNetPublisher([BodyDef("b", 1, np.eye(3), np.zeros(3))], command_port=0)

@@ -197,6 +197,53 @@ def test_raw_clients_over_tcp_and_connect_back_with_pings():
     assert back.pongs == 1 and direct.pongs == 0
 
 
+def test_hostile_datagrams_never_stop_the_server_nor_send_it_elsewhere(caplog):
+    """A port out of range once raised in the server thread and stopped VRPN for good; a
+    datagram naming another host made the server connect there. Now every datagram is
+    answered on its sender's address or ignored, and clients that come after are served."""
+    import logging
+
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    scene = Scene()
+    pub = vrpn.VrpnPublisher(scene.defs(), host="127.0.0.1", port=0)
+    u = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    with Feeder(pub, scene) as feed, caplog.at_level(logging.INFO, "mocapd"):
+        for junk in (b"127.0.0.1 65536\0", b"127.0.0.1 -5\0", b"127.0.0.1 0\0",
+                     b"\xff\xfe 12\0", b"1 2 3\0", b"", b"127.0.0.1 99999999999999999999\0"):
+            u.sendto(junk, ("127.0.0.1", pub.port))
+
+        @settings(max_examples=300, deadline=None,
+                  suppress_health_check=[HealthCheck.function_scoped_fixture])
+        @given(st.binary(max_size=64))
+        def fuzz(data):
+            u.sendto(data, ("127.0.0.1", pub.port))
+
+        fuzz()
+        # another address named in the datagram: called back on the sender's instead
+        listener = socket.socket()
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(1)
+        listener.settimeout(5)
+        u.sendto(f"127.0.0.2 {listener.getsockname()[1]}".encode() + b"\0",
+                 ("127.0.0.1", pub.port))
+        called, peer = listener.accept()
+        called.close()
+        listener.close()
+        client = RawClient(pub.port, lob=True)
+        feed.wait_frames(30)
+        status = pub.status()
+        client.close()
+    u.close()
+    assert peer[0] == "127.0.0.1"
+    assert status["server_alive"] and status["server_restarts"] == 0
+    assert len(client.poses) > 0
+    ignored = [r for r in caplog.records if "ignoring a UDP datagram" in r.getMessage()]
+    assert 1 <= len(ignored) <= 2  # rate-limited: one line per kind, not one per datagram
+    assert not [r for r in caplog.records if r.exc_info]
+
+
 def test_motioncapture_vrpn_clients_join_and_leave():
     """libmotioncapture's VRPN client: the first by UDP connect-back (poses over its UDP
     port), the second by tcp:// (poses over TCP) joining late and leaving early; both see

@@ -40,7 +40,8 @@ def protocol_outputs(natnet: str | None, natnet_up: str | None, vrpn: list[str])
     outs_vrpn = []
     for text in vrpn:
         try:
-            host, port = parse_address(text if ":" in text else f"0.0.0.0:{text}")
+            # a bare port is this computer's only: the network is reached on purpose
+            host, port = parse_address(text if ":" in text else f"127.0.0.1:{text}")
         except ValueError as exc:
             raise UserError(f"--vrpn: {exc}") from None
         outs_vrpn.append(VrpnOut(host, port))
@@ -152,7 +153,8 @@ def register(app: typer.Typer) -> None:
         = None,
         vrpn: Annotated[list[str], typer.Option(
             "--vrpn", help="Serve VRPN trackers (one per rigid body) on [HOST:]PORT, "
-                           "e.g. 3883 (repeatable).")] = [],  # noqa: B006
+                           "e.g. 3883 (this computer only) or 192.168.1.10:3883 (that "
+                           "network; 0.0.0.0: all), repeatable.")] = [],  # noqa: B006
         mode: Annotated[str | None, typer.Option(
             "--mode", help="Multiplexer: triggered (synchronised cameras) or greedy.")] = None,
         frames: Annotated[int | None, typer.Option(

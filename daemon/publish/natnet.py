@@ -103,7 +103,7 @@ class NatNetPublisher(Publisher):
     _live: dict[tuple, NatNetPublisher] = {}
     _live_lock = threading.Lock()
 
-    def __init__(self, bodies=(), interface: str = "0.0.0.0", command_port: int = 1510,
+    def __init__(self, bodies=(), interface: str = "127.0.0.1", command_port: int = 1510,
                  data_port: int = 1511, multicast: bool = True,
                  group: str = "239.255.42.99", up_axis: str = "z", ttl: int = 1,
                  rate_hz: float = 0.0, legacy_unlabeled: bool = False,
@@ -240,6 +240,8 @@ class NatNetPublisher(Publisher):
         st = super().status()
         with self._lock:
             st["unicast_clients"] = len(self.subscribers) + len(self.direct)
+        # what is exposed: the command port's address (0.0.0.0: every interface)
+        st["address"] = f"{self.interface}:{self.command_port}"
         return st
 
     # ---- frames ----------------------------------------------------------------------------

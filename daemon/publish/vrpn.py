@@ -110,6 +110,16 @@ def unpack_messages(buf: bytearray):
     return out
 
 
+def _lob_port(data: bytes) -> int | None:
+    """The TCP port of a client's UDP request "ADDRESS PORT\\0" (None: not one)."""
+    try:
+        words = data.split(b"\0", 1)[0].decode("ascii").split()
+        port = int(words[1]) if len(words) == 2 and words[1].isdigit() else 0
+    except (UnicodeDecodeError, ValueError):
+        return None
+    return port if 0 < port < 65536 else None
+
+
 def pose_messages(result, senders: np.ndarray, t_s: float) -> np.ndarray:
     """Pos_Quat messages (POSE_MESSAGE records) of the frame's tracked bodies; `senders`
     gives our sender id of each body in result.poses order."""
@@ -174,7 +184,7 @@ class VrpnPublisher(Publisher):
     _live: dict[tuple, VrpnPublisher] = {}
     _live_lock = threading.Lock()
 
-    def __init__(self, bodies=(), host: str = "0.0.0.0", port: int = 3883,
+    def __init__(self, bodies=(), host: str = "127.0.0.1", port: int = 3883,
                  rate_hz: float = 0.0, udp: bool = True, max_backlog_bytes: int = 1 << 20,
                  name: str = "vrpn") -> None:
         # if the port is taken (another program, another process), retry soon
@@ -195,6 +205,8 @@ class VrpnPublisher(Publisher):
         self._srv_thread: threading.Thread | None = None
         self._srv_stop = threading.Event()
         self._calling: dict[socket.socket, tuple] = {}  # call backs under way
+        self._bad_logged: dict[str, float] = {}  # kind of bad input -> when last logged
+        self.restarts = 0  # server steps that raised (a bug), shown by mocapd status
         self._senders_ids: tuple | None = None
         self._senders = np.zeros(0, np.int64)
         self._wall_offset_ns = time.time_ns() - time.monotonic_ns()
@@ -309,6 +321,9 @@ class VrpnPublisher(Publisher):
         st = super().status()
         with self._lock:
             st["clients"] = sum(c.connected for c in self.clients)
+        st["address"] = f"{self.host}:{self.port}"
+        st["server_alive"] = self._srv_thread is not None and self._srv_thread.is_alive()
+        st["server_restarts"] = self.restarts
         return st
 
     # ---- frames ------------------------------------------------------------------------------
@@ -341,32 +356,52 @@ class VrpnPublisher(Publisher):
 
     # ---- the server thread: accept, connect back, read, flush ------------------------------
 
+    def _bad_input(self, what: str) -> None:
+        """One log line per kind of bad input and minute: a flood of junk must not flood
+        the log too."""
+        now = time.monotonic()
+        if now - self._bad_logged.get(what.split(" ", 1)[0], -1e9) >= 60.0:
+            self._bad_logged[what.split(" ", 1)[0]] = now
+            log.info("%s: ignoring %s", self.name, what)
+
     def _serve(self) -> None:
         while not self._srv_stop.is_set():
-            with self._lock:
-                clients = list(self.clients)
-            reads = [self.listen_sock, self.udp_sock] + [c.sock for c in clients]
-            writes = [c.sock for c in clients if c.outbuf] + list(self._calling)
             try:
-                r, w, _ = select.select(reads, writes, [], 0.05)
-            except (OSError, ValueError):  # a socket closed under us: look again
-                continue
-            if self.listen_sock in r:
-                self._accept()
-            if self.udp_sock in r:
-                self._lob()
-            for sock in list(self._calling):
-                self._called(sock, sock in w)
-            for c in clients:
-                try:
-                    if c.sock in w:
-                        c.flush()
-                    if c.sock in r:
-                        self._read(c)
-                except (OSError, ValueError) as exc:
-                    if not isinstance(exc, ConnectionError):
-                        log.info("%s: %s:%d: %s", self.name, *c.peer[:2], exc)
-                    self._drop(c)
+                self._serve_once()
+            except Exception:  # noqa: BLE001 - a bug must not stop every client's stream
+                self.restarts += 1
+                if time.monotonic() - self._bad_logged.get("step", -1e9) >= 60.0:
+                    self._bad_logged["step"] = time.monotonic()
+                    log.exception("%s: server step failed (%d so far); serving on",
+                                  self.name, self.restarts)
+                time.sleep(0.05)
+
+    def _serve_once(self) -> None:
+        """One pass: wait up to 50 ms, then accept, call back, read and flush."""
+        with self._lock:
+            clients = list(self.clients)
+        reads = [self.listen_sock, self.udp_sock] + [c.sock for c in clients]
+        writes = [c.sock for c in clients if c.outbuf] + list(self._calling)
+        try:
+            r, w, _ = select.select(reads, writes, [], 0.05)
+        except (OSError, ValueError):  # a socket closed under us: look again
+            return
+        if self.listen_sock in r:
+            self._accept()
+        if self.udp_sock in r:
+            self._lob()
+        for sock in list(self._calling):
+            self._called(sock, sock in w)
+        for c in clients:
+            try:
+                if c.sock in w:
+                    c.flush()
+                if c.sock in r:
+                    self._read(c)
+            except (OSError, ValueError, struct.error) as exc:
+                if not isinstance(exc, ConnectionError):
+                    self._bad_input(f"client {c.peer[0]}:{c.peer[1]}: {exc}")
+                self._drop(c)
 
     def _accept(self) -> None:
         try:
@@ -376,17 +411,19 @@ class VrpnPublisher(Publisher):
         self._new_client(sock, peer)
 
     def _lob(self) -> None:
-        """A client's UDP request: connect back to the TCP port it names."""
+        """A client's UDP request: connect back to the TCP port it names, on the address
+        the datagram came from (never to another host it names: a forged datagram must not
+        turn the server into a port scanner)."""
         try:
             data, src = self.udp_sock.recvfrom(1024)
         except OSError:
             return
-        try:
-            host, port = data.split(b"\0", 1)[0].decode().split()
-            target = (host, int(port))
-        except ValueError:
-            log.info("%s: ignoring a UDP datagram from %s:%d", self.name, *src)
+        port = _lob_port(data)
+        if port is None:
+            self._bad_input(f"a UDP datagram from {src[0]}:{src[1]} that is not "
+                            f"'ADDRESS PORT'")
             return
+        target = (src[0], port)
         with self._lock:
             if any(c.peer == target for c in self.clients) or any(
                     t == target for t, _ in self._calling.values()):
@@ -463,8 +500,9 @@ class VrpnPublisher(Publisher):
             name = payload[4:4 + n].split(b"\0", 1)[0].decode("utf-8", "replace")
             (c.senders if type_id == SENDER_DESCRIPTION else c.types)[sender] = name
         elif type_id == UDP_DESCRIPTION:
-            host = payload.split(b"\0", 1)[0].decode()
-            c.udp = (host, sender)
+            if not 0 < sender < 65536:
+                raise ValueError(f"UDP description with port {sender}")
+            c.udp = (c.peer[0], sender)  # the client's own address, whatever it names
         elif type_id >= 0 and c.types.get(type_id) == PING:
             name = c.senders.get(sender)
             if name in self.body_names:
