@@ -328,9 +328,19 @@ def test_qca_values_read_by_hand():
     np.testing.assert_array_equal(cam.dist, [-0.046183, 0.139983, 0.000608, 0.00069, 0.0])
     np.testing.assert_allclose(cam.centre, [1.4602323709212087, -1.9091590482454608,
                                             1.8965058524092062], atol=1e-12)
-    # Pose2Sim's own conversion of this file (its Demo's Calib_qualisys.toml, cam_01)
-    np.testing.assert_allclose(cam.rvec, [1.68827548, 1.04832205, -0.41955852], atol=1e-7)
-    np.testing.assert_allclose(cam.t, [0.32110489, 0.95633206, 2.89071305], atol=1e-7)
+    # Pose2Sim's own conversion of this very file (Calib_qualisys.toml in its demo session)
+    pose2sim = {
+        "cam01": ([1.6882754799999993, 1.0483220499999997, -0.41955852000000016],
+                  [0.3211048899999996, 0.9563320600000009, 2.8907130499999996]),
+        "cam02": ([1.34975875, 1.5963809099999993, -1.1983285799999999],
+                  [-0.11152829000000014, 0.7766184800000001, 3.0675519599999994]),
+        "cam03": ([0.8109654899999995, -2.1972129299999996, 1.3760277799999996],
+                  [-0.7934803899999995, 0.32283594000000126, 4.353514870000001]),
+        "cam04": ([1.4045571699999995, -1.3887412699999993, 0.42535743000000026],
+                  [0.5030217200000007, 0.04894934000000107, 4.406564460000002])}
+    for name, (rvec, t) in pose2sim.items():
+        np.testing.assert_allclose(rig[name].rvec, rvec, atol=1e-12)
+        np.testing.assert_allclose(rig[name].t, t, atol=1e-12)
     assert rig.meta["qca"]["cam04"]["avg_residual_mm"] == 0.504772
 
 
