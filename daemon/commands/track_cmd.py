@@ -48,11 +48,20 @@ def register(app: typer.Typer) -> None:
             "--motive-out", help="Also write the markers and poses as a Motive CSV.")] = None,
         json_path: Annotated[Path | None, typer.Option(
             "--json", help="Write the figures as JSON.")] = None,
+        refine_bodies: Annotated[str, typer.Option(
+            "--refine-bodies", help="Fit each definition to the take's markers first: auto "
+                                    "(when a marker sits over half --distance-tol-mm off), "
+                                    "on, off.")] = "auto",
+        up_axis: Annotated[str | None, typer.Option(
+            "--up-axis", help="The input's up axis, y or z (default: Motive's y for a "
+                              "Motive CSV, z for C3D and points CSV); outputs are "
+                              "z-up.")] = None,
     ) -> None:
         """Find and pose rigid bodies in a file of 3D markers with the daemon's own rigid
         tracker; one CSV row per frame and body (see docs/track.md)."""
         from daemon.config import load_config
         from daemon.markers.track_file import (
+            axes_note,
             bodies_from_motive,
             load_markers,
             track_file,
@@ -70,6 +79,10 @@ def register(app: typer.Typer) -> None:
             if value is not None and not value > 0:
                 raise UserError(f"{name} must be positive, got {value}")
         _check_outputs(markers, out, motive_out)
+        if refine_bodies not in ("auto", "on", "off"):
+            raise UserError(f"--refine-bodies is auto, on or off, got {refine_bodies!r}")
+        if up_axis is not None and up_axis.lower() not in ("y", "z"):
+            raise UserError(f"--up-axis is y or z, got {up_axis!r}")
         rigid_cfg, defs = RigidConfig(), []
         if bodies is not None:
             cfg = load_config(bodies)
@@ -80,23 +93,29 @@ def register(app: typer.Typer) -> None:
             rigid_cfg = replace(rigid_cfg, distance_tol_m=distance_tol_mm / 1000.0)
         if max_error_mm is not None:
             rigid_cfg = replace(rigid_cfg, max_error_m=max_error_mm / 1000.0)
-        cloud, motive, kind = load_markers(markers, rate)
+        cloud, motive, kind, up = load_markers(markers, rate,
+                                               up_axis.lower() if up_axis else None)
         if from_file:
             defs = bodies_from_motive(motive, markers)
         progress = Progress("track", len(cloud))
-        table, figs = track_file(cloud, motive, defs, rigid_cfg, gate_mm, gross_mm,
-                                 progress.update)
+        table, figs, used = track_file(cloud, motive, defs, rigid_cfg, gate_mm, gross_mm,
+                                       progress.update, refine_bodies)
         progress.finish(f"{figs['poses']} poses")
-        figs["input"] = {"file": str(markers), "kind": kind}
+        figs["input"] = {"file": str(markers), "kind": kind, "up_axis": up}
         if out.suffix.lower() == ".mcap":
             from daemon.publish.mcap_poses import write_poses_mcap
 
-            write_poses_mcap(out, table, cloud.xyz)
+            write_poses_mcap(out, table, cloud.xyz, metadata={
+                "source": f"mocapd track {markers.name} ({kind})", "source_up_axis": up,
+                "note": axes_note(up)})
         else:
-            write_poses_csv(out, table, f"mocapd track {markers.name} ({kind})")
+            write_poses_csv(out, table, f"mocapd track {markers.name} ({kind}); "
+                            f"{axes_note(up)}")
         if motive_out is not None:
-            write_motive(motive_out, cloud, table, defs)
+            write_motive(motive_out, cloud, table, used, up)
         _print_figures(figs)
+        for line in figs["hints"]:
+            typer.echo(f"warning: {line}", err=True)
         typer.echo(f"wrote {out}: {len(cloud)} frames, {len(defs)} bodies, "
                    f"{figs['poses']} poses ({100 * figs['valid_fraction']:.1f}% valid)")
         if json_path is not None:

@@ -1,6 +1,12 @@
 """Tracking rigid bodies in a file of 3D markers, as `mocapd track` runs it: reading the file
-(points CSV, C3D, Motive CSV), the bodies a Motive export defines, the track, its figures
-(against Motive's own poses when the file has them) and the Motive CSV written back."""
+(points CSV, C3D, Motive CSV) into mocapd's z-up world, the bodies a Motive export defines,
+their definitions fitted to the take's markers, the track, its figures (against Motive's own
+poses when the file has them, and a hint per body never found) and the Motive CSV written
+back.
+
+Why everything is turned to z-up on reading: mocapd's world is z-up (docs/formats.md), and
+so are its poses CSV and MCAP; Motive's is y-up. Turning the take once, markers and
+Motive's poses together, keeps every comparison in one world; each output says which."""
 
 from __future__ import annotations
 
@@ -11,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from calibkit.core.errors import UserError
+from daemon.markers.body_refine import closest_fit, hint, refine_bodies
 from daemon.markers.c3dio import csv_rate, read_c3d, read_points_csv
 from daemon.markers.motive_csv import (
     MotiveBody,
@@ -20,6 +27,7 @@ from daemon.markers.motive_csv import (
     sniff,
     write_motive_csv,
 )
+from daemon.markers.motive_take import Y_UP_TO_Z_UP, from_z_up, to_z_up
 from daemon.markers.offline_track import (
     cloud_from_arrays,
     cloud_from_points,
@@ -32,30 +40,52 @@ from daemon.markers.trajectory_io import PoseTable
 from daemon.rigid import BodyDef, RigidConfig
 
 
-def load_markers(path: Path, rate_hz: float | None):
-    """(MarkerCloud, MotiveTake or None, what the file is) from any 3D marker file."""
+def load_markers(path: Path, rate_hz: float | None, up_axis: str | None = None):
+    """(MarkerCloud, MotiveTake or None, what the file is, the file's up axis) from any 3D
+    marker file, in mocapd's z-up world. `up_axis` overrides the file's own: Motive's
+    world is y-up (a table export made with a z-up axis convention needs 'z'); C3D and our
+    points CSV are taken as z-up (a y-up C3D needs 'y')."""
     if not path.is_file():
         raise UserError(f"{path} not found")
     suffix = path.suffix.lower()
     if suffix == ".c3d":
         take = read_c3d(path)
         idx = np.arange(take.n_frames)
-        return (cloud_from_arrays(take.xyz_m, idx / take.rate_hz, take.first_frame + idx),
-                None, f"C3D, {take.rate_hz:g} Hz")
+        up = up_axis or "z"
+        cloud = cloud_from_arrays(_z_up(take.xyz_m, up), idx / take.rate_hz,
+                                  take.first_frame + idx)
+        return cloud, None, f"C3D, {take.rate_hz:g} Hz", up
     if suffix != ".csv":
         raise UserError(f"{path}: markers are read from .csv (ours or Motive's) or .c3d "
                         f"files, got {suffix or 'no suffix'}")
     if sniff(path) is not None:
-        motive = read_motive_csv(path)
+        motive = read_motive_csv(path, up_axis)
+        up = motive.up_axis
+        motive = to_z_up(motive)
         return (cloud_from_arrays(motive.all_markers(), motive.t_s, motive.frame), motive,
-                f"Motive CSV {motive.meta.get('format_version', '')}")
+                f"Motive CSV {motive.meta.get('format_version', '')}", up)
     points = read_points_csv(path)
     rate = rate_hz or csv_rate(path)
     if rate is None:
         raise UserError(f"{path} has no frame rate: give --rate HZ (the cameras' rate)")
     if not len(points.frame):
         raise UserError(f"{path}: holds no points")
-    return cloud_from_points(points, rate), None, f"points CSV, {rate:g} Hz"
+    up = up_axis or "z"
+    if up == "y":
+        points = replace(points, xyz_m=_z_up(np.asarray(points.xyz_m, dtype=np.float64), up))
+    return cloud_from_points(points, rate), None, f"points CSV, {rate:g} Hz", up
+
+
+def _z_up(xyz: np.ndarray, up_axis: str) -> np.ndarray:
+    return xyz @ Y_UP_TO_Z_UP.T if up_axis == "y" else xyz
+
+
+def axes_note(up_axis: str) -> str:
+    """What every output of `mocapd track` says about its world and units."""
+    note = "world z-up, metres, quaternions x y z w body to world"
+    if up_axis == "y":
+        note += "; the input was y-up, turned to z-up: (x, y, z) -> (x, -z, y)"
+    return note
 
 
 def bodies_from_motive(motive, path: Path) -> list:
@@ -77,16 +107,33 @@ def bodies_from_motive(motive, path: Path) -> list:
     return out
 
 
+HINT_BELOW = 0.05  # a body posed in fewer than this share of the frames gets a hint
+
+
 def track_file(cloud, motive, defs, rigid_cfg: RigidConfig, gate_mm: float, gross_mm: float,
-               progress=None) -> tuple[PoseTable, dict]:
-    """The daemon's rigid tracker over the whole take: the poses as a table and the figures
-    (per body, and against Motive's own poses where the file has them)."""
+               progress=None, refine: str = "auto") -> tuple[PoseTable, dict, list]:
+    """The daemon's rigid tracker over the whole take: the poses as a table, the figures
+    (per body, and against Motive's own poses where the file has them) and the definitions
+    the poses were made with. First each definition is fitted to the take's markers
+    (daemon.markers.body_refine; `refine` auto, on or off); a body posed in almost no frame
+    gets a hint (figs['hints']): its closest fit and what to change."""
     start = time.perf_counter()
-    result = track_cloud(cloud, defs, replace(rigid_cfg, refine=False),
+    tol_m = rigid_cfg.distance_tol_m
+    used, refits = refine_bodies(cloud.xyz, list(defs), tol_m, refine)
+    result = track_cloud(cloud, used, replace(rigid_cfg, refine=False),
                          PointTrackConfig(gate_m=gate_mm / 1000.0), progress=progress)
     elapsed = time.perf_counter() - start
     figs = figures(result, gross_mm)
     figs["frames_per_s"] = len(cloud) / elapsed if elapsed > 0 else None
+    figs["hints"] = []
+    for b, (body, refit) in enumerate(zip(used, refits, strict=True)):
+        share = figs["bodies"][body.name]["valid_fraction"]
+        figs["bodies"][body.name]["refine"] = refit.summary()
+        if share < HINT_BELOW and len(cloud):
+            fit = closest_fit(cloud.xyz, defs[b])
+            figs["bodies"][body.name]["closest_fit_mm"] = (
+                None if fit.residual_m is None else round(fit.residual_m * 1000.0, 3))
+            figs["hints"].append(hint(defs[b], fit, tol_m, refit, share))
     if motive is not None:
         against = {}
         for name in result.names:
@@ -99,11 +146,12 @@ def track_file(cloud, motive, defs, rigid_cfg: RigidConfig, gate_mm: float, gros
     table = PoseTable(result.frame, result.t_s, result.names, result.ids, result.valid,
                       result.position, result.quaternion, result.error_m * 1000.0,
                       result.n_markers)
-    return table, figs
+    return table, figs, used
 
 
-def write_motive(path: Path, cloud, table: PoseTable, defs) -> None:
-    """Our markers (unlabelled) and poses in Motive's modern layout."""
+def write_motive(path: Path, cloud, table: PoseTable, defs, up_axis: str = "z") -> None:
+    """Our markers (unlabelled) and poses in Motive's table layout, in the input's world
+    (`up_axis` 'y' turns them back into Motive's y-up one), its Up Axis recorded."""
     bodies = [MotiveBody(b.name, b.id, b.markers - b.pivot) for b in defs]
     poses = {b.name: MotivePoses(table.valid[:, i], table.xyz[:, i],
                                  table.quat[:, i], table.error_mm[:, i] / 1000.0)
@@ -111,5 +159,5 @@ def write_motive(path: Path, cloud, table: PoseTable, defs) -> None:
     dt = np.diff(cloud.t_s)
     rate = float(1.0 / np.median(dt)) if len(dt) and np.median(dt) > 0 else 0.0
     take = MotiveTake(cloud.frame, cloud.t_s, rate, [], np.zeros((len(cloud), 0, 3)),
-                      cloud.xyz, bodies, poses)
-    write_motive_csv(path, take, path.stem)
+                      cloud.xyz, bodies, poses, {"up_axis": "z"})
+    write_motive_csv(path, from_z_up(take, up_axis), path.stem)

@@ -8,7 +8,10 @@ Channels: `/tf` (every valid body as a transform from the world frame), `/mocap/
 (one PoseInFrame per valid pose), `/mocap/markers` (the frame's markers as spheres, those a
 body holds coloured apart). Times: `log_time` and the messages' timestamps are the capture
 time, on the wall clock when the caller gives one. Units: metres, quaternions x y z w
-body-to-world, as everywhere in mocapd.
+body-to-world, as everywhere in mocapd; the world is z-up (Foxglove's 3D panel and ROS
+assume it), so a caller with a y-up take turns it first. Every file says so in a
+metadata record `mocapd` (up_axis, length_unit, rotation, world_frame, and whatever the
+caller adds, such as where the data came from and how it was turned).
 """
 
 from __future__ import annotations
@@ -24,6 +27,8 @@ from calibkit.core.errors import UserError
 from calibkit.core.fileio import atomic_write
 
 WORLD_FRAME = "world"
+AXES_METADATA = {"up_axis": "z", "length_unit": "m",
+                 "rotation": "quaternion x y z w, body to world"}
 MARKER_DIAMETER_M = 0.014
 _FREE_JSON = '{"r":0.55,"g":0.55,"b":0.6,"a":1}'
 _HELD_JSON = '{"r":0.1,"g":0.8,"b":0.3,"a":1}'
@@ -84,7 +89,7 @@ class McapPoseWriter:
     appears at `path` on `close()`; `abort()` (or an exception inside `with`) leaves nothing."""
 
     def __init__(self, path: str | Path, body_names: list[str], markers: bool = True,
-                 world_frame: str = WORLD_FRAME) -> None:
+                 world_frame: str = WORLD_FRAME, metadata: dict[str, str] | None = None) -> None:
         # deferred on purpose: loads mcap only where used
         from mcap.writer import Writer
 
@@ -102,6 +107,9 @@ class McapPoseWriter:
         self._file = self._stack.enter_context(atomic_write(self.path, "wb"))
         self._writer = Writer(self._file)
         self._writer.start(profile="", library="mocapd")
+        self._writer.add_metadata("mocapd", {**AXES_METADATA, "world_frame": world_frame,
+                                             **{str(k): str(v) for k, v in
+                                                (metadata or {}).items()}})
         schema = {name: self._writer.register_schema(
             name=name, encoding="jsonschema", data=json.dumps(s).encode())
             for name, s in SCHEMAS.items()}
@@ -175,10 +183,12 @@ class McapPoseWriter:
 
 
 def write_poses_mcap(path: str | Path, table, markers_xyz: np.ndarray | None = None,
-                     start_ns: int = 0, progress=None) -> int:
-    """A PoseTable (and optionally (F, M, 3) markers) as MCAP, frame times `start_ns` +
-    the table's seconds; the number of frames written."""
-    with McapPoseWriter(path, table.names, markers=markers_xyz is not None) as out:
+                     start_ns: int = 0, progress=None,
+                     metadata: dict[str, str] | None = None) -> int:
+    """A PoseTable (and optionally (F, M, 3) markers) in a z-up world as MCAP, frame times
+    `start_ns` + the table's seconds; the number of frames written."""
+    with McapPoseWriter(path, table.names, markers=markers_xyz is not None,
+                        metadata=metadata) as out:
         for f in range(len(table.frame)):
             out.write(start_ns + round(float(table.t_s[f]) * 1e9), table.valid[f],
                       table.xyz[f], table.quat[f],
