@@ -168,7 +168,7 @@ MIN_POINTS = 20  # fewer confident points than this give no estimate
 # 3.0 x RMS, a normal error's at 2.15 x), so each pass cuts off more of it and the figure
 # settles low (0.59 px against 0.84 px measured with the corners' ids: docs/triangulation.md).
 # At 2 x the censoring starts at 5.3 x RMS (webcams: 0.74 px). The price is the chance blobs
-# the wider gate lets in on crowded rigs: simulated ones (50 markers, stray blobs) read 0-5 %
+# the wider gate lets in on crowded rigs: simulated ones (50 markers, stray blobs) read 2-6 %
 # high at 1 px, up to 18 % at 2 px with 8 cameras. The epipolar gate stays at K_EPIPOLAR x:
 # it is what keeps chance matches out (widened as well, 1 px rigs read 5-10 % high) and
 # widening it moved the webcams' figure by 1 %.
