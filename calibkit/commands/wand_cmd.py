@@ -14,6 +14,7 @@ from calibkit.calibrate.wand import WandSpec
 from calibkit.clitools import Progress, parse_floats, parse_view, print_table, write_json
 from calibkit.commands import coverage_view
 from calibkit.core.camera import Rig
+from calibkit.core.easywand import read_easywand_profile
 from calibkit.core.errors import UserError
 from calibkit.synthetic.runs import truth_rig_path
 
@@ -44,6 +45,9 @@ def register(app: typer.Typer) -> None:
         out: Annotated[Path, typer.Option("--out", help="The calibrated rig file to write.")],
         source: Annotated[Path | None, typer.Option(
             "--from", help="A recording (.mcrec) or plain CSV of the wand dance.")] = None,
+        profile: Annotated[Path | None, typer.Option(
+            "--profile", help="An easyWand camera profile: the intrinsics for a DLTdv/easyWand "
+                              "xypts file given to --from (docs/easywand.md).")] = None,
         use_sim: Annotated[bool, typer.Option(
             "--sim", help="Simulate a rig and a wand dance, calibrated from the --intrinsics "
                           "or --rig file (calibkit intrinsic / extrinsic --sim); the true "
@@ -130,6 +134,11 @@ def register(app: typer.Typer) -> None:
         initial = Rig.load(rig_path) if rig_path is not None else None
         intr = initial or (Rig.load(intrinsics) if intrinsics is not None else None)
         intr_path = rig_path or intrinsics
+        if profile is not None:  # an easyWand camera profile in place of --intrinsics
+            if intr is not None or source is None:
+                raise UserError("--profile (an easyWand camera profile) goes with --from "
+                                "XYPTS.csv, in place of --intrinsics and --rig")
+            intr = read_easywand_profile(profile)
         world, run, coverage = None, None, None
         if use_sim:
             from calibkit.synthetic import wand_sim

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from calibkit.core import easywand
 from calibkit.core.errors import UserError
 from calibkit.core.fileio import atomic_write
 from calibkit.core.observations import Observations, Truth
@@ -299,13 +300,17 @@ def save_observations(path: str | Path, obs: Observations, truth: Truth | None =
 
 
 def load_observations(path: str | Path, rig=None) -> tuple[Observations, Truth | None]:
-    """Read a recording or a plain CSV. With a rig, the CSV's camera names are checked against
-    it and the cameras' sizes taken from it."""
+    """Read a recording, a plain CSV, or a DLTdv/easyWand xypts file (told apart by its
+    first line; calibkit.core.easywand, y up from the bottom as DLTdv 1-7 and Argus write
+    it). With a rig, the CSV's camera names are checked against it and the cameras' sizes
+    taken from it; an xypts file needs one (an easyWand profile read into a rig will do)."""
     path = Path(path)
     if not path.exists():
         raise UserError(f"{path}: no such file")
     if path.is_dir():
         raise UserError(f"{path}: is a folder; give a recording (.mcrec) or a .csv file")
+    if easywand.looks_like_xypts(path):
+        return easywand.read_xypts(path, rig), None
     if path.suffix.lower() == ".csv":
         return _read_csv(path, rig)
     obs, truth = _read_recording(path)
