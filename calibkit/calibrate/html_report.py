@@ -220,19 +220,29 @@ def wand_page(report: dict, rig: Rig, points: np.ndarray | None,
             ("wand length error, mean (mm)", "wand_length_error_mean_mm"),
             ("wand length error, SD (mm)", "wand_length_error_sd_mm"),
             ("mean ray distance (mm)", "mean_ray_distance_mm"), ("frames", "frames"),
-            ("observations", "observations")]
+            ("observations", "observations"),
+            ("wand length variation, SD/mean (%)", "wand_length_variation_pct")]
     out.append("<h2>Figures</h2>")
     out.append(table(["figure", "solved", "held out"],
                      [[label, s.get(k), h.get(k)] for label, k in keys], "figures"))
+    out += _not_computable([("solved", s), ("held out", h)])
     sy = report.get("systematic") or {}
     if sy:
         out.append("<p class=\"muted\">Systematic wand length errors (a warped space shows "
                    "here even when the pixels fit):</p>")
-        out.append(table(["where", "mm", "% of the wand's length"],
-                         [["across the volume", sy.get("volume_mm"), sy.get("volume_pct")],
-                          ["image centre to edges", sy.get("radius_mm"), sy.get("radius_pct")],
-                          ["held-out regions", sy.get("region_mm"), sy.get("region_pct")]],
+        out.append(table(["where", "mm", "% of the wand's length", "not computable because"],
+                         [[what, sy.get(f"{key}_mm"), sy.get(f"{key}_pct"),
+                           sy.get(f"{key}_reason", "")]
+                          for key, what in (("volume", "across the volume"),
+                                            ("radius", "image centre to edges"),
+                                            ("region", "held-out regions"),
+                                            ("trend", "trend with position"))],
                          "systematic"))
+    out += _wand_intrinsics(report)
+    scale = report.get("scale") or {}
+    if scale and not scale.get("known", True):
+        out.append(f'<p id="scale" class="warn">scale unknown: {esc(scale.get("unit", ""))}'
+                   "</p>")
     out.append(f'<p class="muted">solve: {s["iterations"]} iterations, '
                f'{number(s["time_s"], 1)} s, noise {number(s["noise_px"])} px, '
                f'{s["outliers"]} outliers dropped; world frame: {esc(report["world_frame"])}; '
@@ -252,6 +262,32 @@ def wand_page(report: dict, rig: Rig, points: np.ndarray | None,
         out += [image(png, caption, ident) for ident, caption, png in images]
         out.append("</div>")
     return page(f"Wand calibration {rig_name}: {g}", "".join(out))
+
+
+def _not_computable(parts: list[tuple[str, dict]]) -> list[str]:
+    """Why a figure of the table is '-': the report's reasons, one line each."""
+    return [f'<p class="muted">{esc(name)}: not computable: {esc(figs[key])}</p>'
+            for name, figs in parts
+            for key in ("reason", "wand_length_variation_reason") if key in figs]
+
+
+def _wand_intrinsics(report: dict) -> list[str]:
+    """Per camera: its intrinsics refined or kept, why, and what refining moved (or would
+    have moved, for intrinsics kept)."""
+    rows = []
+    for c in (report.get("intrinsics") or {}).get("cameras", []):
+        moved = c.get("if_refined") or c
+        rows.append([c["name"], c.get("chosen", ""), moved.get("focal_change_pct"),
+                     moved.get("centre_change_px"), moved.get("image_shift_px"),
+                     moved.get("largest_change_sigmas"), c.get("why", "")])
+    if not rows:
+        return []
+    return ["<h2>Intrinsics</h2>", table(
+        ["camera", "intrinsics", "focal change (%)", "centre change (px)",
+         "largest image shift (px)", "largest change (prior sigmas)", "why"],
+        rows, "intrinsics"),
+        '<p class="muted">For intrinsics kept, the changes are what refining them would have '
+        "made.</p>"]
 
 
 def write_page(path: Path, text: str) -> None:

@@ -20,6 +20,10 @@ from pathlib import Path
 import numpy as np
 
 from calibkit.calibrate.wand import WandObservations, WandSpec, point_index
+from calibkit.calibrate.wand_systematics import (  # noqa: F401 (systematics: re-exported)
+    MIN_CELL_FRAMES,
+    systematics,
+)
 from calibkit.core.camera import Rig
 from calibkit.core.fileio import write_bytes_atomic
 from calibkit.core.geometry import RigArrays, triangulate
@@ -37,8 +41,10 @@ GRADES = (
 # centre to its edges, and the bias in the held-out regions. On the simulator's 4 m volume
 # a rig 1 mm off (grid RMS) shows about 0.03 % on the first two.
 SYSTEMATIC_GRADES = (("excellent", 0.02), ("good", 0.05), ("usable", 0.1))
-VOLUME_CELLS = (3, 3, 2)  # x, y, z quantile bins of the wand's centre
-MIN_CELL_FRAMES = 10
+# Intrinsics the solve moved from the file's, in the file's prior sigmas at most, per grade:
+# a file whose values the wand moves many of its own sigmas is wrong or over-confident, and
+# then the capture alone vouches for the result (docs/wand.md).
+INTRINSIC_SIGMA_GRADES = (("excellent", 3.0), ("good", 5.0))
 BEHIND_SHARE = 0.01  # more observations than this behind their camera: a mirrored solution
 
 
@@ -53,6 +59,8 @@ def evaluate(rig: Rig, wand: WandObservations, spec: WandSpec, frames: np.ndarra
     sel &= cam >= 0
     w = wand.select(sel)
     cam = cam[sel]
+    if len(w) == 0:
+        return _no_figures(len(rig))
     pidx, pinfo = point_index(w, spec.n_markers)
     tri = triangulate(rig, pidx, cam, w.uv, n_points=len(pinfo))
     proj, z = RigArrays.from_rig(rig).project(cam, tri.xyz[pidx])
@@ -72,6 +80,7 @@ def evaluate(rig: Rig, wand: WandObservations, spec: WandSpec, frames: np.ndarra
     behind = np.sum(seen2 & ~ok)
     frame_err, frame_centre, frame_radius = _per_frame(rig, w, cam, pidx, pinfo, tri.xyz, spec)
     return {
+        **_length_variation(frame_err, spec),
         "frames": int(len(np.unique(w.frame))),
         "observations": int(ok.sum()),
         "reprojection_rms_px": float(np.sqrt(np.mean(sq[ok]))) if ok.any() else float("nan"),
@@ -89,6 +98,30 @@ def evaluate(rig: Rig, wand: WandObservations, spec: WandSpec, frames: np.ndarra
         "frame_length_error_mm": frame_err, "frame_centre_m": frame_centre,
         "frame_radius": frame_radius,
     }
+
+
+def _length_variation(frame_err_mm: np.ndarray, spec: WandSpec) -> dict:
+    """The spread of the end-to-end length over frames in % of its mean (SD / mean): the
+    figure that needs no scale, so it means the same for a wand of unknown length."""
+    if spec.n_markers < 2 or len(frame_err_mm) < 2:
+        return {"wand_length_variation_pct": float("nan"), "length_frames": len(frame_err_mm)}
+    length_mm = 1000.0 * spec.length_m + frame_err_mm
+    return {"wand_length_variation_pct": float(100.0 * np.std(length_mm, ddof=1)
+                                               / np.mean(length_mm)),
+            "length_frames": int(len(frame_err_mm))}
+
+
+def _no_figures(n_cams: int) -> dict:
+    """evaluate's figures for frames of which no camera of the rig saw anything."""
+    nan = float("nan")
+    return {"frames": 0, "observations": 0, "reprojection_rms_px": nan,
+            "camera_rms_px": np.full(n_cams, nan), "camera_observations": np.zeros(n_cams, int),
+            "wand_length_error_mean_mm": nan, "wand_length_error_sd_mm": nan,
+            "wand_length_error_rms_mm": nan, "mean_ray_distance_mm": nan, "behind_share": 0.0,
+            "residual_px": np.zeros((0, 2)), "residual_camera": np.zeros(0, int),
+            "residual_uv": np.zeros((0, 2)), "xyz": np.zeros((0, 3)),
+            "frame_length_error_mm": np.zeros(0), "frame_centre_m": np.zeros((0, 3)),
+            "frame_radius": np.zeros(0), "wand_length_variation_pct": nan, "length_frames": 0}
 
 
 def hold_out(frames: np.ndarray, centre_m: np.ndarray, share: float, seed: int = 0
@@ -144,59 +177,6 @@ def _per_frame(rig: Rig, w: WandObservations, cam: np.ndarray, pidx: np.ndarray,
     return err[ok], 0.5 * (ends[ok, 0] + ends[ok, 1]), radius[ok]
 
 
-def systematics(figures: list[dict], region: dict | None, wand_length_m: float) -> dict:
-    """How the wand's length error varies where the solve cannot hide it, over the frames
-    of all `figures` (evaluate results, e.g. solved and held out), each figure beside its
-    own noise so that the grade counts only what stands out of it:
-
-    volume_pct: the spread of the mean length error over cells of the volume (VOLUME_CELLS
-    quantile bins of the wand's centre): the RMS of the cell means about the overall
-    mean, less what the per-frame noise alone gives (sqrt(max(0, ms - noise^2))).
-    radius_pct: the mean length error of the third of frames seen farthest from the image
-    centres minus that of the nearest third, less two standard errors (at least 0).
-    region_pct: the mean length error in the held-out regions (frames in whole cells of the
-    volume kept out of the solve) minus that over the other frames, less two standard
-    errors. All in % of the wand's length (and mm beside)."""
-    err = np.concatenate([f["frame_length_error_mm"] for f in figures])
-    centre = np.concatenate([f["frame_centre_m"] for f in figures]).reshape(-1, 3)
-    radius = np.concatenate([f["frame_radius"] for f in figures])
-    out = {"frames": int(len(err)), "volume_mm": float("nan"), "radius_mm": float("nan"),
-           "radius_trend_mm": float("nan"), "region_mm": float("nan"),
-           "region_bias_mm": float("nan")}
-    length_mm = 1000.0 * wand_length_m
-    if len(err) >= 3 * MIN_CELL_FRAMES and length_mm > 0:
-        key = np.zeros(len(err), dtype=np.int64)
-        for axis, bins in enumerate(VOLUME_CELLS):
-            edges = np.quantile(centre[:, axis], np.arange(1, bins) / bins)
-            key = key * bins + np.searchsorted(edges, centre[:, axis])
-        _, cell = np.unique(key, return_inverse=True)
-        n = np.bincount(cell)
-        mean = np.bincount(cell, err) / n
-        var = np.bincount(cell, err**2) / n - mean**2
-        use = n >= MIN_CELL_FRAMES
-        ms = np.average((mean[use] - err.mean()) ** 2, weights=n[use])
-        noise2 = np.average(var[use] * n[use] / np.maximum(n[use] - 1, 1) / n[use],
-                            weights=n[use])
-        out["volume_mm"] = float(np.sqrt(max(0.0, ms - noise2)))
-        out["volume_cells"] = int(use.sum())
-        lo, hi = np.quantile(radius, [1 / 3, 2 / 3])
-        inner, outer = err[radius <= lo], err[radius >= hi]
-        trend = outer.mean() - inner.mean()
-        se = np.sqrt(inner.var() / len(inner) + outer.var() / len(outer))
-        out["radius_trend_mm"] = float(trend)
-        out["radius_mm"] = float(max(0.0, abs(trend) - 2 * se))
-    if region is not None and len(region["frame_length_error_mm"]) >= MIN_CELL_FRAMES \
-            and len(err) > len(region["frame_length_error_mm"]):
-        inside = region["frame_length_error_mm"]
-        bias = inside.mean() - err.mean()
-        se = np.sqrt(inside.var() / len(inside) + err.var() / len(err))
-        out["region_bias_mm"] = float(bias)
-        out["region_mm"] = float(max(0.0, abs(bias) - 2 * se))
-    for k in ("volume", "radius", "region"):
-        out[f"{k}_pct"] = 100.0 * out[f"{k}_mm"] / length_mm if length_mm > 0 else float("nan")
-    return out
-
-
 def _all_lengths(xyz: np.ndarray, pinfo: np.ndarray, spec: WandSpec) -> np.ndarray:
     """(measured, true) distance of every marker pair of every frame, metres."""
     pairs, true = spec.edges()
@@ -238,19 +218,23 @@ def checks(rig: Rig, points_xyz: np.ndarray, behind_share: float) -> dict:
     }
 
 
-def grade(held: dict, found: dict, wand_length_m: float, syst: dict | None = None
-          ) -> tuple[str, str]:
-    """(grade, the reason in plain words) from the held-out figures, the checks and the
-    systematic length errors (`systematics`): the worst of the grades each allows."""
-    name, reason = _grade_held(held, found, wand_length_m)
-    if syst is None or name in ("failed", "poor"):
+def grade(held: dict, found: dict, wand_length_m: float, syst: dict | None = None,
+          intrinsics: list[dict] | None = None, basis: str = "held-out") -> tuple[str, str]:
+    """(grade, the reason in plain words) from the held-out figures (`basis` names the frames
+    they come from: "solved" when none were held out), the checks, the systematic length
+    errors (`systematics`) and how far the solve moved each camera's intrinsics from the
+    file's (`intrinsics`: rows with largest_change_sigmas, as the report's): the worst of
+    the grades each allows. A figure that could not be computed (NaN) caps nothing."""
+    name, reason = _grade_held(held, found, wand_length_m, basis)
+    if name in ("failed", "poor"):
         return name, reason
     order = [g for g, *_ in GRADES] + ["poor"]
     worst, why = name, ""
-    for key, what in (("volume", "across the volume"), ("radius", "from the image centre "
-                                                                   "to its edges"),
-                      ("region", "in the held-out regions")):
-        pct = syst.get(f"{key}_pct", float("nan"))
+    for key, what in (("volume", "across the volume"),
+                      ("radius", "from the image centre to its edges"),
+                      ("region", "in the held-out regions"),
+                      ("trend", "with the wand's position in the volume")):
+        pct = (syst or {}).get(f"{key}_pct", float("nan"))
         if not np.isfinite(pct):
             continue
         allowed = next((g for g, limit in SYSTEMATIC_GRADES if pct <= limit), "poor")
@@ -260,31 +244,50 @@ def grade(held: dict, found: dict, wand_length_m: float, syst: dict | None = Non
             why = (f"the wand's length varies {what} by {syst[key + '_mm']:.2f} mm "
                    f"({pct:.3f} % of its length, above the {dict(SYSTEMATIC_GRADES)[missed]} "
                    f"% '{missed}' allows): the reconstructed space is warped, most often by "
-                   "wrong intrinsics; "
-                   "refine them (the default) or recalibrate them")
+                   "wrong intrinsics; recalibrate them, or give them with their uncertainty "
+                   "(calibkit intrinsic) so that the wand can refine them")
+    moved = [r for r in intrinsics or [] if np.isfinite(r.get("largest_change_sigmas", np.nan))]
+    if moved:
+        far = max(moved, key=lambda r: r["largest_change_sigmas"])
+        sig = far["largest_change_sigmas"]
+        allowed = next((g for g, limit in INTRINSIC_SIGMA_GRADES if sig <= limit), "usable")
+        if order.index(allowed) > order.index(worst):
+            worst = allowed
+            why = (f"the wand moved camera {far['name']}'s {far['largest_change_parameter']} "
+                   f"{sig:.1f} prior sigmas from the intrinsics file (more than the "
+                   f"{dict(INTRINSIC_SIGMA_GRADES)[order[order.index(allowed) - 1]]:g} "
+                   f"'{order[order.index(allowed) - 1]}' allows): the file's intrinsics or "
+                   "their uncertainties are wrong, and what the wand made of them is judged "
+                   "by this capture alone; recalibrate the intrinsics (calibkit intrinsic) "
+                   "or solve with the monitor's views")
     if why:
         return worst, why
     return name, reason + (f"; systematic length errors within the {dict(SYSTEMATIC_GRADES)[name]}"
                            f" % '{name}' allows")
 
 
-def _grade_held(held: dict, found: dict, wand_length_m: float) -> tuple[str, str]:
+def _grade_held(held: dict, found: dict, wand_length_m: float,
+                basis: str = "held-out") -> tuple[str, str]:
     if not found["ok"]:
         what = [k for k in ("camera_behind_volume", "upside_down", "mirrored") if found[k]]
         return "failed", ("the solution is impossible (" + ", ".join(what).replace("_", " ")
                           + "): recapture or check the floor frame")
     rms, sd = held["reprojection_rms_px"], held["wand_length_error_sd_mm"]
+    if not np.isfinite(rms):
+        return "poor", (f"no {basis} frame could be triangulated: nothing to grade the rig "
+                        "on; recapture with the wand seen by two cameras or more")
     if not wand_length_m > 0 or not np.isfinite(sd):  # a 1-marker wand: pixels only
         for name, max_px, _ in GRADES:
             if rms <= max_px:
-                return name, f"held-out reprojection {rms:.3f} px <= {max_px} px (no wand length)"
-        return "poor", f"held-out reprojection {rms:.3f} px > {GRADES[-1][1]} px"
+                return name, (f"{basis} reprojection {rms:.3f} px <= {max_px} px (no wand "
+                              "length to judge)")
+        return "poor", f"{basis} reprojection {rms:.3f} px > {GRADES[-1][1]} px"
     pct = 100.0 * sd / (1000.0 * wand_length_m)
     for name, max_px, max_pct in GRADES:
         if rms <= max_px and pct <= max_pct:
-            return name, (f"held-out reprojection {rms:.3f} px <= {max_px} px and wand length "
+            return name, (f"{basis} reprojection {rms:.3f} px <= {max_px} px and wand length "
                           f"spread {sd:.2f} mm = {pct:.2f} % <= {max_pct} % of its length")
-    return "poor", (f"held-out reprojection {rms:.3f} px or wand length spread {sd:.2f} mm "
+    return "poor", (f"{basis} reprojection {rms:.3f} px or wand length spread {sd:.2f} mm "
                     f"({pct:.2f} %) is beyond 'usable' ({GRADES[-1][1]} px, {GRADES[-1][2]} "
                     "%): recapture with more coverage or check the intrinsics")
 

@@ -9,13 +9,20 @@ import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
-from calibkit.calibrate import bundle, floor, intrinsic_prior, wand_report
+from calibkit.calibrate import (
+    bundle,
+    floor,
+    intrinsic_prior,
+    wand_intrinsics,
+    wand_report,
+    wand_summary,
+)
 from calibkit.calibrate.extrinsic_solve import join_bundle_data
 from calibkit.calibrate.plane_views import PlaneViews
 from calibkit.calibrate.wand import (
-    CaptureMonitor,
     WandObservations,
     WandSpec,
     identify,
@@ -28,7 +35,8 @@ from calibkit.core.errors import UserError
 from calibkit.core.geometry import RigArrays, triangulate
 from calibkit.core.observations import Observations
 
-MIN_WAND_FRAMES = 20  # a camera that sees the wand fewer times is left out, with a warning
+MIN_WAND_FRAMES = 10  # a camera that sees the wand fewer times is left out, with a warning
+MIN_SOLVE_FRAMES = 10  # a capture this small after the hold-out solves all its frames
 
 
 @dataclass(eq=False)
@@ -80,25 +88,36 @@ def labelled_wand_data(rig: Rig, obs: Observations, spacing_m) -> bundle.BundleD
 
 
 def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None = None,
-              refine_intrinsics: bool = True, holdout: float = 0.1, seed: int = 0,
+              refine_intrinsics: bool | None = None, holdout: float = 0.1, seed: int = 0,
               world: Callable[[Rig, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
               options: bundle.BundleOptions | None = None, progress=None,
               extra: Callable[[Rig], bundle.BundleData] | None = None,
-              target_views: PlaneViews | None = None) -> WandCalibration:
+              target_views: PlaneViews | None = None,
+              length_known: bool = True) -> WandCalibration:
     """Everything: see calibrate_wand. `extra(start_rig)` gives more points to solve with
     (the projector's floor and table dots: calibkit.calibrate.extrinsic_solve.bundle_data),
     joined to the wand's; their plane and position priors then hold the world frame, so it needs
     `initial` poses already in that frame (from calibkit extrinsic). `options` sets the
-    bundle adjustment's other knobs; `refine_intrinsics` and the intrinsics' priors
+    bundle adjustment's other knobs; the intrinsics' priors
     (calibkit.calibrate.intrinsic_prior, from the rig file's quality.intrinsic) are set here.
-    `target_views` (calibkit.calibrate.plane_views, the intrinsic step's monitor views) join the
-    graph when the intrinsics are refined: a camera with views gets them in place of the
-    prior from its intrinsic step's standard deviations (a loose prior stays)."""
+    refine_intrinsics: True refines every camera's, False holds them, None (the default)
+    refines those that come with uncertainties or views and decides for the others
+    (calibkit.calibrate.wand_intrinsics). `target_views` (calibkit.calibrate.plane_views, the
+    intrinsic step's monitor views) join the graph when the intrinsics are refined: a camera
+    with views gets them in place of the prior from its intrinsic step's standard deviations
+    (a loose prior stays). length_known False: the wand's length is unknown; the rig comes
+    out in units of `spacing_m` (scale-free) and the report says so."""
     if extra is not None and initial is None:
         raise UserError("points on known planes need initial poses in the world frame: give "
                         "--rig (e.g. from calibkit extrinsic)")
+    if extra is not None and not length_known:
+        raise UserError("--dots hold the world frame in metres, which a wand of unknown "
+                        "length contradicts: give --wand-length")
     spec = WandSpec(tuple(spacing_m))
     intr = _ordered_intrinsics(obs, intrinsics)
+    obs = obs.select(np.isfinite(obs.uv).all(axis=1))  # cells not digitised
+    if len(obs) == 0:
+        raise UserError("the recording holds no blob positions (every row is empty or NaN)")
     wand = identify(obs, spec, intr)
     warnings: list[str] = []
     per_cam = np.bincount(wand.camera[wand.marker == 0], minlength=len(intr))
@@ -116,22 +135,10 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
     seen_by_kept = wand.select(np.isin(wand.camera, keep_cams))
     # the start from every frame (it is only where the solve begins), then the frames held
     # out of the solve: some at random, some in whole regions of the volume
-    if initial is not None:
-        absent = [n for n in sub.names if n not in set(initial.names)]
-        if absent:
-            raise UserError(f"camera '{absent[0]}' is not in the --rig file")
-        start = Rig(tuple(sub[n].replace(rvec=initial[n].rvec, t=initial[n].t)
-                          for n in sub.names))
-        missing: list[str] = []
-    elif spec.n_markers == 2:
-        start, missing = _two_marker_start(_renumber(seen_by_kept, keep_cams, len(intr)), sub,
-                                           spec)
-    else:
-        start, missing = initial_poses(_renumber(seen_by_kept, keep_cams, len(intr)), sub,
-                                       spec)
-        for name in missing:
-            warnings.append(f"camera {name} could not be placed (it shares too few wand "
-                            "sightings with the others): left out, not calibrated")
+    start, missing = _start(seen_by_kept, keep_cams, intr, sub, spec, initial)
+    for name in missing:
+        warnings.append(f"camera {name} could not be placed (it shares too few wand "
+                        "sightings with the others): left out, not calibrated")
     camera_of = np.full(len(intr), -1)
     for k, name in enumerate(start.names):
         camera_of[intr.index(name)] = k
@@ -140,26 +147,175 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
     held_random, held_region = wand_report.hold_out(
         frames, _frame_centres(placed, start, camera_of, spec, frames), holdout, seed)
     held_frames = np.union1d(held_random, held_region)
+    if len(held_frames) and len(frames) - len(held_frames) < MIN_SOLVE_FRAMES:
+        warnings.append(f"no frames held out: the capture's {len(frames)} wand frames are "
+                        f"too few to keep any out of the solve (it takes {MIN_SOLVE_FRAMES} "
+                        "solved)")
+        held_random = held_region = held_frames = frames[:0]
     prior = Rig(tuple(intr[n] for n in start.names), dict(intr.quality))
     sigmas, prior_source = intrinsic_prior.prior_sigmas(intrinsics, start.names)
-    if refine_intrinsics and spec.n_markers < 2:
+    if refine_intrinsics is not False and spec.n_markers < 2:
         refine_intrinsics = False
         warnings.append("intrinsics held: a 1-marker wand has no length to check them against")
-    target = _target_data(target_views, prior) if refine_intrinsics else None
+    target = _target_data(target_views, prior) if refine_intrinsics is not False else None
     if target is not None:
         for k in np.unique(target.obs_camera).tolist():
             sigmas[k] = intrinsic_prior.default_sigmas(prior[k])
             prior_source[k] = "intrinsic step's views"
-    raw = wand
     # a 2-marker wand started from midpoints is labelled again with the solved poses and
     # solved once more: the start's labels are wrong where its poses were a little off
     passes = 2 if spec.n_markers == 2 and initial is None else 1
+
+    def solve(refine: bool, prior_sigma: np.ndarray) -> tuple[bundle.BundleResult,
+                                                               WandObservations]:
+        return _solve_passes(wand, start, prior, camera_of, held_frames, spec, passes,
+                             refine, prior_sigma, target if refine else None, extra,
+                             options, progress)
+
+    candidates = [k for k in range(len(prior)) if prior_source[k] == "default"] \
+        if refine_intrinsics is None else []
+    refine = np.full(len(prior), refine_intrinsics is not False)
+    decided: dict[int, dict] = {}
+    if not candidates:
+        result, wand = solve(bool(refine.any()), sigmas)
+    else:
+        (result, wand), refined = solve(False, sigmas), solve(True, sigmas)
+        train = np.setdiff1d(frames, held_frames)
+        figs = [wand_report.evaluate(r.rig, refined[1], spec, f, camera_of)
+                for r in (result, refined[0]) for f in (train, held_frames)]
+        choice, rows = wand_intrinsics.decide(figs[0], figs[2], figs[1], figs[3],
+                                              refined[0].noise_px, candidates, len(prior))
+        refine[candidates] = choice[candidates]
+        changes = wand_intrinsics.what_refining_changed(prior, refined[0].rig, sigmas)
+        decided = {row["camera"]: {**row, "if_refined": {k: v for k, v in
+                                                         changes[row["camera"]].items()
+                                                         if k != "name"}} for row in rows}
+        if refine.all():
+            result, wand = refined
+        elif refine.any():
+            result, wand = solve(True, wand_intrinsics.mixed_sigmas(sigmas, refine))
+    intrinsics_moved: list[dict] = [{} for _ in prior]
+    if refine.any():
+        intrinsics_moved, _ = intrinsic_prior.check_refined(prior, result.rig, sigmas)
+        ks = np.flatnonzero(refine)
+        warnings.extend(intrinsic_prior.check_refined(
+            Rig(tuple(prior[k] for k in ks)), Rig(tuple(result.rig[k] for k in ks)),
+            sigmas[ks])[1])
+    # the world frame
+    if world is None and extra is not None:  # the extra points' priors set the frame
+        def world(_rig, _xyz):
+            return np.eye(3), np.zeros(3)
+    A, b = (world or floor.frame_from_cameras)(result.rig, result.xyz)
+    rig = floor.transform_rig(result.rig, A, b)
+    solved = wand_report.evaluate(rig, wand, spec, np.setdiff1d(frames, held_frames), camera_of)
+    held = wand_report.evaluate(rig, wand, spec, held_frames, camera_of) if len(held_frames) \
+        else None
+    region = wand_report.evaluate(rig, wand, spec, held_region, camera_of) if len(held_region) \
+        else None
+    syst = wand_report.systematics([solved] if held is None else [solved, held], region,
+                                   spec.length_m, holdout if len(held_frames) else 0.0)
+    try:
+        cov = bundle.camera_covariances(result)
+    except RuntimeError as exc:  # an indeterminate system: say so rather than fail
+        warnings.append(f"no uncertainty: the marginals failed ({str(exc).splitlines()[0]})")
+        cov = None
+    found = wand_report.checks(rig, solved["xyz"], solved["behind_share"])
+    moved_rows = [dict(m, name=prior[k].name) for k, m in enumerate(intrinsics_moved)
+                  if refine[k] and m]
+    grade, reason = wand_report.grade(solved if held is None else held, found, spec.length_m,
+                                      syst, moved_rows,
+                                      "held-out" if held is not None else "solved")
+    if held is None:
+        reason += " (graded on the solved frames: none were held out, so over-fitting cannot show)"
+    if not length_known:
+        reason += ("; the scale is unknown (no --wand-length): distances are in units of the "
+                   "wand's length as --spacing gives it, and the grade is scale-free")
+    held_reason = None if held is not None else (
+        "no frames held out (--holdout 0)" if holdout <= 0 else
+        f"the capture's {len(frames)} wand frames are too few to hold any out")
+    report = wand_summary.report(rig, spec, result, solved, held, cov, found, grade, reason,
+                                 warnings, never + missing, wand, intr, world is not None,
+                                 held_reason)
+    report["systematic"] = syst
+    report["held_out"]["random_frames"] = int(len(held_random))
+    report["held_out"]["region_frames"] = int(len(held_region))
+    report["intrinsics"] = wand_summary.intrinsics_report(refine, prior, sigmas, prior_source,
+                                                          intrinsics_moved, cov, result,
+                                                          decided)
+    report["scale"] = _scale_report(spec, length_known)
+    quality = {"reprojection_rms_px": report["solve"]["reprojection_rms_px"],
+               "held_out_rms_px": report["held_out"]["reprojection_rms_px"],
+               "wand_length_error_sd_mm": report["held_out"]["wand_length_error_sd_mm"],
+               "wand_length_variation_pct": report["solve"]["wand_length_variation_pct"],
+               "mean_ray_distance_mm": report["held_out"]["mean_ray_distance_mm"],
+               "length_variation_volume_pct": syst["volume_pct"],
+               "length_variation_radius_pct": syst["radius_pct"],
+               "intrinsics_refined": bool(refine.any()),
+               "intrinsics_refined_cameras": [c.name for c, r in zip(prior, refine,
+                                                                     strict=True) if r],
+               "scale": report["scale"]["source"],
+               "grade": grade}
+    quality = {k: v for k, v in quality.items() if not (isinstance(v, float)
+                                                         and not np.isfinite(v))}
+    if isinstance(intrinsics.quality.get("intrinsic"), dict):
+        quality["intrinsic"] = intrinsics.quality["intrinsic"]  # where they came from
+    meta = {"source": "calibkit wand", "wand_spacing_m": list(spec.spacing_m),
+            "world_frame": report["world_frame"]}
+    rig = Rig(rig.cameras, quality, {**{k: v for k, v in intrinsics.meta.items()
+                                        if k in ("volume_m",)}, **meta})
+    return WandCalibration(rig, report, wand, solved, solved if held is None else held,
+                           result, held_frames)
+
+
+def _scale_report(spec: WandSpec, length_known: bool) -> dict:
+    if spec.n_markers < 2:
+        return {"known": True, "source": "the --rig file's camera baseline (1-marker wand)"}
+    if length_known:
+        return {"known": True, "source": "wand length",
+                "wand_length_m": spec.length_m}
+    return {"known": False, "source": "unknown",
+            "unit": f"the wand's end-to-end length is {spec.length_m:g} units (--spacing); "
+                    "give --wand-length M to have metres",
+            "reason": "the wand's length is unknown (--wand-length unknown)"}
+
+
+def _start(seen: WandObservations, keep_cams: list[int], intr: Rig, sub: Rig, spec: WandSpec,
+           initial: Rig | None) -> tuple[Rig, list[str]]:
+    """Initial poses: the --rig file's, else from pairwise geometry (a 2-marker wand from
+    the midpoints of its ends, which look alike)."""
+    if initial is not None:
+        absent = [n for n in sub.names if n not in set(initial.names)]
+        if absent:
+            raise UserError(f"camera '{absent[0]}' is not in the --rig file")
+        return Rig(tuple(sub[n].replace(rvec=initial[n].rvec, t=initial[n].t)
+                         for n in sub.names)), []
+    local = _renumber(seen, keep_cams, len(intr))
+    try:
+        if spec.n_markers == 2:
+            return _two_marker_start(local, sub, spec)
+        return initial_poses(local, sub, spec)
+    except cv2.error as exc:  # OpenCV on degenerate input (too few or collinear points)
+        raise UserError("the wand views give no relative pose between the cameras (OpenCV: "
+                        f"{str(exc).strip().splitlines()[-1]}): wave the wand through more "
+                        "of the volume") from None
+
+
+def _solve_passes(raw: WandObservations, start: Rig, prior: Rig, camera_of: np.ndarray,
+                  held_frames: np.ndarray, spec: WandSpec, passes: int, refine: bool,
+                  sigmas: np.ndarray, target, extra, options, progress
+                  ) -> tuple[bundle.BundleResult, WandObservations]:
+    """The bundle adjustment on the frames not held out, `passes` times (a 2-marker wand's
+    ends labelled again with each pass's poses); the result and the wand as labelled."""
+    wand = raw
     for _ in range(passes):
         if spec.n_markers == 2:
             wand = _two_marker_labels(raw, start, camera_of)
         train = wand.select(~np.isin(wand.frame, held_frames))
         tw = train.select(camera_of[train.camera] >= 0)
         cam = camera_of[tw.camera]
+        if len(np.unique(cam)) < len(start):
+            raise UserError("a camera has no wand observations left to solve with: capture "
+                            "longer")
         pidx, pinfo = point_index(tw, spec.n_markers)
         tri = triangulate(start, pidx, cam, tw.uv, n_points=len(pinfo), ray_distance=False)
         edge, length = _edges(pinfo, spec) if spec.n_markers > 1 else (np.zeros((0, 2)), [])
@@ -170,63 +326,19 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
         opts = dataclasses.replace(
             options or bundle.BundleOptions(reference_camera=int(np.argmax(
                 np.bincount(cam, minlength=len(start))))),
-            refine_intrinsics=refine_intrinsics,
-            intrinsic_sigma=tuple(map(tuple, sigmas.tolist())))
+            refine_intrinsics=refine, intrinsic_sigma=tuple(map(tuple, sigmas.tolist())))
         try:
             result = bundle.solve(data, opts, progress)
         except RuntimeError as exc:  # GTSAM: an indeterminate system (too little data)
             raise UserError(f"the bundle adjustment failed ({str(exc).splitlines()[0]}): a "
                             "camera sees too few wand markers; capture longer") from None
+        if not np.isfinite(result.noise_px):
+            raise UserError("the bundle adjustment kept no wand marker seen by two cameras: "
+                            "capture longer, with the wand where two cameras see it")
         # the next pass starts from these poses; its intrinsics' priors stay the file's
         start = Rig(tuple(p.replace(rvec=c.rvec, t=c.t)
                           for p, c in zip(prior, result.rig, strict=True)))
-    intrinsics_moved: list[dict] = []
-    if refine_intrinsics:
-        intrinsics_moved, moved_warnings = intrinsic_prior.check_refined(prior, result.rig,
-                                                                         sigmas)
-        warnings.extend(moved_warnings)
-    # the world frame
-    if world is None and extra is not None:  # the extra points' priors set the frame
-        def world(_rig, _xyz):
-            return np.eye(3), np.zeros(3)
-    A, b = (world or floor.frame_from_cameras)(result.rig, result.xyz)
-    rig = floor.transform_rig(result.rig, A, b)
-    solved = wand_report.evaluate(rig, wand, spec, np.setdiff1d(frames, held_frames), camera_of)
-    held = wand_report.evaluate(rig, wand, spec, held_frames, camera_of) if len(held_frames) \
-        else solved
-    region = wand_report.evaluate(rig, wand, spec, held_region, camera_of) if len(held_region) \
-        else None
-    syst = wand_report.systematics([solved, held] if len(held_frames) else [solved], region,
-                                   spec.length_m)
-    try:
-        cov = bundle.camera_covariances(result)
-    except RuntimeError as exc:  # an indeterminate system: say so rather than fail
-        warnings.append(f"no uncertainty: the marginals failed ({exc})")
-        cov = None
-    found = wand_report.checks(rig, solved["xyz"], solved["behind_share"])
-    grade, reason = wand_report.grade(held, found, spec.length_m, syst)
-    report = _report(rig, spec, result, solved, held, cov, found, grade, reason, warnings,
-                     never + missing, wand, intr, world is not None)
-    report["systematic"] = syst
-    report["held_out"]["random_frames"] = int(len(held_random))
-    report["held_out"]["region_frames"] = int(len(held_region))
-    report["intrinsics"] = _intrinsics_report(refine_intrinsics, prior, sigmas, prior_source,
-                                              intrinsics_moved, cov, result)
-    quality = {"reprojection_rms_px": report["solve"]["reprojection_rms_px"],
-               "held_out_rms_px": report["held_out"]["reprojection_rms_px"],
-               "wand_length_error_sd_mm": report["held_out"]["wand_length_error_sd_mm"],
-               "mean_ray_distance_mm": report["held_out"]["mean_ray_distance_mm"],
-               "length_variation_volume_pct": syst["volume_pct"],
-               "length_variation_radius_pct": syst["radius_pct"],
-               "intrinsics_refined": bool(refine_intrinsics),
-               "grade": grade}
-    if isinstance(intrinsics.quality.get("intrinsic"), dict):
-        quality["intrinsic"] = intrinsics.quality["intrinsic"]  # where they came from
-    meta = {"source": "calibkit wand", "wand_spacing_m": list(spec.spacing_m),
-            "world_frame": report["world_frame"]}
-    rig = Rig(rig.cameras, quality, {**{k: v for k, v in intrinsics.meta.items()
-                                        if k in ("volume_m",)}, **meta})
-    return WandCalibration(rig, report, wand, solved, held, result, held_frames)
+    return result, wand
 
 
 def _target_data(views: PlaneViews | None, rig: Rig) -> bundle.TargetData | None:
@@ -255,32 +367,6 @@ def _frame_centres(wand: WandObservations, rig: Rig, camera_of: np.ndarray, spec
     with np.errstate(invalid="ignore"):
         return np.stack([np.bincount(f, xyz[ok, k], len(frames)) for k in range(3)],
                         axis=1) / np.where(n > 0, n, np.nan)[:, None]
-
-
-def _intrinsics_report(refined: bool, prior: Rig, sigmas: np.ndarray, source: list[str],
-                       moved: list[dict], cov: dict | None,
-                       result: bundle.BundleResult) -> dict:
-    """Per camera: where the priors came from and their sigmas; when refined, how far the
-    wand moved each camera's intrinsics and how well it now knows them, and the intrinsic
-    step's views' residual RMS (per axis) in the joint solve where they took part."""
-    rows = []
-    for k, cam in enumerate(prior):
-        row = {"name": cam.name, "prior_from": source[k],
-               "prior_sigma": dict(zip(intrinsic_prior.CAL3DS2, sigmas[k].tolist(),
-                                       strict=True))}
-        if refined:
-            row.update({key: v for key, v in moved[k].items() if key != "name"})
-            t = result.target
-            if t is not None and np.any(t.obs_camera == k):
-                sel = result.target_inlier & (t.obs_camera == k)
-                row["views_rms_px"] = float(np.sqrt(np.mean(
-                    result.target_residual_px[sel] ** 2))) if sel.any() else float("nan")
-                row["views_points"] = int(sel.sum())
-            if cov is not None and "intrinsic_std" in cov:
-                row["std_after"] = dict(zip(intrinsic_prior.CAL3DS2,
-                                            cov["intrinsic_std"][k].tolist(), strict=True))
-        rows.append(row)
-    return {"refined": bool(refined), "cameras": rows}
 
 
 def calibrate_wand(observations: Observations, intrinsics_rig: Rig, wand_spacing_m,
@@ -362,49 +448,3 @@ def _two_marker_labels(wand: WandObservations, rig: Rig, camera_of: np.ndarray
     w.marker = marker.astype(np.int32)
     w = w.select(np.repeat(clear, 2))
     return w.select(np.lexsort((w.marker, w.camera, w.frame)))
-
-
-def _report(rig, spec, result, solved, held, cov, found, grade, reason, warnings, left_out,
-            wand, intr, floor_given) -> dict:
-    monitor = CaptureMonitor(intr.names, [c.size for c in intr])
-    monitor.add(wand)
-    coverage = dict(zip(intr.names, monitor.coverage.tolist(), strict=True))
-    cams = []
-    for k, cam in enumerate(rig):
-        row = {"name": cam.name, "observations": int(solved["camera_observations"][k]),
-               "coverage": coverage[cam.name],
-               "reprojection_rms_px": float(solved["camera_rms_px"][k]),
-               "held_out_rms_px": float(held["camera_rms_px"][k]),
-               "centre_m": cam.centre.tolist()}
-        if cov is not None:
-            row["position_std_mm"] = float(cov["position_std_total_m"][k] * 1000)
-            row["orientation_std_deg"] = float(np.degrees(cov["orientation_std_total_rad"][k]))
-        cams.append(row)
-
-    def figures(e):
-        return {k: e[k] for k in ("frames", "observations", "reprojection_rms_px",
-                                  "wand_length_error_mean_mm", "wand_length_error_sd_mm",
-                                  "wand_length_error_rms_mm", "mean_ray_distance_mm")}
-
-    n_out = int(np.sum(~result.inlier))
-    return {
-        "wand_spacing_m": list(spec.spacing_m),
-        "cameras": cams,
-        "solve": {**figures(solved), "noise_px": result.noise_px,
-                  "iterations": result.iterations, "time_s": result.time_s,
-                  "cpu_s": result.cpu_s,
-                  "outliers": n_out, "refine_intrinsics": result.options.refine_intrinsics},
-        "held_out": figures(held),
-        "uncertainty_reference_camera": None if cov is None else cov["reference_camera"],
-        "checks": found, "grade": grade, "grade_reason": reason,
-        "grade_thresholds": [{"grade": g, "held_out_rms_px": p, "wand_length_sd_pct": m}
-                             for g, p, m in wand_report.GRADES],
-        "systematic_thresholds_pct": dict(wand_report.SYSTEMATIC_GRADES),
-        "left_out_cameras": left_out, "warnings": warnings,
-        "world_frame": "floor" if floor_given else "cameras (provisional: run calibkit floor)",
-        "identification": {"frames_with_wand": dict(zip(intr.names,
-                                                        wand.stats["frames_with_wand"],
-                                                        strict=True)),
-                           "ambiguous": dict(zip(intr.names, wand.stats["ambiguous"],
-                                                 strict=True))},
-    }

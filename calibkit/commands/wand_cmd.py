@@ -33,6 +33,27 @@ def _check_sources(source: Path | None, use_sim: bool, camera: list[str] | None,
         raise UserError("give --dots or --floor, not both: each sets the world frame")
 
 
+def _wand_spec(spacing: str, wand_length: str | None) -> tuple[WandSpec, bool]:
+    """The wand from --spacing and --wand-length, and whether its length is known."""
+    spec = WandSpec(tuple(parse_floats(spacing, "--spacing")))
+    if wand_length is None:
+        return spec, True
+    if wand_length.strip().lower() == "unknown":
+        if spec.n_markers < 2:
+            raise UserError("--wand-length unknown needs a wand of 2 or 3 markers (--spacing)")
+        return spec, False
+    try:
+        length_m = float(wand_length)
+    except ValueError:
+        raise UserError(f"--wand-length takes metres or 'unknown', got {wand_length!r}") \
+            from None
+    if not (math.isfinite(length_m) and length_m > 0) or spec.n_markers < 2:
+        raise UserError("--wand-length must be a positive length in metres between the ends "
+                        f"of a wand of 2 or 3 markers, got {wand_length!r}")
+    s = spec.spacing_m
+    return WandSpec(tuple((v - s[0]) * length_m / spec.length_m for v in s)), True
+
+
 def _print_capture(monitor, capture_path: Path) -> None:
     print_table(monitor.rows(), ["camera", "wand samples", "coverage %", "enough"])
     typer.echo("\nimage cells the wand reached (#):\n" + monitor.grid_text() + "\n")
@@ -71,10 +92,18 @@ def register(app: typer.Typer) -> None:
                            "frame; needs --rig from the same extrinsic run.")] = None,
         spacing: Annotated[str, typer.Option(
             "--spacing", help="Marker positions along the wand, metres.")] = "0,0.2,0.5",
-        refine_intrinsics: Annotated[bool, typer.Option(
+        wand_length: Annotated[str | None, typer.Option(
+            "--wand-length", help="Metres between the wand's end markers (--spacing is then "
+                                  "scaled to it), or 'unknown': the rig is solved "
+                                  "scale-free, in units of --spacing, and the report says "
+                                  "so.")] = None,
+        refine_intrinsics: Annotated[bool | None, typer.Option(
             "--refine-intrinsics/--fix-intrinsics",
             help="Refine the intrinsics with the poses (held near the intrinsic step's "
-                 "estimate by its uncertainty), or keep them as given.")] = True,
+                 "estimate by its uncertainty), or keep them as given. Default: refined when "
+                 "the file gives their uncertainty or views; intrinsics without them are "
+                 "kept unless refining measurably fits the capture better (per camera, "
+                 "docs/wand.md).", show_default=False)] = None,
         monitor_views: Annotated[bool, typer.Option(
             "--monitor-views/--no-monitor-views",
             help="When refining the intrinsics, solve with the intrinsic step's monitor "
@@ -118,7 +147,7 @@ def register(app: typer.Typer) -> None:
         seed: Annotated[int, typer.Option("--seed", help="Random seed.")] = 0,
     ) -> None:
         """Calibrate every camera at once from a wand waved through the volume."""
-        spec = WandSpec(tuple(parse_floats(spacing, "--spacing")))
+        spec, length_known = _wand_spec(spacing, wand_length)
         if not 0 <= holdout < 0.9:
             raise UserError(f"--holdout must be in [0, 0.9), got {holdout}")
         targets = pipeline.CaptureTargets(min_samples, min_coverage)
@@ -171,7 +200,7 @@ def register(app: typer.Typer) -> None:
         if floor_rec is not None:
             world = pipeline.world_from_floor(floor_rec, intr, floor_kind, spec)
         views = None
-        if refine_intrinsics and monitor_views:
+        if refine_intrinsics is not False and monitor_views:
             views = pipeline.monitor_views(intr, intr_path)
             if views is not None:
                 typer.echo(f"intrinsics refined with the intrinsic step's {len(views)} "
@@ -181,7 +210,7 @@ def register(app: typer.Typer) -> None:
         progress = Progress("wand solve, iterations")
         cal = calibrate(obs, intr, spec.spacing_m, initial, refine_intrinsics, holdout, seed,
                         world, progress=lambda text: progress.update(progress.done + 1, text),
-                        extra=extra, target_views=views)
+                        extra=extra, target_views=views, length_known=length_known)
         progress.finish(f"{cal.report['solve']['time_s']:.1f} s in the solver")
         pipeline.write_outputs(cal, out, plots)
         from calibkit.calibrate.html_report import write_wand_report
@@ -209,6 +238,8 @@ def _print(report: dict) -> None:
     typer.echo("")
     print_table([
         ["reprojection RMS (px)", s["reprojection_rms_px"], h["reprojection_rms_px"]],
+        ["wand length variation, SD/mean (%)", s["wand_length_variation_pct"],
+         h["wand_length_variation_pct"]],
         ["wand length error, mean (mm)", s["wand_length_error_mean_mm"],
          h["wand_length_error_mean_mm"]],
         ["wand length error, SD (mm)", s["wand_length_error_sd_mm"],
@@ -216,9 +247,28 @@ def _print(report: dict) -> None:
         ["mean ray distance (mm)", s["mean_ray_distance_mm"], h["mean_ray_distance_mm"]],
         ["frames", s["frames"], h["frames"]],
     ], ["figure", "solved", "held out"])
+    for part, figs in (("solved", s), ("held out", h)):
+        for key in ("reason", "wand_length_variation_reason"):
+            if key in figs:
+                typer.echo(f"{part}: not computable: {figs[key]}")
+    sy = report.get("systematic") or {}
+    typer.echo("")
+    print_table([[what, sy.get(f"{key}_mm", math.nan), sy.get(f"{key}_pct", math.nan),
+                  sy.get(f"{key}_reason", "")]
+                 for key, what in (("volume", "across the volume"),
+                                   ("radius", "image centre to edges"),
+                                   ("region", "held-out regions"),
+                                   ("trend", "trend with position"))],
+                ["systematic length error", "mm", "%", "not computable because"])
+    typer.echo("")
+    for c in report["intrinsics"]["cameras"]:
+        typer.echo(f"intrinsics {c['name']}: {c['chosen']} ({c['why']})")
+    scale = report["scale"]
     typer.echo(f"\nsolve: {s['iterations']} iterations, {s['time_s']:.1f} s, noise "
                f"{s['noise_px']:.3f} px, {s['outliers']} outliers dropped; world frame: "
-               f"{report['world_frame']}")
+               f"{report['world_frame']}; scale: "
+               + ("from the " + scale["source"] if scale["known"] else
+                  "unknown, " + scale["unit"]))
     for w in report["warnings"]:
         typer.echo(f"warning: {w}")
     typer.echo(f"grade: {report['grade']} ({report['grade_reason']})")
