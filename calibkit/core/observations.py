@@ -16,7 +16,8 @@ class Observations:
     """Blobs seen by the cameras of a rig, one row per blob.
 
     `camera` indexes `camera_names`; `marker` is the simulator's true marker id (-1 for a
-    ghost/stray blob) and is None for real data.
+    ghost/stray blob), or the label a file gives (a DLTdv xypts point index, see
+    calibkit.core.easywand; meta says which), and is None for unlabelled real data.
     """
 
     camera_names: tuple[str, ...]
