@@ -278,6 +278,19 @@ def test_simulated_capture_reads_back_equal(tmp_path, capture):
     np.testing.assert_array_equal(loaded.uv, read_xypts(xy, read_easywand_profile(prof)).uv)
 
 
+def test_xypts_with_a_rig_of_other_names(tmp_path, capture):
+    """A rig file (calibkit's cam0, cam1, ...) in place of the profile: the file's cameras
+    are the rig's in order, named as the rig names them."""
+    rig, obs = capture
+    xy = tmp_path / "wand-xypts.csv"
+    _write_dltdv(xy, obs, 50)
+    got, _ = load_observations(xy, rig)
+    assert got.camera_names == ("cam0", "cam1", "cam2")
+    np.testing.assert_allclose(got.uv, obs.uv, atol=1e-6)
+    with pytest.raises(UserError, match="do not match the 2 cameras"):
+        read_xypts(xy, Rig(rig.cameras[:2]))
+
+
 def test_convert_xypts_to_csv_and_recording(calibkit_cli, tmp_path, capture):
     rig, obs = capture
     xy, prof = tmp_path / "wand-xypts.csv", tmp_path / "profile.txt"

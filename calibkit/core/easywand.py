@@ -37,6 +37,7 @@ from calibkit.core.errors import UserError
 from calibkit.core.observations import Observations
 
 Y_ORIGINS = ("bottom", "top")
+PROFILE_SOURCE = "easyWand camera profile"  # a rig's meta["source"] when read from one
 NOMINAL_FPS = 100.0  # DLTdv files carry no times: t_ns counts frames at this rate unless told
 PROFILE_MODELS = {0: "none", 1: "pinhole with radial and tangential distortion",
                   2: "fisheye"}
@@ -169,7 +170,7 @@ def read_easywand_profile(path: str | Path, y_origin: str = "bottom") -> Rig:
                             f"(first on line {seen[cam.name]})")
         seen[cam.name] = lineno
     cams.sort(key=lambda c: int(c.name[3:]))
-    return Rig(tuple(cams), meta={"source": "easyWand camera profile", "file": str(path),
+    return Rig(tuple(cams), meta={"source": PROFILE_SOURCE, "file": str(path),
                                   "y_origin": y_origin})
 
 
@@ -283,16 +284,23 @@ def looks_like_xypts(path: str | Path) -> bool:
 
 
 def _cameras_of(path: Path, cam_numbers: list[int], rig: Rig | None):
-    """The rig camera behind each camera number of the file, or None without a rig."""
+    """The rig camera behind each camera number of the file, or None without a rig.
+
+    An easyWand profile's cameras are DLTdv's by number (camN is the file's camera N); any
+    other rig (calibkit's cam0, cam1, ...) is the file's cameras in order, as is a profile
+    numbered otherwise with as many cameras."""
     if rig is None:
         return None
     names = set(rig.names)
-    if all(f"cam{c}" in names for c in cam_numbers):
+    from_profile = rig.meta.get("source") == PROFILE_SOURCE
+    if from_profile and all(f"cam{c}" in names for c in cam_numbers):
         return [rig[f"cam{c}"] for c in cam_numbers]
-    if len(rig) == len(cam_numbers) and not any(f"cam{c}" in names for c in cam_numbers):
-        return list(rig)  # a rig of other names (cam0, ...): the file's order is the rig's
+    if len(rig) == len(cam_numbers) and not (
+            from_profile and any(f"cam{c}" in names for c in cam_numbers)):
+        return list(rig)
     raise UserError(f"{path}: cameras {', '.join(f'cam{c}' for c in cam_numbers)} do not match "
-                    f"the {len(rig)} cameras of the profile or rig ({', '.join(rig.names)})")
+                    f"the {len(rig)} cameras of the profile or rig ({', '.join(rig.names)}); "
+                    "give the easyWand profile the file was digitised with")
 
 
 def read_xypts(path: str | Path, rig: Rig | None = None, y_origin: str = "bottom",
@@ -301,8 +309,8 @@ def read_xypts(path: str | Path, rig: Rig | None = None, y_origin: str = "bottom
 
     rig: the cameras (an easyWand profile read by read_easywand_profile, or a rig file):
     their names and image sizes; the height is needed to turn y-up pixels down, and the
-    camera count to read a file without a header. Camera N of the file is the rig's camNN,
-    or its N-th camera when the names differ. Frames are DLTdv's: the first data row is
+    camera count to read a file without a header. Camera N of the file is the profile's
+    camera N, or a rig's N-th camera. Frames are DLTdv's: the first data row is
     frame 1. fps: the capture rate, when known (t_ns counts frames at it, else at
     NOMINAL_FPS and fps stays unknown).
     """
