@@ -114,6 +114,12 @@ def register(app: typer.Typer) -> None:
         if motive_out is not None:
             write_motive(motive_out, cloud, table, used, up)
         _print_figures(figs)
+        for name, b in figs["bodies"].items():
+            if b["refine"]["applied"]:
+                moved = ", ".join(f"{v:.1f}" for v in b["refine"]["marker_shift_mm"])
+                typer.echo(f"note: body {name!r}: definition fitted to the take's markers "
+                           f"(markers moved {moved} mm; --refine-bodies off keeps it)",
+                           err=True)
         for line in figs["hints"]:
             typer.echo(f"warning: {line}", err=True)
         typer.echo(f"wrote {out}: {len(cloud)} frames, {len(defs)} bodies, "
