@@ -4,6 +4,7 @@ their data, round trips, and the one-line errors a broken file gives."""
 from __future__ import annotations
 
 import csv
+import re
 import shutil
 from pathlib import Path
 
@@ -511,3 +512,39 @@ def test_cli_broken_file_exits_non_zero_with_one_line(tmp_path, calibkit_cli):
         res = calibkit_cli("rig", *args)
         assert res.code == 2 and message in res.err, (args, res.err)
         assert len(res.err.strip().splitlines()) == 1
+
+
+def _mutations(text: str, xml: bool):
+    """Each line deleted; each TOML value (or XML attribute) replaced by a wrong kind."""
+    lines = text.splitlines()
+    for i, line in enumerate(lines):
+        yield "\n".join(lines[:i] + lines[i + 1:])
+        if not xml and "=" in line:
+            key = line.split("=", 1)[0]
+            for wrong in ('"x"', "1e999", "[[1, 2], [3]]"):
+                yield "\n".join(lines[:i] + [f"{key}= {wrong}"] + lines[i + 1:])
+        if xml:
+            for match in re.finditer(r'"[-0-9.]+"', line):
+                for wrong in ('"abc"', '"1e400"'):
+                    edited = line[:match.start()] + wrong + line[match.end():]
+                    yield "\n".join(lines[:i] + [edited] + lines[i + 1:])
+
+
+@pytest.mark.parametrize("source", ["caliscope", "config", "qca", "pose2sim", "anipose"])
+def test_any_damage_reads_or_gives_one_line_never_a_traceback(tmp_path, source):
+    """Every file of the kind survives: a damaged copy reads, or ends in one UserError."""
+    text = {"caliscope": lambda: (CALISCOPE / "camera_array.toml").read_text(),
+            "config": lambda: (CALISCOPE / "config.toml").read_text(),
+            "qca": QCA.read_text, "pose2sim": lambda: POSE2SIM,
+            "anipose": lambda: ANIPOSE}[source]()
+    fmt = {"config": "caliscope"}.get(source, source)
+    path = tmp_path / ("calib.qca.txt" if source == "qca" else "calib.toml")
+    refused = 0
+    for n, damaged in enumerate(_mutations(text, xml=source == "qca")):
+        path.write_text(damaged)
+        try:
+            read_rig_file(path, fmt)
+        except UserError as exc:
+            refused += 1
+            assert "\n" not in str(exc), (n, str(exc))
+    assert refused > 20  # damage was met (and any other exception fails the test)

@@ -85,11 +85,13 @@ def read_caliscope(path: str | Path) -> Rig:
         table = tables[key]
         where = f"{path}: camera [{key}]"
         cam_id = table.get("cam_id", table.get("port", key.removeprefix("cam_")))
-        try:
+        if isinstance(cam_id, str) and cam_id.strip().lstrip("-").isdigit():
             cam_id = int(cam_id)
-        except (TypeError, ValueError):
-            raise UserError(f"{where}: 'cam_id' must be a whole number, got {cam_id!r}") \
-                from None
+        if isinstance(cam_id, bool) or not isinstance(cam_id, (int, float)) \
+                or cam_id != cam_id or cam_id in (float("inf"), float("-inf")) \
+                or cam_id != int(cam_id):
+            raise UserError(f"{where}: 'cam_id' must be a whole number, got {cam_id!r}")
+        cam_id = int(cam_id)
         name = f"cam_{cam_id}"
         if table.get("ignore") is True:
             skipped.append(f"{name}: ignore = true")
