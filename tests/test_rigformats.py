@@ -275,6 +275,12 @@ def test_anipose_values_read_by_hand_in_the_boards_unit(anipose_file):
 def test_auto_detection_tells_the_layouts_apart(pose2sim_file, anipose_file):
     assert detect_format(pose2sim_file) == "pose2sim"
     assert detect_format(anipose_file) == "anipose"
+    # an older Pose2Sim file without `fisheye`: its tables are named after the cameras
+    pose2sim_file.write_text(POSE2SIM.replace("fisheye = false\n", ""))
+    assert detect_format(pose2sim_file) == "pose2sim"
+    # an anipose file with a fisheye camera is still anipose (and refused when read)
+    anipose_file.write_text(ANIPOSE.replace('name = "B"', 'name = "B"\nfisheye = true'))
+    assert detect_format(anipose_file) == "anipose"
     assert detect_format(CALISCOPE / "camera_array.toml") == "caliscope"
     assert detect_format(CALISCOPE / "config.toml") == "caliscope"
     assert detect_format(QCA) == "qca"

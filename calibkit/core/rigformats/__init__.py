@@ -42,10 +42,14 @@ def detect_format(path: str | Path) -> str:
     if caliscope.looks_like(doc):
         return "caliscope"
     if _camtables.looks_like(doc):
-        # Pose2Sim writes `fisheye = false` on every camera; aniposelib writes the key only
-        # on fisheye cameras (fisheye = true)
-        tables = _camtables.camera_tables(doc).values()
-        return "pose2sim" if all(t.get("fisheye") is False for t in tables) else "anipose"
+        # aniposelib names its tables cam_0, cam_1, ... and writes `fisheye` only on fisheye
+        # cameras (= true); Pose2Sim names tables after the cameras (cam_01, int_cam01_img)
+        # and writes `fisheye = false` on every one
+        tables = _camtables.camera_tables(doc)
+        positional = sorted(tables, key=lambda k: (len(k), k)) == [
+            f"cam_{i}" for i in range(len(tables))]
+        pinhole_marked = any(t.get("fisheye") is False for t in tables.values())
+        return "anipose" if positional and not pinhole_marked else "pose2sim"
     raise UserError(f"{path}: a TOML file but not a calibration calibkit recognises (reads "
                     f"{KNOWN}); give --format if it is one of them")
 
