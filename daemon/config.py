@@ -205,6 +205,8 @@ class Config:
     natnet: NatnetOut | None = None
     vrpn: tuple[VrpnOut, ...] = ()
     markerset: Path | None = None  # the marker set markers are labelled with live
+    # a recording stops (keeping what it wrote) before its disk has less than this free
+    record_min_free_mb: float = 100.0
     zenoh: object | None = None  # [zenoh]: capture nodes and poses (daemon.nodes.settings)
 
 
@@ -282,7 +284,7 @@ def parse_config(data: dict, path: Path | None = None, base: Path | None = None)
     w = _Where(path)
     top = {"rig", "runtime_dir", "markerset", "pipeline", "tracker", "rigid", "sim",
            "rigid_body", "udp", "serial", "mavlink", "natnet", "vrpn", "camera", "replay",
-           "zenoh"}
+           "zenoh", "record_min_free_mb"}
     _check_keys(w, data, top, "")
     base = base or Path.cwd()
     cfg = Config(path=path)
@@ -293,6 +295,8 @@ def parse_config(data: dict, path: Path | None = None, base: Path | None = None)
         changes["runtime_dir"] = base / _string(w, data, "runtime_dir", "")
     if "markerset" in data:
         changes["markerset"] = _markerset(w, _string(w, data, "markerset", ""), base)
+    changes["record_min_free_mb"] = _number(w, data, "record_min_free_mb", "",
+                                            cfg.record_min_free_mb, lo=0)
     pipe = _table(w, data, "pipeline")
     _check_keys(w, pipe, {"mode", "fps", "timeout_frames", "pair_tolerance",
                           "realtime_priority"}, "pipeline.")

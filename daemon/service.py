@@ -50,6 +50,7 @@ from daemon.realtime import raise_priority, restore_normal
 from daemon.rigid import alike_bodies
 from daemon.rigid_define import bodies_toml, learn_body
 from daemon.sources import DetectCamera, ReplayCamera, ReplayScene
+from daemon.synthetic import virtual
 from daemon.synthetic.evaluator import Evaluator
 from daemon.synthetic.labelling import LabelScore
 from daemon.synthetic.scene import SimCamera, SimScene
@@ -384,23 +385,41 @@ class Daemon:
         return self.figures()
 
     def _run_fast(self, frames, duration_s, progress) -> None:
-        """A simulation or replay as fast as the tracker goes: one loop, no threads."""
+        """A simulation or replay as fast as the tracker goes: one loop, no threads. The
+        simulated cameras run in virtual time (daemon.synthetic.virtual): each opens, counts,
+        stamps and drops frames on its own, and their samples go through the triggered
+        multiplexer as a live run's do; fast means no sleeping, not no pairing. A replay's
+        frames are already paired: frame i of every camera makes set i."""
         scene = self.scene
         period = 1e9 / scene.fps
         total = frames or (int(duration_s * scene.fps) if duration_s else None)
-        if isinstance(scene, ReplayScene):
+        replay = isinstance(scene, ReplayScene)
+        if replay:
             total = min(total or scene.n_frames, scene.n_frames)
+            sets = (FrameSet(i, round(i * period), time.monotonic_ns(),
+                             [scene.sample(c, i, round(i * period))
+                              for c in range(len(self.rig)) if not scene.dropped(c, i)])
+                    for i in range(total))
+        else:
+            cfg = self.config
+
+            def make_mux(n, mode, fps, timeout_frames, **kw):
+                self.mux = Multiplexer(n, mode, fps, cfg.timeout_frames,
+                                       tolerance_frames=cfg.pair_tolerance, **kw)
+                return self.mux
+
+            sets = virtual.frame_sets(scene, make_mux=make_mux)
         sd_notify("READY=1")
         log.info("tracking %d cameras (%s, as fast as possible)", len(self.rig),
-                 "replay" if isinstance(scene, ReplayScene) else "simulated")
-        i = 0
-        while not self.stop_event.is_set() and (total is None or i < total):
-            t_ns = round(i * period)
-            samples = [scene.sample(c, i, t_ns) for c in range(len(self.rig))
-                       if not scene.dropped(c, i)]
-            self.pipeline.process(FrameSet(i, t_ns, time.monotonic_ns(), samples))
+                 "replay" if replay else "simulated, paired by the multiplexer")
+        done = 0
+        for fs in sets:
+            if self.stop_event.is_set() or (total is not None and done >= total):
+                break
+            fs.arrival_ns = time.monotonic_ns()  # handed over now (virtual arrivals aside)
+            self.pipeline.process(fs)
             self.pipeline.run_idle()
-            i += 1
+            done += 1
             self._tick(progress)
 
     def _run_live(self, frames, duration_s, progress) -> None:
@@ -569,21 +588,26 @@ class Daemon:
             self.reload_event.set()
             return {"ok": True}
         if cmd == "record":
-            return self._record(req.get("path"))
+            return self._record(req.get("path"), bool(req.get("overwrite")))
         if cmd == "record_stop":
             if self.recorder is None:
                 raise UserError("not recording")
             rec, self.recorder = self.recorder, None
             self.pipeline.hooks.remove(rec.submit)
             rec.stop(timeout=10.0)
-            return {"ok": True, "path": str(rec.path), "frames": rec.sent}
+            return {"ok": True, "path": str(rec.path), "frames": rec.sent,
+                    "failed": rec.failed or None, "lost": rec.lost}
         if cmd == "markers":
             return {"ok": True, **self._markers()}
         raise UserError(f"unknown request {cmd!r}")
 
-    def _record(self, path) -> dict:
+    def _record(self, path, overwrite: bool = False) -> dict:
         if not path:
             raise UserError("record needs a PATH")
+        if Path(path).exists() and not overwrite:
+            raise UserError(f"{path} exists; record to another name (or --overwrite)")
+        if not Path(path).parent.is_dir():
+            raise UserError(f"{path}: the folder {Path(path).parent} does not exist")
         if self.recorder is not None:
             raise UserError(f"already recording to {self.recorder.path}; "
                             "`mocapd record --stop` first")
@@ -591,9 +615,11 @@ class Daemon:
             raise UserError(f"{path}: record to a .mcrec (the blobs, for replay) or a .mcap "
                             "(poses and markers, for Foxglove)")
         if Path(path).suffix.lower() == ".mcap":
-            rec = McapRecorderPublisher(Path(path), [b.name for b in self.pipeline.rigid.bodies])
+            rec = McapRecorderPublisher(Path(path), [b.name for b in self.pipeline.rigid.bodies],
+                                        self.config.record_min_free_mb)
         else:
-            rec = RecorderPublisher(Path(path), self.rig, self.scene.fps if self.scene else None)
+            rec = RecorderPublisher(Path(path), self.rig, self.scene.fps if self.scene else None,
+                                    self.config.record_min_free_mb)
         rec.start()
         self.recorder = rec
         self.pipeline.hooks.append(rec.submit)
@@ -653,6 +679,7 @@ class Daemon:
             "bodies_tracked": st.valid_bodies,
             "outputs": [p.status() for p in self.pipeline.publishers],
             "recording": str(self.recorder.path) if self.recorder else None,
+            "recording_status": self.recorder.status() if self.recorder else None,
             "labelling": None if self.labelling is None else self.labelling.status(),
             "multiplexer": self.mux_stats(),
             "nodes": self.hub.status() if self.hub is not None else None,

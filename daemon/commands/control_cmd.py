@@ -58,7 +58,10 @@ def register(app: typer.Typer) -> None:
             if "autopilot" in o:
                 typer.echo(link_line(o))
         if st.get("recording"):
-            typer.echo(f"recording to {st['recording']}")
+            rec = st.get("recording_status") or {}
+            typer.echo(f"recording to {st['recording']}: {rec.get('sent', 0)} frames"
+                       + (f"; STOPPED: {rec['failed']} ({rec['lost']} frames not recorded)"
+                          if rec.get("failed") else ""))
         if json_path is not None:
             write_json(json_path, st)
 
@@ -79,6 +82,9 @@ def register(app: typer.Typer) -> None:
                    help="Recording to write: .mcrec (the blobs, for replay) or .mcap "
                         "(poses and markers, for Foxglove).")] = None,
                stop: Annotated[bool, typer.Option("--stop", help="Stop recording.")] = False,
+               overwrite: Annotated[bool, typer.Option(
+                   "--overwrite", help="Record over an existing file (refused without).")]
+               = False,
                runtime_dir: RuntimeDir = None) -> None:
         """Record the cameras' blobs (.mcrec) or the poses and markers (.mcap), or stop."""
         from calibkit.core.errors import UserError
@@ -86,10 +92,14 @@ def register(app: typer.Typer) -> None:
         if stop:
             answer = request(runtime_dir, {"cmd": "record_stop"})
             typer.echo(f"mocapd: recorded {answer['frames']} frames to {answer['path']}")
+            if answer.get("failed"):  # the frames written are kept; the rest are not there
+                raise UserError(f"the recording stopped early ({answer['failed']}); "
+                                f"{answer.get('lost', 0)} frames after it were not recorded")
             return
         if path is None:
             raise UserError("give a PATH to record to, or --stop")
-        answer = request(runtime_dir, {"cmd": "record", "path": str(path.resolve())})
+        answer = request(runtime_dir, {"cmd": "record", "path": str(path.resolve()),
+                                       "overwrite": overwrite})
         typer.echo(f"mocapd: recording to {answer['path']}")
 
 

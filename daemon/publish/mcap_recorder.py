@@ -5,18 +5,17 @@ from __future__ import annotations
 
 import time
 
-from daemon.publish.base import Publisher
 from daemon.publish.mcap_poses import McapPoseWriter
+from daemon.publish.recording_output import RecordingOutput
 
 
-class McapRecorderPublisher(Publisher):
-    """Writes every frame it is handed; a deep queue, since a recording should be whole.
-    Times are the frames' capture times moved onto the wall clock."""
+class McapRecorderPublisher(RecordingOutput):
+    """Writes every frame it is handed, once (daemon.publish.recording_output). Times are
+    the frames' capture times moved onto the wall clock."""
 
-    def __init__(self, path, body_names: list[str]) -> None:
-        super().__init__(queue_size=4096, retry_s=5.0)
-        self.path, self.body_names = path, list(body_names)
-        self.name = f"record:{path}"
+    def __init__(self, path, body_names: list[str], min_free_mb: float = 0.0) -> None:
+        super().__init__(path, min_free_mb)
+        self.body_names = list(body_names)
         self.writer: McapPoseWriter | None = None
         self._wall_offset_ns = time.time_ns() - time.monotonic_ns()
 
@@ -32,5 +31,5 @@ class McapRecorderPublisher(Publisher):
 
     def close(self) -> None:
         if self.writer is not None:
-            self.writer.close()
-            self.writer = None
+            writer, self.writer = self.writer, None
+            writer.close()

@@ -3,16 +3,15 @@
 from __future__ import annotations
 
 from calibkit.core.recording import RecordingWriter
-from daemon.publish.base import Publisher
+from daemon.publish.recording_output import RecordingOutput
 
 
-class RecorderPublisher(Publisher):
-    """Writes every frame it is handed; a deep queue, since a recording should be whole."""
+class RecorderPublisher(RecordingOutput):
+    """Writes every frame it is handed, once (daemon.publish.recording_output)."""
 
-    def __init__(self, path, rig, fps: float | None = None) -> None:
-        super().__init__(queue_size=4096, retry_s=5.0)
-        self.path, self.rig, self.fps = path, rig, fps
-        self.name = f"record:{path}"
+    def __init__(self, path, rig, fps: float | None = None, min_free_mb: float = 0.0) -> None:
+        super().__init__(path, min_free_mb)
+        self.rig, self.fps = rig, fps
         self.writer: RecordingWriter | None = None
 
     def open(self) -> None:
@@ -25,5 +24,5 @@ class RecorderPublisher(Publisher):
 
     def close(self) -> None:
         if self.writer is not None:
-            self.writer.close()
-            self.writer = None
+            writer, self.writer = self.writer, None
+            writer.close()
