@@ -16,7 +16,10 @@ is to refine the body on the data; this is that, on a file:
    bring every frame's points into the body frame, take the median, repeat).
 4. It is put into the definition's own body frame by a fit on the markers that agree with
    the definition (AGREE_M, at least three: the worst is dropped until the rest agree), so
-   the pivot and axes, and so the reported pose, stay the definition's.
+   the pivot and axes, and so the reported pose, stay the definition's. With fewer than
+   three agreeing nothing is learned: these may not be its markers (a three-marker body
+   cannot say which of its markers is off, so one with a marker off is not learned; the
+   hint then names the tolerance that finds it).
 
 The learned template replaces the definition when a marker sits more than REFINE_ABOVE x
 the distance tolerance from where the definition puts it (2 mm at the default 4 mm).
@@ -151,7 +154,7 @@ def learn_geometry(xyz: np.ndarray, body: BodyDef, tol_m: float) -> BodyRefit:
         return none
     learned = _procrustes(P[consistent], body.markers)
     moved, use = _align(learned, body.markers)
-    if use.sum() < 3 or np.linalg.norm(moved - body.markers, axis=1)[use].max() > AGREE_M:
+    if np.linalg.norm(moved - body.markers, axis=1)[use].max() > AGREE_M:
         return none  # fewer than three markers agree: not this body's markers
     shift = np.linalg.norm(moved - body.markers, axis=1)
     return BodyRefit(body.name, int(consistent.sum()), moved, shift, use)
