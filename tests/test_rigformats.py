@@ -62,6 +62,22 @@ def test_caliscope_older_config_layout_gives_the_same_cameras():
           read_caliscope(CALISCOPE / "config.toml"), tol=1e-12)
 
 
+def test_caliscope_port_and_rodrigues_layout_gives_the_same_cameras(tmp_path):
+    """Other caliscope versions write `port` for cam_id, `rotation` as a Rodrigues vector
+    and `"null"` for unset values: the same cameras come out."""
+    rig = read_caliscope(CALISCOPE / "camera_array.toml")
+    lines = []
+    for cam in rig:
+        cam_id = int(cam.name.removeprefix("cam_"))
+        lines += [f"[cameras.{cam_id}]", f"port = {cam_id}", "rotation_count = 0",
+                  'exposure = "null"', f"size = [{cam.width}, {cam.height}]",
+                  f"matrix = {cam.K.tolist()}", f"distortions = {cam.dist.tolist()}",
+                  f"translation = {cam.t.tolist()}", f"rotation = {cam.rvec.tolist()}", ""]
+    path = tmp_path / "camera_array.toml"
+    path.write_text("\n".join(lines))
+    _same(rig, read_caliscope(path), tol=1e-12)
+
+
 def _stereo_points() -> dict[str, np.ndarray]:
     with open(CALISCOPE / "calibration" / "extrinsic" / "stereotriangulated_points.csv",
               newline="") as handle:
