@@ -210,13 +210,17 @@ class Pipeline:
         self._pending_bodies = None
         self._pending_publishers = None
         self._pending_labeller = None
+        self._pending_tracker = None
         self._period_anchor: tuple[int, int] | None = None  # (index, t_ns) of a set
         self.last_result: FrameResult | None = None
 
-    def replace(self, bodies=None, publishers=None, labeller=...) -> None:
-        """New rigid bodies, publishers and/or labelling stage (None: labelling off) from a
-        reload; applied between two frames by the frame loop, so the stream never stops."""
+    def replace(self, bodies=None, publishers=None, labeller=..., tracker=None) -> None:
+        """New rigid bodies, publishers, labelling stage (None: labelling off) and/or tracker
+        (a new rig or gates) from a reload; applied between two frames by the frame loop, so
+        the stream never stops."""
         with self._lock:
+            if tracker is not None:
+                self._pending_tracker = tracker
             if labeller is not ...:
                 self._pending_labeller = (labeller,)
             if bodies is not None:
@@ -227,8 +231,12 @@ class Pipeline:
     def _apply_pending(self) -> None:
         with self._lock:
             bodies, pubs = self._pending_bodies, self._pending_publishers
-            labeller = self._pending_labeller
+            labeller, tracker = self._pending_labeller, self._pending_tracker
             self._pending_bodies = self._pending_publishers = self._pending_labeller = None
+            self._pending_tracker = None
+        if tracker is not None:
+            tracker.period_s = self.tracker.period_s
+            self.tracker, self.rig = tracker, tracker.rig
         if labeller is not None:
             self.labeller = labeller[0]
         if bodies is not None:

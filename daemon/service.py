@@ -98,6 +98,7 @@ class Daemon:
         self._learned: tuple[str, list] | None = None  # --sim: bodies defined live (toml, defs)
         self.learned_path: Path | None = None
         self.rig = self._rig(config)
+        self._rig_text = _read(config.rig)  # a reload swaps the rig only when it changed
         self._truth_rig = truth_rig
         self.control: ControlServer | None = None
         self.view = None  # the live web view (daemon.view.link.ViewLink), when asked for
@@ -170,12 +171,12 @@ class Daemon:
         if self.view is not None:  # its own process, fed the newest result per hook call
             self.view.attach(self)
 
-    def _tracker_config(self, cfg: Config):
+    def _tracker_config(self, cfg: Config, rig: Rig | None = None):
         """The tracker's configuration with its pixel gates (and its correspondence's, for
         new markers) following the rig's recorded residual, calibkit.vision.gates' rule, except
         the gates the configuration file sets; unchanged when the rig records none."""
         try:
-            residual = rig_residual(self.rig)
+            residual = rig_residual(rig or self.rig)
         except UserError as exc:
             raise UserError(f"{cfg.rig or 'rig'}: {exc}") from None
         if residual is None:
@@ -518,6 +519,8 @@ class Daemon:
             key = self._set_key(new)
             labelling = self._labeller(new) if key != self._markerset_key else self.labelling
             detectors = self._reload_detectors(new)
+            rig = self._reload_rig(new)
+            tracker_config = self._tracker_config(new, rig or self.rig)
         except UserError as exc:
             log.error("reload failed, keeping the running configuration: %s", exc)
             sd_notify("READY=1")
@@ -540,6 +543,10 @@ class Daemon:
         if changes and self.labelling is not None:
             self.labelling.close()  # a start still searching on its thread stops
         self.labelling, self._markerset_key = labelling, key
+        if rig is not None or tracker_config != self.tracker_config:
+            # tracks start afresh on the new rig or gates, between two frames
+            changes["tracker"] = Tracker(rig or self.rig, tracker_config)
+            self.rig, self.tracker_config = rig or self.rig, tracker_config
         self.pipeline.replace(bodies=bodies, publishers=publishers, **changes)
         for src, det in detectors:
             src.detector = det
@@ -549,6 +556,28 @@ class Daemon:
                  "" if labelling is None else f", marker set {labelling.set_name}")
         sd_notify("READY=1")
         return True
+
+    def _reload_rig(self, new: Config) -> Rig | None:
+        """The rig a reloaded configuration names, read and checked in full before anything
+        changes: None when it is the running one. A live rig may change its calibration, not
+        its cameras (they are open); a simulated or replayed run keeps its rig."""
+        if new.rig == self.config.rig and (new.rig is None or self._rig_text == _read(new.rig)):
+            return None
+        rig = self._rig(new)  # read in full: a missing or broken file fails the reload
+        if self.scene is not None:
+            log.warning("reload: the rig file changed, but a --sim or --replay run keeps the "
+                        "rig it started with (restart mocapd to use %s)", new.rig)
+            return None
+        if rig is None:
+            raise UserError("rig: a live daemon needs one; the reloaded configuration has none")
+        old = [(c.name, tuple(c.size)) for c in self.rig]
+        now = [(c.name, tuple(c.size)) for c in rig]
+        if now != old:
+            raise UserError(f"{new.rig}: its cameras ({', '.join(n for n, _ in now)}) are not "
+                            f"the running rig's ({', '.join(n for n, _ in old)}) with their "
+                            "image sizes; restart mocapd to change cameras")
+        self._rig_text = _read(new.rig)
+        return rig
 
     def shutdown(self) -> None:
         sd_notify("STOPPING=1")
@@ -748,3 +777,11 @@ class Daemon:
         return {"incomplete_sets": mux.incomplete, "late_samples": mux.late,
                 "settling_samples": mux.settling, "overflow": mux.overflow,
                 "skipped_behind": mux.skipped}
+
+
+def _read(path: Path | None) -> bytes | None:
+    """A file's bytes (None: no file, or unreadable: the loader then says why)."""
+    try:
+        return None if path is None else Path(path).read_bytes()
+    except OSError:
+        return None
