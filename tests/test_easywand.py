@@ -161,6 +161,22 @@ def test_xypts_columns_in_any_order_and_without_header(tmp_path):
     assert len(a) == 8
 
 
+def test_xypts_padded_cells_and_other_missing_marks(tmp_path):
+    """Spaces around cells, NA and null for not digitised, empty cells at a row's end."""
+    rig = read_easywand_profile(_profile(tmp_path))
+    plain, padded = tmp_path / "plain.csv", tmp_path / "padded.csv"
+    plain.write_text(HEADER + "\n101,380,NaN,NaN,201.5,80.25,,\n")
+    padded.write_text(" " + HEADER.replace(",", " , ") + " \n"
+                      " 101 , 380 , NA , null ,201.5,  80.25 , nan ,  \n")
+    bare = tmp_path / "bare.csv"  # no header, the last point empty, a trailing comma
+    bare.write_text("101,380,NaN,NaN,201.5,80.25,,,\n")
+    a, b, c = read_xypts(plain, rig), read_xypts(padded, rig), read_xypts(bare, rig)
+    assert len(a) == 2
+    for other in (b, c):
+        np.testing.assert_array_equal(other.uv, a.uv)
+        np.testing.assert_array_equal(other.marker, a.marker)
+
+
 def test_xypts_named_points_and_more_cameras(tmp_path):
     """Track names other than ptN (Argus, converters) and four cameras: markers in the order
     the points first appear; without a profile the y-down origin needs no height."""

@@ -177,18 +177,16 @@ def read_easywand_profile(path: str | Path, y_origin: str = "bottom") -> Rig:
 # ---- the xypts file -------------------------------------------------------------------------
 
 def _csv_lines(path: Path, text: str) -> list[tuple[int, list[str]]]:
-    """(line number, cells) of every non-blank line, trailing empty cells dropped. Lines are
-    split first (CR, LF or CRLF), then each is read as CSV: numbers hold no line breaks."""
+    """(line number, cells) of every line that holds anything. Lines are split first (CR, LF
+    or CRLF), then read as CSV: numbers hold no line breaks."""
     out = []
-    for lineno, line in enumerate(text.splitlines(), start=1):
-        try:
-            cells = [c.strip() for c in next(csv.reader([line]), [])]
-        except csv.Error as exc:
-            raise UserError(f"{path}: line {lineno}: not CSV ({exc})") from None
-        while cells and cells[-1] == "":
-            cells.pop()
-        if cells:
-            out.append((lineno, cells))
+    reader = csv.reader(text.splitlines())
+    try:
+        for lineno, cells in enumerate(reader, start=1):
+            if any(c.strip() for c in cells):
+                out.append((lineno, cells))
+    except csv.Error as exc:
+        raise UserError(f"{path}: line {reader.line_num}: not CSV ({exc})") from None
     return out
 
 
@@ -240,24 +238,45 @@ def _header_columns(path: Path, lineno: int, header: list[str]
     return names, cams, index, frame_col
 
 
+def _trimmed(cells: list[str]) -> list[str]:
+    """Cells without the empty ones a trailing comma leaves."""
+    end = len(cells)
+    while end and not cells[end - 1].strip():
+        end -= 1
+    return cells[:end]
+
+
 def _numbers(path: Path, lines: list[tuple[int, list[str]]], header: list[str] | None,
              width: int) -> np.ndarray:
-    """The data cells as floats (rows, width), NaN where not digitised."""
-    table = []
+    """The data cells as floats (rows, width), NaN where not digitised; parsed as one array
+    (a real capture is tens of thousands of rows)."""
+    fitted = []
     for lineno, cells in lines:
+        if len(cells) > width and not any(c.strip() for c in cells[width:]):
+            cells = cells[:width]  # trailing commas
         if len(cells) != width:
-            raise UserError(f"{path}: line {lineno}: {len(cells)} values, expected {width} "
-                            f"({'as the header has' if header else 'per frame'})")
-        table.append(["nan" if c.lower() in _MISSING else c for c in cells])
-    try:
-        return np.array(table, dtype=np.float64).reshape(len(table), width)
+            raise UserError(f"{path}: line {lineno}: {len(_trimmed(cells))} values, expected "
+                            f"{width} ({'as the header has' if header else 'per frame'})")
+        fitted.append((lineno, cells))
+    lines = fitted
+    if not lines:
+        return np.zeros((0, width))
+    try:  # the common file: numbers, NaN and empty cells
+        flat = np.array([c or "nan" for _, row in lines for c in row], dtype=np.float64)
+        return flat.reshape(len(lines), width)
+    except ValueError:
+        pass
+    try:  # padded cells, NA, null...
+        flat = np.array(["nan" if c.strip().lower() in _MISSING else c
+                         for _, row in lines for c in row], dtype=np.float64)
+        return flat.reshape(len(lines), width)
     except ValueError:
         for lineno, cells in lines:
             for j, c in enumerate(cells):
                 if not _is_number(c):
                     column = f"column {header[j]!r}" if header else f"column {j + 1}"
-                    raise UserError(f"{path}: line {lineno}, {column}: {c!r} is not a "
-                                    "number") from None
+                    raise UserError(f"{path}: line {lineno}, {column}: {c.strip()!r} is not "
+                                    "a number") from None
         raise
 
 
@@ -322,7 +341,8 @@ def read_xypts(path: str | Path, rig: Rig | None = None, y_origin: str = "bottom
     if not lines:
         raise UserError(f"{path}: empty file; expected DLTdv xypts rows (pt1_cam1_X, ...)")
     first_no, first = lines[0]
-    header = None if all(_is_number(c) for c in first) else first
+    first = _trimmed(first)
+    header = None if all(_is_number(c) for c in first) else [c.strip() for c in first]
     if header is not None:
         names, cam_numbers, index, frame_col = _header_columns(path, first_no, header)
         data_lines = lines[1:]
@@ -332,10 +352,15 @@ def read_xypts(path: str | Path, rig: Rig | None = None, y_origin: str = "bottom
         if n_cams is None or n_cams < 1:
             raise UserError(f"{path}: no header, so the number of cameras is unknown; give "
                             "the camera profile (--profile)")
-        width = len(first)
-        if width % (2 * n_cams):
-            raise UserError(f"{path}: line {first_no}: {width} values is not a whole number "
-                            f"of points for {n_cams} cameras (2 values per camera per point)")
+        # the width: a whole number of points, as long as the longest row once trailing
+        # commas go, and no longer than the rows with them (the last point may be empty)
+        longest = max(len(cells) for _, cells in lines)
+        filled = max(len(_trimmed(cells)) for _, cells in lines)
+        width = longest - longest % (2 * n_cams)
+        if width < filled or width == 0:
+            raise UserError(f"{path}: line {first_no}: {len(first)} values is not a whole "
+                            f"number of points for {n_cams} cameras (2 values per camera per "
+                            "point)")
         n_pts = width // (2 * n_cams)
         names = [f"pt{p + 1}" for p in range(n_pts)]
         cam_numbers = list(range(1, n_cams + 1))
