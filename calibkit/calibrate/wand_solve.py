@@ -326,7 +326,8 @@ def _solve_passes(raw: WandObservations, start: Rig, prior: Rig, camera_of: np.n
         opts = dataclasses.replace(
             options or bundle.BundleOptions(reference_camera=int(np.argmax(
                 np.bincount(cam, minlength=len(start))))),
-            refine_intrinsics=refine, intrinsic_sigma=tuple(map(tuple, sigmas.tolist())))
+            refine_intrinsics=refine, intrinsic_sigma=tuple(map(tuple, sigmas.tolist())),
+            standardise=extra is None)
         try:
             result = bundle.solve(data, opts, progress)
         except RuntimeError as exc:  # GTSAM: an indeterminate system (too little data)
