@@ -3,6 +3,11 @@
 A Unix socket (mode 0600) under the runtime directory, answering status, stop, reload,
 record, record_stop and markers (daemon.service.Daemon.handle); `request` is the client
 side that `mocapd status`, `rigid-body add` and the live view use.
+
+Each connection is served on a thread of its own, so a client that connects and says
+nothing holds up nobody (it was served one at a time: an idle client blocked `mocapd
+status`); requests are bounded in size and in how many are served at once, and a malformed
+one is answered with an error and logged once a minute, without a traceback.
 """
 
 from __future__ import annotations
@@ -12,6 +17,7 @@ import logging
 import os
 import socket
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +29,11 @@ log = logging.getLogger("mocapd")
 SOCKET_NAME = "mocapd.sock"
 
 
-def _read_message(sock: socket.socket) -> bytes:
+MAX_MESSAGE = 1 << 20  # a request is a line of JSON; an answer (status) is a few kB
+MAX_CLIENTS = 16  # served at once; more are closed at once
+
+
+def _read_message(sock: socket.socket, limit: int = 64 * MAX_MESSAGE) -> bytes:
     """One control-socket message: bytes up to a newline, or to the peer's close."""
     data = b""
     while not data.endswith(b"\n"):
@@ -31,6 +41,8 @@ def _read_message(sock: socket.socket) -> bytes:
         if not chunk:
             break
         data += chunk
+        if len(data) > limit:
+            raise ValueError(f"a message over {limit} bytes")
     return data
 
 
@@ -66,6 +78,9 @@ class ControlServer:
         self.handler = handler
         self.sock: socket.socket | None = None
         self.thread: threading.Thread | None = None
+        self._slots = threading.BoundedSemaphore(MAX_CLIENTS)
+        self._handling = threading.Lock()
+        self._logged: dict[str, float] = {}  # kind of bad request -> when last logged
 
     def open(self) -> None:
         self.dir.mkdir(parents=True, exist_ok=True, mode=0o700)
@@ -103,20 +118,59 @@ class ControlServer:
                 continue
             except OSError:
                 break
+            if not self._slots.acquire(blocking=False):
+                self._once("busy", "control socket: %d clients at once; closing another",
+                           MAX_CLIENTS)
+                conn.close()
+                continue
+            threading.Thread(target=self._serve_one, args=(conn,), name="control-client",
+                             daemon=True).start()
+
+    def _serve_one(self, conn: socket.socket) -> None:
+        try:
             with conn:
+                conn.settimeout(2.0)
                 try:
-                    conn.settimeout(2.0)
-                    data = _read_message(conn)
-                    try:
-                        answer = self.handler(json.loads(data or b"{}"))
-                    except UserError as exc:
-                        answer = {"ok": False, "error": str(exc)}
-                    except Exception as exc:  # noqa: BLE001 - never kill the server
-                        log.exception("control request failed")
-                        answer = {"ok": False, "error": f"internal error: {exc}"}
-                    conn.sendall(json.dumps(answer, default=_plain).encode() + b"\n")
-                except OSError:
-                    pass
+                    data = _read_message(conn, MAX_MESSAGE)
+                    req = json.loads(data or b"{}")
+                    if not isinstance(req, dict) or not isinstance(req.get("cmd", ""), str):
+                        raise ValueError("not a JSON object with a string 'cmd'")
+                except (ValueError, UnicodeDecodeError) as exc:
+                    self._once("malformed", "control socket: a malformed request (%s)", exc)
+                    answer = {"ok": False, "error": f"malformed request: {exc}"}
+                else:
+                    answer = self._answer(req)
+                conn.sendall(json.dumps(answer, default=_plain).encode() + b"\n")
+        except OSError:
+            pass  # the client went away (or never spoke within the timeout)
+        finally:
+            self._slots.release()
+
+    def _answer(self, req: dict) -> dict:
+        try:
+            with self._handling:  # one request at a time reaches the daemon, as before
+                return self.handler(req)
+        except UserError as exc:
+            return {"ok": False, "error": str(exc)}
+        except (KeyError, TypeError, ValueError) as exc:  # a request with wrong values
+            self._once("bad values", "control socket: a request with bad values (%s)", exc)
+            return {"ok": False, "error": f"bad request: {exc}"}
+        except Exception as exc:  # noqa: BLE001 - never kill the server
+            if self._due("internal"):
+                log.exception("control request failed")
+            return {"ok": False, "error": f"internal error: {exc}"}
+
+    def _due(self, kind: str) -> bool:
+        now = time.monotonic()
+        if now - self._logged.get(kind, -1e9) < 60.0:
+            return False
+        self._logged[kind] = now
+        return True
+
+    def _once(self, kind: str, message: str, *args) -> None:
+        """Log a kind of bad input at most once a minute: junk must not flood the log."""
+        if self._due(kind):
+            log.warning(message, *args)
 
     def close(self) -> None:
         sock, self.sock = self.sock, None
