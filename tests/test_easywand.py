@@ -177,6 +177,20 @@ def test_xypts_padded_cells_and_other_missing_marks(tmp_path):
         np.testing.assert_array_equal(other.marker, a.marker)
 
 
+def test_xypts_frame_column(tmp_path):
+    """A frame column (some converters write one) gives the frame numbers and the times."""
+    rig = read_easywand_profile(_profile(tmp_path))
+    path = tmp_path / "framed.csv"
+    path.write_text("frame," + HEADER + "\n10,1,1,2,2,3,3,4,4\n13,5,5,6,6,7,7,8,8\n")
+    assert looks_like_xypts(path)
+    obs = read_xypts(path, rig, fps=50.0)
+    assert sorted(set(obs.frame.tolist())) == [10, 13]
+    np.testing.assert_array_equal(obs.t_ns, (obs.frame - 10) * 20_000_000)
+    path.write_text("frame," + HEADER + "\n10,1,1,2,2,3,3,4,4\n10,5,5,6,6,7,7,8,8\n")
+    with pytest.raises(UserError, match="names a frame twice"):
+        read_xypts(path, rig)
+
+
 def test_xypts_named_points_and_more_cameras(tmp_path):
     """Track names other than ptN (Argus, converters) and four cameras: markers in the order
     the points first appear; without a profile the y-down origin needs no height."""

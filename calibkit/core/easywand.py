@@ -45,6 +45,7 @@ OUTSIDE_TOLERANCE = 0.01  # share of the image a digitised point may lie beyond 
 _COLUMN = re.compile(r"^(?P<point>.+?)_cam_?(?P<camera>\d+)_(?P<axis>[xy])$", re.IGNORECASE)
 _PT_NAME = re.compile(r"^pt(\d+)$", re.IGNORECASE)
 _MISSING = {"", "nan", "-nan", "na", "n/a", "null"}
+_FRAME_NAMES = {"frame", "frames", "frame_number", "frame number"}  # an optional column
 
 
 def _check_origin(y_origin: str) -> None:
@@ -197,7 +198,7 @@ def _header_columns(path: Path, lineno: int, header: list[str]
     frame_col = None
     parsed: list[tuple[str, int, int]] = []
     for j, name in enumerate(header):
-        if name.lower() in ("frame", "frames", "frame_number", "frame number"):
+        if name.lower() in _FRAME_NAMES:
             if frame_col is not None:
                 raise UserError(f"{path}: line {lineno}: two frame columns")
             frame_col = j
@@ -297,7 +298,7 @@ def looks_like_xypts(path: str | Path) -> bool:
         cells.pop()
     if not cells:
         return False
-    if all(_COLUMN.match(c) or c.lower() == "frame" for c in cells):
+    if all(_COLUMN.match(c) or c.lower() in _FRAME_NAMES for c in cells):
         return True
     return len(cells) >= 4 and all(_is_number(c) for c in cells)
 
