@@ -316,3 +316,32 @@ def test_cli_bad_wand_length_is_one_line(calibkit_cli, tmp_path, value):
     assert r.code == 2 and "Traceback" not in r.err
     assert len(r.err.strip().splitlines()) == 1 and "--wand-length" in r.err
     assert not (tmp_path / "rig.toml").exists()
+
+
+def test_an_lframe_sets_the_scale_of_a_wand_of_unknown_length():
+    from calibkit.calibrate import floor
+    from calibkit.calibrate.wand_scale import lframe_scale
+    from calibkit.core.observations import Truth
+
+    rig, obs, bare = _small(3, 50, 7)
+    corners = floor.LFrame().points()  # at the true origin, long arm along x
+    truth = Truth(np.repeat(np.arange(10), 3), np.tile(np.arange(3), 10),
+                  np.tile(corners, (10, 1)))
+    floor_obs = sim.observe(rig, truth, noise_px=0.3, seed=7, blobs="ideal")
+    cal = calibrate(obs, bare, (0.0, 1.0), length_known=False, seed=7,
+                    scale_from=lambda r: lframe_scale(r, floor_obs),
+                    world=lambda r, _x: floor.world_from_recording(r, floor_obs, "lframe"))
+    scale = cal.report["scale"]
+    assert scale["known"] and scale["source"].startswith("L-frame")
+    assert scale["wand_length_m"] == pytest.approx(WAND_M, rel=0.02)
+    assert "scale is unknown" not in cal.report["grade_reason"]
+    # metres in the L-frame's frame, which is the true one here: compared as they stand
+    err = np.linalg.norm(cal.rig.centres() - rig.centres(), axis=1)
+    assert err.max() < 0.1, err
+    assert compare_rigs(rig, cal.rig, align=True)["alignment"]["scale"] == \
+        pytest.approx(1.0, abs=0.02)
+    # a floor recording without an L-frame cannot set the scale: one line
+    empty = sim.observe(rig, Truth(np.zeros(1, int), np.zeros(1, int), corners[:1]),
+                        seed=7, blobs="ideal")
+    with pytest.raises(UserError, match="--wand-length"):
+        lframe_scale(cal.rig, empty)

@@ -93,7 +93,8 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
               options: bundle.BundleOptions | None = None, progress=None,
               extra: Callable[[Rig], bundle.BundleData] | None = None,
               target_views: PlaneViews | None = None,
-              length_known: bool = True) -> WandCalibration:
+              length_known: bool = True,
+              scale_from: Callable[[Rig], float] | None = None) -> WandCalibration:
     """Everything: see calibrate_wand. `extra(start_rig)` gives more points to solve with
     (the projector's floor and table dots: calibkit.calibrate.extrinsic_solve.bundle_data),
     joined to the wand's; their plane and position priors then hold the world frame, so it needs
@@ -106,7 +107,8 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
     intrinsic step's monitor views) join the graph when the intrinsics are refined: a camera
     with views gets them in place of the prior from its intrinsic step's standard deviations
     (a loose prior stays). length_known False: the wand's length is unknown; the rig comes
-    out in units of `spacing_m` (scale-free) and the report says so."""
+    out in units of `spacing_m` (scale-free) and the report says so, unless
+    `scale_from(rig)` gives metres per unit (calibkit.calibrate.wand_scale.lframe_scale)."""
     if extra is not None and initial is None:
         raise UserError("points on known planes need initial poses in the world frame: give "
                         "--rig (e.g. from calibkit extrinsic)")
@@ -205,8 +207,15 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
     if world is None and extra is not None:  # the extra points' priors set the frame
         def world(_rig, _xyz):
             return np.eye(3), np.zeros(3)
-    A, b = (world or floor.frame_from_cameras)(result.rig, result.xyz)
-    rig = floor.transform_rig(result.rig, A, b)
+    unit_m = 1.0  # metres per unit of the solve: 1 unless an unknown wand is scaled
+    solved_rig = result.rig
+    scaled = scale_from is not None and not length_known
+    if scaled:
+        unit_m = float(scale_from(result.rig))
+        solved_rig = Rig(tuple(c.replace(t=c.t * unit_m) for c in result.rig))
+        spec = WandSpec(tuple(v * unit_m for v in spec.spacing_m))
+    A, b = (world or floor.frame_from_cameras)(solved_rig, result.xyz * unit_m)
+    rig = floor.transform_rig(solved_rig, A, b)
     solved = wand_report.evaluate(rig, wand, spec, np.setdiff1d(frames, held_frames), camera_of)
     held = wand_report.evaluate(rig, wand, spec, held_frames, camera_of) if len(held_frames) \
         else None
@@ -216,6 +225,7 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
                                    spec.length_m, holdout if len(held_frames) else 0.0)
     try:
         cov = bundle.camera_covariances(result)
+        cov["position_std_total_m"] = cov["position_std_total_m"] * unit_m
     except RuntimeError as exc:  # an indeterminate system: say so rather than fail
         warnings.append(f"no uncertainty: the marginals failed ({str(exc).splitlines()[0]})")
         cov = None
@@ -227,7 +237,7 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
                                       "held-out" if held is not None else "solved")
     if held is None:
         reason += " (graded on the solved frames: none were held out, so over-fitting cannot show)"
-    if not length_known:
+    if not length_known and not scaled:
         reason += ("; the scale is unknown (no --wand-length): distances are in units of the "
                    "wand's length as --spacing gives it, and the grade is scale-free")
     held_reason = None if held is not None else (
@@ -242,7 +252,9 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
     report["intrinsics"] = wand_summary.intrinsics_report(refine, prior, sigmas, prior_source,
                                                           intrinsics_moved, cov, result,
                                                           decided)
-    report["scale"] = _scale_report(spec, length_known)
+    report["scale"] = _scale_report(spec, length_known) if not scaled else {
+        "known": True, "source": "L-frame (the wand's length unknown)",
+        "wand_length_m": spec.length_m, "metres_per_unit": unit_m}
     quality = {"reprojection_rms_px": report["solve"]["reprojection_rms_px"],
                "held_out_rms_px": report["held_out"]["reprojection_rms_px"],
                "wand_length_error_sd_mm": report["held_out"]["wand_length_error_sd_mm"],

@@ -11,6 +11,7 @@ import typer
 
 from calibkit.calibrate import wand_pipeline as pipeline
 from calibkit.calibrate.wand import WandSpec
+from calibkit.calibrate.wand_scale import lframe_scale
 from calibkit.clitools import Progress, parse_floats, parse_view, print_table, write_json
 from calibkit.commands import coverage_view
 from calibkit.core.camera import Rig
@@ -197,8 +198,14 @@ def register(app: typer.Typer) -> None:
                 batches, spec, intr, targets, capture_path, wand_sim.FPS if run else None,
                 progress, monitor)
             _print_capture(monitor, capture_path)
+        scale_from = None
         if floor_rec is not None:
             world = pipeline.world_from_floor(floor_rec, intr, floor_kind, spec)
+            if not length_known and floor_kind == "lframe":  # the L-frame's arms: metres
+                floor_obs = pipeline.load_capture(floor_rec, intr)
+
+                def scale_from(rig):
+                    return lframe_scale(rig, floor_obs)
         views = None
         if refine_intrinsics is not False and monitor_views:
             views = pipeline.monitor_views(intr, intr_path)
@@ -210,7 +217,8 @@ def register(app: typer.Typer) -> None:
         progress = Progress("wand solve, iterations")
         cal = calibrate(obs, intr, spec.spacing_m, initial, refine_intrinsics, holdout, seed,
                         world, progress=lambda text: progress.update(progress.done + 1, text),
-                        extra=extra, target_views=views, length_known=length_known)
+                        extra=extra, target_views=views, length_known=length_known,
+                        scale_from=scale_from)
         progress.finish(f"{cal.report['solve']['time_s']:.1f} s in the solver")
         pipeline.write_outputs(cal, out, plots)
         from calibkit.calibrate.html_report import write_wand_report
