@@ -246,12 +246,14 @@ def test_fast_sim_run_writes_pose_errors(tmp_path, mocapd_cli):
 
     rig = sim.make_rig(6, 4.0, seed=2)
     rig.save(tmp_path / "rig.toml")
-    r = mocapd_cli("start", "--sim", "--rig", tmp_path / "rig.toml", "--fast", "--frames", 200,
+    # (the cameras open up to 0.3 s apart and are paired by the multiplexer, as in a live
+    # run: bodies are short of cameras in the first ~70 sets, which 2000 sets outweigh)
+    r = mocapd_cli("start", "--sim", "--rig", tmp_path / "rig.toml", "--fast", "--frames", 2000,
                    "--sim-bodies", 3, "--noise-px", 0.2, "--json", tmp_path / "f.json",
                    "--runtime-dir", tmp_path / "rt")
     assert r.code == 0, r.err
     fig = json.loads((tmp_path / "f.json").read_text())
-    assert fig["frames"] == 200
+    assert fig["frames"] == 2000
     t = fig["truth"]
     assert len(t["bodies"]) == 3
     for b in t["bodies"].values():
@@ -274,7 +276,7 @@ def test_fast_sim_run_writes_pose_errors(tmp_path, mocapd_cli):
 
     defs = load_config(live["file"]).bodies
     assert [b.name for b in defs] == ["body0", "body1", "body2"]
-    scene = SimScene(SimConfig(bodies=3, noise_px=0.2), rig, n_frames=200)
+    scene = SimScene(SimConfig(bodies=3, noise_px=0.2), rig, n_frames=2000)
     matched = list(match_bodies([b.markers_body for b in scene.bodies_truth],
                                 [b.markers for b in defs]))
     assert sorted(m[0] for m in matched) == [0, 1, 2]
@@ -486,9 +488,10 @@ def test_sim_without_scoring_runs_the_daemon_alone(tmp_path, mocapd_cli):
     truth (what a latency measurement of the daemon's own cost wants)."""
     cfg = tmp_path / "mocapd.toml"
     cfg.write_text("[sim]\ncameras = 4\nbodies = 2\nscore = false\n")
-    r = mocapd_cli("start", "--config", cfg, "--fast", "--frames", 60, "--json",
+    # 1 s: the cameras open up to 0.3 s apart, paired by the multiplexer as in a live run
+    r = mocapd_cli("start", "--config", cfg, "--fast", "--frames", 240, "--json",
                    tmp_path / "f.json", "--runtime-dir", tmp_path / "rt")
     assert r.code == 0, r.err
     fig = json.loads((tmp_path / "f.json").read_text())
-    assert fig["frames"] == 60 and "truth" not in fig
+    assert fig["frames"] == 240 and "truth" not in fig
     assert all(v > 0.5 for v in fig["bodies_valid_fraction"].values())

@@ -6,7 +6,8 @@ from its own start, stamps them on its own clock (a random epoch, running fast o
 up to `[sim] clock_drift_ppm`), delivers them a transfer delay after it took them (its own
 smallest delay plus jitter), and when it reconnects (`drop_camera`) starts again from 0 on
 a new epoch. The rig is triggered: every camera takes its frames at the same instants
-(plus its fixed `unsync_ms` phase, for free-running cameras).
+(plus its fixed `unsync_ms` phase, for free-running cameras). A camera may lose frames
+(`lost_frames`): taken and counted, never delivered.
 
 With `[sim.robot]` one more body is a robot driven live (daemon.synthetic.robot): its
 blobs are made at each trigger from the commands that have come in, and join the other
@@ -53,7 +54,10 @@ class SimScene:
     """
 
     def __init__(self, cfg: SimConfig, rig: Rig | None = None, truth_rig: Rig | None = None,
-                 n_frames: int | None = None) -> None:
+                 n_frames: int | None = None, lost_frames: dict[int, float] | None = None
+                 ) -> None:
+        """`lost_frames`: camera index -> the fraction of its frames taken but never
+        delivered (a full bus): its counter and clock run on, the frame is just missing."""
         self.cfg = cfg
         if rig is None:
             rig = sim.make_rig(cfg.cameras, cfg.volume_m, size=cfg.size, seed=cfg.seed)
@@ -105,6 +109,12 @@ class SimScene:
         # the ledger: per camera, by (frame id, device time), what each delivered frame
         # was (trigger, when taken); a reconnected camera reuses frame ids, not times
         self._ledger: list[dict] = [{} for _ in range(m)]
+        self.lost_fraction = np.zeros(m)
+        for c, f in (lost_frames or {}).items():
+            if not 0 <= f < 1:
+                raise UserError(f"a camera's lost-frame fraction must be in [0, 1), got {f}")
+            self.lost_fraction[c] = f
+        self.lost: list[set] = [set() for _ in range(m)]  # truth: the triggers each lost
         self._poses = None  # (bodies, frames, 4, 4), made when first needed
 
     def _add_person(self, truth, n: int):
@@ -337,10 +347,18 @@ class SimCamera:
         rate = 1.0 + sc.drift_ppm[c] * 1e-6
         first = self.t0_ns + round(g * period) + phase
         k = 0
+        # its own stream: a scene that loses no frames draws exactly what it always did
+        losing = np.random.default_rng([sc.cfg.seed, 8, c, session]) \
+            if sc.lost_fraction[c] > 0 else None
         while True:
             taken = self.t0_ns + round(g * period) + phase
             due = taken + int(sc.transfer_ns[c]) + round(rng.exponential(JITTER_NS))
             device = epoch + round((taken - first) * rate)
+            if losing is not None and losing.random() < sc.lost_fraction[c]:
+                sc.lost[c].add(g)  # taken, counted, never delivered
+                g += 1
+                k += 1
+                continue
 
             def take(arrival: int, g=g, k=k, device=device, taken=taken) -> CameraSample:
                 if sc.dropped(c, g):

@@ -41,13 +41,17 @@ class VirtualClock:
         self.t = self.now() + round(seconds * 1e9)
 
 
-def capture(scene: SimScene, seconds: float, retry_s: float = 0.2, make_mux=Multiplexer,
-            stalls=None):
-    """Every camera of `scene` for `seconds` of virtual time, pushed to
-    `make_mux(n_cameras, mode, fps, timeout_frames, connected=..., origin_ns=...)`.
-    `stalls`: per camera, (from, to) spells in ns from the start in which its capture
-    thread does not run (VirtualClock). Returns (sets, the multiplexer, per camera the
-    times it started delivering)."""
+def frame_sets(scene: SimScene, seconds: float | None = None, retry_s: float = 0.2,
+               make_mux=Multiplexer, stalls=None, starts=None, on_mux=None):
+    """Frame sets of every camera of `scene` as the multiplexer makes them, one at a time,
+    for `seconds` of virtual time (None: until the caller stops). Each camera opens at its
+    own moment, counts frames from its own start, stamps them on its own clock and loses
+    the frames the scene drops; their samples are pushed in arrival order to
+    `make_mux(n_cameras, mode, fps, timeout_frames, connected=..., origin_ns=...)`, which
+    pairs them by capture time. `stalls`: per camera, (from, to) spells in ns from the
+    start in which its capture thread does not run (VirtualClock). `starts`: a list that
+    gets, per camera, the times it started delivering; `on_mux`: called with the
+    multiplexer once made (its counters are the run's)."""
     n = len(scene.rig)
     stalls = stalls or {}
     clocks = [VirtualClock(START_NS, [(START_NS + a, START_NS + b) for a, b in
@@ -62,8 +66,11 @@ def capture(scene: SimScene, seconds: float, retry_s: float = 0.2, make_mux=Mult
         return live | (~delivered & (now[0] < START_NS + GRACE_NS))
 
     mux = make_mux(n, "triggered", scene.fps, 1.5, connected=connected, origin_ns=START_NS)
+    if on_mux is not None:
+        on_mux(mux)
     fresh = np.ones(n, dtype=bool)  # its next sample starts a session
-    starts: list[list[int]] = [[] for _ in range(n)]
+    if starts is not None:
+        starts[:] = [[] for _ in range(n)]
 
     def advance(c):
         while True:
@@ -77,24 +84,34 @@ def capture(scene: SimScene, seconds: float, retry_s: float = 0.2, make_mux=Mult
 
     heap = [(s.arrival_ns, c, s) for c in range(n) for s in [advance(c)]]
     heapq.heapify(heap)
-    end = START_NS + round(seconds * 1e9)
-    sets = []
-    while heap and heap[0][0] < end:
+    end = None if seconds is None else START_NS + round(seconds * 1e9)
+    while heap and (end is None or heap[0][0] < end):
         t, c, s = heapq.heappop(heap)
         now[0] = t
         if fresh[c]:
             fresh[c] = False
             mux.reset_camera(c)
-            starts[c].append(t)
+            if starts is not None:
+                starts[c].append(t)
         live[c] = delivered[c] = True
         mux.push(s)
         with mux.cond:
             mux._expire(t)
-        sets.extend(mux.ready)
+        ready = list(mux.ready)
         mux.ready.clear()
+        yield from ready
         s = advance(c)
         heapq.heappush(heap, (s.arrival_ns, c, s))
-    return sets, mux, starts
+
+
+def capture(scene: SimScene, seconds: float, retry_s: float = 0.2, make_mux=Multiplexer,
+            stalls=None):
+    """Every camera of `scene` for `seconds` of virtual time (frame_sets). Returns (sets,
+    the multiplexer, per camera the times it started delivering)."""
+    starts: list = []
+    muxes: list = []
+    sets = list(frame_sets(scene, seconds, retry_s, make_mux, stalls, starts, muxes.append))
+    return sets, muxes[0], starts
 
 
 def spread_ns(scene: SimScene, fs) -> int | None:
