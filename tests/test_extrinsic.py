@@ -14,15 +14,20 @@ from calibkit.calibrate.compare import compare_rigs
 from calibkit.core.camera import Rig, look_at, rvec_from_rotation
 from calibkit.core.errors import UserError
 from calibkit.synthetic import projector as sp
+from calibkit.synthetic.extrinsic_sim import TAPE_HEIGHT_ERROR_MM
 from projector.patterns import coded_schedule
 
 PROJ = (1280, 800)
 
 
-def _refs(scene, error_m=0.005, seed=0, n=4):
+def _refs(scene, error_m=0.005, seed=0, n=4, height_error_m=None):
+    """The tape's reference points and table height (error: error_m per axis, and the
+    simulator's tape height error, TAPE_HEIGHT_ERROR_MM, unless given)."""
+    if height_error_m is None:
+        height_error_m = TAPE_HEIGHT_ERROR_MM / 1000.0 if error_m > 0 else 0.0
     m = sp.measured_references(scene, exr.reference_layout_px(PROJ, n),
                                sp.table_reference_px(scene) if scene.table else np.zeros((0, 2)),
-                               error_m, seed=seed)
+                               error_m, height_error_m, seed=seed)
     return exr.References(m["floor_px"], m["floor_xy_m"], m.get("table_px", np.zeros((0, 2))),
                          m.get("table_xy_m", np.zeros((0, 2))), m.get("table_height_m"))
 
@@ -95,7 +100,9 @@ def test_table_dots_land_on_the_table():
     assert np.all(plane == exr.TABLE)  # none falls off the edge
     got, got_plane = exr.dot_world_points(sch.points_xy[ids], floor, table, True)
     assert np.all(got_plane == exr.TABLE)
-    assert np.max(np.abs(got[:, 2] - scene.table.height_m)) < 1e-12
+    # on the tape's table top, which is not the true one
+    assert np.max(np.abs(got[:, 2] - refs.table_height_m)) < 1e-12
+    assert refs.table_height_m != scene.table.height_m
     assert np.max(np.linalg.norm(got - truth, axis=1)) < 0.02
 
 
@@ -261,7 +268,11 @@ def test_plane_observations_for_the_bundle_and_the_floor(tmp_path):
     assert len(back) == int(res.inlier.sum())
     data = exs.bundle_data(res.rig, back)
     heights = data.plane_offset_m
-    on_table = np.isclose(heights, table.height_m)
+    # the table at the height the solve used (the tape's: the dots agree), passed on
+    used = res.report["table_height"]["used_m"]
+    assert back.plane_height_m == (0.0, used) and used == table.height_m
+    assert res.report["table_height"]["disagreement_sigmas"] < 3.0
+    on_table = np.isclose(heights, used)
     assert on_table.any() and np.all(on_table | (heights == 0.0))
     assert np.allclose(data.plane_normal, [0, 0, 1])
     assert len(data.obs_uv) == len(back) and data.xyz.shape == (len(heights), 3)
@@ -377,3 +388,55 @@ def test_table_left_in_for_the_floor_session_is_rejected_as_outliers():
     assert np.mean(res.inlier[on_table]) < 0.05
     pos, rot = _errors(scene.rig, res.rig)
     assert max(pos.values()) < 10.0 and max(rot.values()) < 0.1
+
+
+# ---- the table's height: the tape's error, and the dots' own measure ---------------------------
+
+def test_the_sim_tape_measures_the_table_height_with_its_error(tmp_path):
+    """`extrinsic --sim` hands the estimate the tape's height, not the truth: off by a seeded
+    draw whose spread over seeds is the stated TAPE_HEIGHT_ERROR_MM."""
+    from calibkit.synthetic import extrinsic_sim, sim
+
+    sim.make_rig(3, 4.0, seed=0).save(tmp_path / "intr.toml")  # only the names and sizes
+
+    def tape_error_mm(seed: int) -> float:
+        run = extrinsic_sim.setup(tmp_path / "intr.toml", None, 3, None, 4.0, 0.75, 5.0,
+                                  PROJ, seed)
+        return 1000.0 * (run.refs.table_height_m - run.scene.table.height_m)
+
+    errors = np.array([tape_error_mm(s) for s in range(40)])
+    assert tape_error_mm(3) == errors[3]  # seeded
+    assert np.all(errors != 0.0) and len(np.unique(errors)) == len(errors)
+    # 40 draws: the sample SD within 25 % of the stated one (chi-square, ~4 sigma)
+    sd = float(np.sqrt(np.mean(errors**2)))
+    assert 0.75 * TAPE_HEIGHT_ERROR_MM < sd < 1.25 * TAPE_HEIGHT_ERROR_MM
+
+
+def test_the_dots_recover_the_table_height_from_a_bad_tape():
+    """The tape reads the table 10 mm high (five times its stated error): the dots measure
+    the height, the solve uses mostly theirs and says so; held at the tape's height instead,
+    every camera is pulled off by the false scale."""
+    scene = sp.make_scene(6, seed=2)
+    good = _refs(scene, 0.005, seed=2, height_error_m=0.0)
+    true_m = scene.table.height_m
+    bad = exr.References(good.floor_px, good.floor_xy_m, good.table_px, good.table_xy_m,
+                         true_m + 0.010)
+    sch, floor, table, fd, td = _dots(scene, bad, 0.2, seed=2)
+    dots = exc.assemble(scene.rig.names, fd, td, sch, floor, table)
+    res = exs.calibrate(scene.rig, dots, floor, table)
+    h = res.report["table_height"]
+    assert abs(h["tape_m"] - (true_m + 0.010)) < 1e-12
+    # the dots' figure: within the floor map's scale error (5 mm tape over the references'
+    # spread, about 1 mm at 0.75 m) of the truth, and the height used close to it
+    assert abs(h["dots_m"] - true_m) < 3e-3 and 0.3 < h["dots_sigma_mm"] < 2.0
+    assert abs(h["used_m"] - true_m) < 3e-3
+    assert h["disagreement_sigmas"] > 3.0
+    assert any("re-measure the table's height" in w for w in res.warnings), res.warnings
+    pos, rot = _errors(scene.rig, res.rig)
+    assert max(pos.values()) < 10.0 and max(rot.values()) < 0.1
+    held = exs.calibrate(scene.rig, dots, floor, table, exs.SolveOptions(refine_height=False))
+    assert held.report["table_height"] is None
+    pos_held, _ = _errors(scene.rig, held.rig)
+    assert max(pos_held.values()) > 1.5 * max(pos.values())
+    assert sp.ray_distance_at_height(res.rig, scene.rig, 1.7, 4.0) < \
+        sp.ray_distance_at_height(held.rig, scene.rig, 1.7, 4.0)

@@ -59,7 +59,15 @@ def test_sim_writes_the_rig_truth_and_plane_observations(calibkit_cli, tmp_path)
     assert rig.quality["extrinsic"]["reprojection_rms_px"] > 0
     # the simulated tape measurements read back as a reference file
     refs = load_references(tmp_path / "rig.refs.toml")
-    assert len(refs.floor_px) == 16 and refs.table_height_m == 0.75
+    assert len(refs.floor_px) == 16
+    # the tape's height is not the truth: off by a seeded draw of its stated error, which
+    # only the truth figures know; the solve's height comes from the tape and the dots
+    th = report["truth"]["table_height"]
+    assert th["true_m"] == 0.75 and refs.table_height_m != 0.75
+    # (the file holds it to 0.1 mm, as a tape is read)
+    assert abs(th["tape_error_mm"] - 1000 * (refs.table_height_m - 0.75)) <= 0.05
+    assert abs(report["table_height"]["tape_m"] - refs.table_height_m) <= 0.05e-3
+    assert abs(th["used_error_mm"]) < 4.0 and "scale_error_ppm" in report["truth"]
     dots = load_dots(tmp_path / "rig.dots.npz")
     assert set(dots.camera_names) == set(rig.names) and len(dots) > 1000
     floor_obs, _ = load_observations(tmp_path / "rig.floor.mcrec", rig)

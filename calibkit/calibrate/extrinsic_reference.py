@@ -13,6 +13,7 @@ says which projector dots land where; capture (extrinsic_capture), the pose solv
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -152,7 +153,9 @@ def references_toml(refs: References, comment: str = "") -> str:
 class PlaneMap:
     """Projector pixels -> a horizontal plane at height_m: homography H (3x3); the fit's RMS
     and largest residual at the reference points (mm; 0 with exactly 4 points, which fit any
-    homography exactly and so check nothing); the plane's outline (K, 2) for the table."""
+    homography exactly and so check nothing); the plane's outline (K, 2) for the table; and
+    the reference points' spread (root-sum-square distance from their middle, metres),
+    which with the tape's error says how well the map knows the plane's scale."""
 
     H: np.ndarray
     height_m: float
@@ -160,6 +163,7 @@ class PlaneMap:
     residual_max_mm: float
     n_points: int
     outline_xy_m: np.ndarray | None = None
+    spread_m: float = float("nan")
 
     def apply(self, px: np.ndarray) -> np.ndarray:
         """Projector pixels (N, 2) -> world points (N, 3) on the plane."""
@@ -200,7 +204,9 @@ def fit_homography(px: np.ndarray, xy_m: np.ndarray, height_m: float = 0.0,
     sol = least_squares(resid, H.ravel()[:8], method="lm" if len(px) > 4 else "trf")
     H = np.append(sol.x, 1.0).reshape(3, 3)
     r = np.linalg.norm(resid(sol.x).reshape(-1, 2), axis=1) * 1000.0
-    return PlaneMap(H, float(height_m), float(np.sqrt(np.mean(r**2))), float(r.max()), len(px))
+    spread = float(np.sqrt(np.sum((xy - xy.mean(axis=0)) ** 2)))
+    return PlaneMap(H, float(height_m), float(np.sqrt(np.mean(r**2))), float(r.max()), len(px),
+                    spread_m=spread)
 
 
 def plane_maps(refs: References) -> tuple[PlaneMap, PlaneMap | None]:
@@ -215,8 +221,7 @@ def plane_maps(refs: References) -> tuple[PlaneMap, PlaneMap | None]:
     if outline is None or len(outline) < 3:
         outline = refs.table_xy_m
     hull = cv2.convexHull(np.asarray(outline, np.float32)).reshape(-1, 2).astype(float)
-    return floor, PlaneMap(table.H, table.height_m, table.residual_rms_mm,
-                           table.residual_max_mm, table.n_points, hull)
+    return floor, dataclasses.replace(table, outline_xy_m=hull)
 
 
 def _inside(poly: np.ndarray, xy: np.ndarray, margin_m: float) -> np.ndarray:

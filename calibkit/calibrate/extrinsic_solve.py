@@ -7,6 +7,15 @@ dots are shared between cameras, so a joint refinement (calibkit.calibrate.bundl
 makes the cameras agree on them, each dot held on its plane and near its mapped position
 by the tape's uncertainty. Cameras that cannot be placed are left out with a message the
 user can act on.
+
+The table's height is a scale in z: 10 mm off (1.3 %) moves cameras 4 m away by 15 mm.
+The dots measure it too: with the table dots left free, the cameras that agree on the floor
+dots triangulate the table top, as well as the floor map knows its own scale (the tape's
+error over the reference points' spread: about 1 mm). That figure carries the floor map's
+scale error, so within the tape's stated error it does not place the cameras better than
+the tape (measured: docs/extrinsic.md); it is a check. A tape reading further from it than
+both uncertainties allow is taken for a misreading: the height used is then the two
+weighted by their uncertainties, and the user is told to re-measure.
 """
 
 from __future__ import annotations
@@ -35,6 +44,9 @@ class SolveOptions:
     joint: bool = True  # refine all cameras together on the shared dots
     reference_sigma_m: float = 0.005  # how well the plane maps place a dot (joint solve)
     height_sigma_m: float = 0.002  # how well the table height is known (joint solve)
+    refine_height: bool = True  # check the tape's table height against the dots' own
+    min_height_dots: int = 10  # table dots seen by two cameras needed to measure the height
+    height_check_sigmas: float = 3.0  # tape and dots further apart: the tape misread
 
 
 @dataclass(frozen=True, eq=False)
@@ -128,6 +140,71 @@ def _joint(rig: Rig, dots: DotObservations, use: np.ndarray, opts: SolveOptions
     return result.rig, refined
 
 
+@dataclass(frozen=True)
+class TableHeight:
+    """The table top's height as the tape gave it, as the dots measure it (NaN when too few
+    table dots were seen by two cameras), the standard deviation of the dots' figure, and
+    the height used: the tape's, or when the two disagree, both weighted by their
+    uncertainties."""
+
+    tape_m: float
+    dots_m: float
+    dots_sigma_m: float
+    used_m: float
+    disagreement_sigmas: float  # |dots - tape| over both uncertainties combined
+
+    def as_dict(self) -> dict:
+        return {"tape_m": self.tape_m, "dots_m": self.dots_m,
+                "dots_sigma_mm": self.dots_sigma_m * 1000.0, "used_m": self.used_m,
+                "disagreement_sigmas": self.disagreement_sigmas}
+
+
+def measure_table_height(rig: Rig, dots: DotObservations, use: np.ndarray, floor: PlaneMap,
+                         tape_m: float, opts: SolveOptions = SolveOptions()) -> TableHeight:
+    """The table height from the dots: the joint solve with only the floor dots held (on
+    z = 0 and near their mapped places) and the table dots free, so the cameras triangulate
+    the table top; its mean z is the dots' height. Its uncertainty is what the floor map
+    leaves of the scale (height x the tape's error over the floor references' spread) with
+    the dots' own scatter; the tape's is opts.height_sigma_m. Further apart than
+    opts.height_check_sigmas of both, the tape is taken for a misreading (used_m: the
+    weighted mean); otherwise used_m is the tape's."""
+    sel = dots.select(use)
+    index = np.array([rig.names.index(n) if n in rig.names else -1 for n in dots.camera_names])
+    used = np.unique(sel.point[index[sel.camera] >= 0])
+    data = bundle_data(rig, sel)
+    on_floor = dots.plane[used] == FLOOR
+    pts = np.flatnonzero(on_floor)
+    held = dataclasses.replace(data, known_point=pts, known_xyz=data.xyz[pts], plane_point=pts,
+                               plane_normal=data.plane_normal[pts],
+                               plane_offset_m=data.plane_offset_m[pts])
+    tape_only = TableHeight(tape_m, math.nan, math.inf, tape_m, 0.0)
+    if not np.isfinite(floor.spread_m) or np.count_nonzero(~on_floor) < opts.min_height_dots:
+        return tape_only
+    result = bundle.solve(held, bundle.BundleOptions(
+        noise_px=0.3, known_sigma_m=opts.reference_sigma_m, plane_sigma_m=opts.height_sigma_m,
+        rounds=1, max_iterations=50))
+    z = result.xyz[~on_floor, 2]
+    z = z[np.isfinite(z)]
+    if len(z) < opts.min_height_dots:
+        return tape_only
+    dots_m = float(np.mean(z))
+    sigma = math.hypot(dots_m * opts.reference_sigma_m / floor.spread_m,
+                       float(np.std(z)) / math.sqrt(len(z)))
+    w_tape, w_dots = 1.0 / opts.height_sigma_m**2, 1.0 / sigma**2
+    apart = abs(dots_m - tape_m) / math.hypot(opts.height_sigma_m, sigma)
+    used_m = tape_m if apart <= opts.height_check_sigmas else \
+        (tape_m * w_tape + dots_m * w_dots) / (w_tape + w_dots)
+    return TableHeight(tape_m, dots_m, sigma, float(used_m), float(apart))
+
+
+def at_height(dots: DotObservations, height_m: float) -> DotObservations:
+    """The dots with the table top at height_m (its dots' z and the plane's height)."""
+    xyz = dots.xyz.copy()
+    xyz[dots.plane == TABLE, 2] = height_m
+    return dataclasses.replace(dots, xyz=xyz, plane_height_m=(dots.plane_height_m[0],
+                                                              float(height_m)))
+
+
 def bundle_data(rig: Rig, dots: DotObservations, known: bool = True):
     """The dots as calibkit.calibrate.bundle input for `rig` (cameras matched by name): every dot a
     point observed by its cameras, held on its plane (n = z, d = height) and, with `known`,
@@ -207,10 +284,23 @@ def calibrate(intrinsics: Rig, dots: DotObservations, floor: PlaneMap,
                         "floor the projector lights, and check --intrinsics and --refs")
     rig = Rig(tuple(placed))
     refined = dots.xyz
+    height = None
     if opts.joint and len(placed) >= 2:
+        if table is not None and opts.refine_height:
+            height = measure_table_height(rig, dots, inlier, floor, table.height_m, opts)
+            dots = at_height(dots, height.used_m)
+            table = dataclasses.replace(table, height_m=height.used_m)
+            if height.disagreement_sigmas > opts.height_check_sigmas:
+                messages.append(
+                    f"the table dots put the table top at {1000 * height.dots_m:.1f} mm, the "
+                    f"tape at {1000 * height.tape_m:.1f} mm ({height.disagreement_sigmas:.1f} "
+                    f"times their uncertainties apart): used {1000 * height.used_m:.1f} mm; "
+                    "re-measure the table's height at its corners (is the top level? is "
+                    "height_m in metres?)")
         rig, refined = _joint(rig, dots, inlier, opts)
         poses = [_refigure(r, rig) for r in poses]
     report = figures(rig, poses, dots, inlier, floor, table, refined)
+    report["table_height"] = None if height is None else height.as_dict()
     meta = {"source": "calibkit extrinsic --projector", "world_frame": "projector floor"}
     quality = {"extrinsic": {
         "reprojection_rms_px": report["reprojection_rms_px"],

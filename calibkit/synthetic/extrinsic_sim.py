@@ -2,9 +2,10 @@
 simulated capture, and the score against the truth.
 
 The estimate sees only what hardware would give: the tape-measured reference points (with
-their error), the identified dots (rendered and captured, or projected with centroid
-noise), and the estimated intrinsics. The true rig goes to NAME.truth.toml and to the
-report's `truth` figures, which only scorers read.
+their error), the table's tape-measured height (with its own error: a vertical reading at
+the corners, TAPE_HEIGHT_ERROR_MM), the identified dots (rendered and captured, or projected
+with centroid noise), and the estimated intrinsics. The true rig goes to NAME.truth.toml,
+and it and the true table height to the report's `truth` figures, which only scorers read.
 """
 
 from __future__ import annotations
@@ -39,6 +40,10 @@ from calibkit.synthetic.runs import (
     truth_rig_path,
 )
 
+# SD of the tape's table height: docs/extrinsic.md has the user measure it at two or three
+# corners that "should agree within 2 mm", and the solve's --height-sigma-mm says 2 mm.
+TAPE_HEIGHT_ERROR_MM = 2.0
+
 
 @dataclass(frozen=True, eq=False)
 class ProjectorSimRun:
@@ -57,13 +62,17 @@ class ProjectorSimRun:
 
 def setup(intrinsics_path: Path | None, sim_rig: Path | None, cameras: int | None,
           size: tuple[int, int] | None, volume_m: float, table_height_m: float,
-          ref_error_mm: float, projector_px: tuple[int, int], seed: int) -> ProjectorSimRun:
+          ref_error_mm: float, projector_px: tuple[int, int], seed: int,
+          height_error_mm: float = TAPE_HEIGHT_ERROR_MM) -> ProjectorSimRun:
     """The hardware (the --sim-rig file, else a ring from --cameras, --volume, --seed and
     --size, default 640x480), a ceiling projector and a table over it, and the tape
-    measurements of the reference dots (error ref_error_mm per axis). The estimate file
+    measurements of the reference dots (error ref_error_mm per axis) and of the table's
+    height (error height_error_mm; both drawn from the seed). The estimate file
     (--intrinsics) must hold the hardware's cameras."""
     if not 0 <= table_height_m < 2.0:
         raise UserError(f"--table-height must be in [0, 2) m, got {table_height_m}")
+    if not (ref_error_mm >= 0 and height_error_mm >= 0):
+        raise UserError("--ref-error-mm and the height error must be 0 or more (mm)")
     if intrinsics_path is None:
         raise need_intrinsics_for_sim("calibkit extrinsic --projector")
     if sim_rig is not None and (size is not None or cameras is not None):
@@ -77,7 +86,7 @@ def setup(intrinsics_path: Path | None, sim_rig: Path | None, cameras: int | Non
     scene = sp.scene_for_rig(hardware, volume_m, table_height_m or None, seed)
     tpx = sp.table_reference_px(scene) if scene.table is not None else np.zeros((0, 2))
     m = sp.measured_references(scene, reference_layout_px(projector_px), tpx,
-                               ref_error_mm / 1000.0, seed=seed)
+                               ref_error_mm / 1000.0, height_error_mm / 1000.0, seed=seed)
     refs = References(m["floor_px"], m["floor_xy_m"], m.get("table_px", np.zeros((0, 2))),
                       m.get("table_xy_m", np.zeros((0, 2))), m.get("table_height_m"),
                       projector_size=projector_px)
@@ -116,6 +125,14 @@ def score(run: ProjectorSimRun, result: ExtrinsicResult, out: Path) -> dict:
     cmp = compare_rigs(run.truth, result.rig, align=False)
     truth = {"cameras": cmp["cameras"],
              "position_error_max_mm": max(c["position_mm"] for c in cmp["cameras"]),
-             "rotation_error_max_deg": max(c["rotation_deg"] for c in cmp["cameras"])}
+             "rotation_error_max_deg": max(c["rotation_deg"] for c in cmp["cameras"]),
+             "scale_error_ppm": cmp["scale"]["error_ppm"]}
+    if run.scene.table is not None:
+        true_m = run.scene.table.height_m
+        used = (result.report.get("table_height") or {}).get("used_m", run.refs.table_height_m)
+        truth["table_height"] = {
+            "true_m": true_m,
+            "tape_error_mm": 1000.0 * (run.refs.table_height_m - true_m),
+            "used_error_mm": 1000.0 * (used - true_m)}
     result.report["truth"] = truth
     return truth
