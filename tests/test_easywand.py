@@ -377,7 +377,7 @@ def _relative_rotation_errors_deg(est: Rig, true: Rig) -> list[float]:
 def test_wand_from_xypts_end_to_end(calibkit_cli, tmp_path, long_capture):
     """`calibkit wand --from xypts.csv --profile profile.txt`: the format found from the
     file, the cameras from the profile; a calibration with finite figures whose cameras
-    sit as the simulator's do."""
+    sit as the simulator's do, with the wand's length given and unknown."""
     rig, obs = long_capture
     xy, prof = tmp_path / "wand-xypts.csv", tmp_path / "profile.txt"
     _write_dltdv(xy, obs, 400)
@@ -398,6 +398,20 @@ def test_wand_from_xypts_end_to_end(calibkit_cli, tmp_path, long_capture):
     np.testing.assert_allclose(baseline, 1.0, atol=0.01)  # scaled by the wand's 0.5 m
     # the input is untouched
     assert xy.read_text().startswith("pt1_cam1_X,pt1_cam1_Y")
+    # the wand's length not given (as easyWand users may not know it): solved scale-free,
+    # distances in units of the wand (0.5 m here, so twice the metres)
+    r = calibkit_cli("wand", "--from", xy, "--profile", prof, "--spacing", "0,1",
+                     "--wand-length", "unknown", "--out", tmp_path / "free.toml", "--json",
+                     tmp_path / "free.json", "--no-plots", "--fix-intrinsics")
+    assert r.code == 0, r.err
+    free = json.loads((tmp_path / "free.json").read_text())
+    assert free["scale"]["known"] is False
+    assert math.isfinite(free["solve"]["wand_length_variation_pct"])
+    est = Rig.load(tmp_path / "free.toml")
+    assert max(_relative_rotation_errors_deg(est, rig)) < 1.0
+    baseline = [np.linalg.norm(est[i].centre - est[j].centre) /
+                np.linalg.norm(rig[i].centre - rig[j].centre) for i, j in ((0, 1), (1, 2))]
+    np.testing.assert_allclose(baseline, 1 / 0.5, rtol=0.01)
 
 
 def test_wand_refuses_bad_xypts_in_one_line(calibkit_cli, tmp_path, capture):
