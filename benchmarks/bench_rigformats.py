@@ -34,7 +34,7 @@ from calibkit.core.rigformats.caliscope import read_caliscope
 from calibkit.core.rigformats.qca import read_qca
 
 ROOT = Path(__file__).resolve().parents[1]
-CALISCOPE = ROOT / "fixtures" / "caliscope_4_cam_recording"
+CALISCOPE = ROOT / "fixtures" / "caliscope_4cam"
 QTM = ROOT / "fixtures" / "pose2sim_chessboard_4cam"
 
 

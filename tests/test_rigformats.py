@@ -20,7 +20,7 @@ from calibkit.core.rigformats.pose2sim import read_pose2sim
 from calibkit.core.rigformats.qca import read_qca
 
 ROOT = Path(__file__).resolve().parents[1]
-CALISCOPE = ROOT / "fixtures" / "caliscope_4_cam_recording"
+CALISCOPE = ROOT / "fixtures" / "caliscope_4cam"
 
 
 def _same(a: Rig, b: Rig, tol: float = 1e-9) -> None:
