@@ -10,9 +10,15 @@ runs (read, turn to z-up, fit the definitions, track), with the refinement at it
 (auto) and, as the baseline in the same process, off. Per row, medians over the repeats:
 the share of Motive's tracked frames each body is posed in within 1 mm and 1 deg of
 Motive's pose (the worst body's, and the off body's), the position and orientation error
-over all valid poses, and the wall-clock time of the whole run.
+over all valid poses, and the time of the whole run (wall clock, and this process's CPU
+time: the machine may be shared).
+
+With --speed-minutes M it also times the refinement alone (refine_bodies, auto) on
+bench_track.py's scene (10 bodies of 4-5 markers, 45 points a frame, M minutes at 120 Hz)
+beside the tracking of that take (track_cloud, the baseline), CPU time, median of repeats.
 
     python benchmarks/bench_motive_refine.py [--repeats 3] [--frames 752] [--off-mm 4]
+                                             [--speed-minutes 2]
 """
 
 from __future__ import annotations
@@ -32,11 +38,11 @@ from daemon.synthetic.motive_export import write_motive_1_0
 
 def run(path: Path, refine: str) -> dict:
     """One `mocapd track --bodies-from-file` run in this process, scored against Motive."""
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     cloud, motive, _, _ = load_markers(path, None)
     defs = bodies_from_motive(motive, path)
     table, _, _ = track_file(cloud, motive, defs, RigidConfig(), 30.0, 20.0, refine=refine)
-    elapsed = time.perf_counter() - start
+    elapsed, cpu = time.perf_counter() - start, time.process_time() - cpu
     good, dp_all, da_all = [], [], []
     for b, body in enumerate(defs):
         theirs = motive.poses[body.name]
@@ -48,7 +54,7 @@ def run(path: Path, refine: str) -> dict:
         dp_all.append(dp[both])
         da_all.append(da[both])
     return {"worst": min(good), "off_body": good[0], "pos_mm": np.median(np.concatenate(dp_all)),
-            "ang_deg": np.median(np.concatenate(da_all)), "time_s": elapsed,
+            "ang_deg": np.median(np.concatenate(da_all)), "time_s": elapsed, "cpu_s": cpu,
             "frames": len(cloud)}
 
 
@@ -57,6 +63,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--frames", type=int, default=752)
     parser.add_argument("--off-mm", type=float, default=4.0)
+    parser.add_argument("--speed-minutes", type=float, default=0.0)
     args = parser.parse_args()
     rows = {"auto": [], "off": []}
     with tempfile.TemporaryDirectory() as tmp:
@@ -68,14 +75,41 @@ def main() -> None:
     print(f"{args.repeats} takes of {args.frames} frames, definition {args.off_mm:g} mm off; "
           "medians over the takes")
     print("| refine | worst body, frames within 1 mm / 1 deg | off body | position err mm "
-          "(median) | orientation err deg (median) | run s (wall) |")
-    print("| --- | --- | --- | --- | --- | --- |")
+          "(median) | orientation err deg (median) | run s (wall) | run s (CPU) |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
     for mode, label in (("auto", "auto (default)"), ("off", "off (baseline)")):
         med = {k: float(np.median([x[k] for x in rows[mode]])) for k in rows[mode][0]}
         worst = min(x["worst"] for x in rows[mode])
         print(f"| {label} | {100 * med['worst']:.2f} % (lowest {100 * worst:.2f} %) | "
               f"{100 * med['off_body']:.2f} % | {med['pos_mm']:.3f} | {med['ang_deg']:.3f} | "
-              f"{med['time_s']:.2f} |")
+              f"{med['time_s']:.2f} | {med['cpu_s']:.2f} |")
+    if args.speed_minutes > 0:
+        speed(args.speed_minutes, args.repeats)
+
+
+def speed(minutes: float, repeats: int) -> None:
+    """The refinement's cost beside the tracking's, on bench_track.py's scene."""
+    from bench_track import scene
+
+    from daemon.markers.body_refine import refine_bodies
+    from daemon.markers.offline_track import cloud_from_points, track_cloud
+
+    pts, _, defs = scene(minutes)
+    cloud = cloud_from_points(pts, 120.0)
+    cost = {"refine_bodies (auto), 10 bodies": [], "track_cloud (baseline)": []}
+    for _ in range(repeats):
+        c = time.process_time()
+        refine_bodies(cloud.xyz, defs, RigidConfig().distance_tol_m, "auto")
+        cost["refine_bodies (auto), 10 bodies"].append(time.process_time() - c)
+        c = time.process_time()
+        track_cloud(cloud, defs, RigidConfig(refine=False))
+        cost["track_cloud (baseline)"].append(time.process_time() - c)
+    print(f"\n{len(cloud)} frames ({minutes:g} min at 120 Hz), 10 bodies, 45 points a frame; "
+          f"CPU s, median / worst of {repeats}")
+    print("| what | CPU s |")
+    print("| --- | --- |")
+    for what, v in cost.items():
+        print(f"| {what} | {np.median(v):.2f} / {max(v):.2f} |")
 
 
 if __name__ == "__main__":
