@@ -394,3 +394,21 @@ def test_motive_1_0_take_four_bodies_one_definition_off(tmp_path, mocapd_cli):
     f0 = int(np.argmax(table.valid[:, 1]))
     np.testing.assert_allclose([first["pose"]["position"][a] for a in "xyz"],
                                table.xyz[f0, 1], atol=1e-6)
+
+
+def test_every_mcap_says_its_world_is_z_up(tmp_path):
+    """The MCAP writer (mocapd record's too) records its axes and units in a metadata
+    record, and a caller's notes beside them."""
+    from mcap.reader import make_reader
+
+    from daemon.publish.mcap_poses import McapPoseWriter
+
+    for extra in (None, {"source_up_axis": "y"}):
+        path = tmp_path / "a.mcap"
+        with McapPoseWriter(path, ["a"], metadata=extra) as w:
+            w.write(0, np.array([True]), np.zeros((1, 3)), np.array([[0, 0, 0, 1.0]]))
+        with open(path, "rb") as handle:
+            (meta,) = [m for m in make_reader(handle).iter_metadata() if m.name == "mocapd"]
+        assert meta.metadata["up_axis"] == "z" and meta.metadata["length_unit"] == "m"
+        assert meta.metadata["world_frame"] == "world"
+        assert meta.metadata.get("source_up_axis") == (extra or {}).get("source_up_axis")
