@@ -144,3 +144,13 @@ def test_dropped_frames_solve_as_well_as_none_dropped(dance):
         grids.append(compare_rigs(rig, cal.rig)["grid_rms_mm"])
     assert grids[0] < 1.0  # 0.1 px noise: well under a millimetre
     assert abs(grids[1] - grids[0]) <= 0.1 * grids[0]
+
+
+def test_a_wrong_frame_rate_in_the_file_does_not_mislead_the_pairing(dance):
+    _rig, obs = dance
+    (raw, truth), _ = _delivered(obs, 0.01)
+    raw.fps = 30.0  # the header says 30 fps; the cameras ran at 100
+    assert abs(pairing.nominal_period_ns(raw) - 1e9 / FPS) < 1e5
+    paired = pairing.pair_frames(raw)
+    assert camclocks.sets_mixing_instants(paired.obs, truth, FPS)["mixing"] == 0
+    assert sum(paired.stats["unpaired_frames"]) == 0

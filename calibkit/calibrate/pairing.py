@@ -61,20 +61,22 @@ def _records(obs: Observations) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.
 
 
 def nominal_period_ns(obs: Observations) -> float | None:
-    """The frame period: from the recording's frame rate, else the median gap between a
-    camera's successive frames (per frame counted); None when times say nothing."""
-    if obs.fps:
-        return 1e9 / float(obs.fps)
+    """The frame period: the median time between a camera's successive frames (its counter
+    one apart), or the recording's frame rate when that agrees with it to 10 % (a file
+    may say a rate the cameras did not run at); None when neither says anything."""
+    said = 1e9 / float(obs.fps) if obs.fps else None
+    if len(obs) == 0:
+        return said
     cam, frame, t, _ = _records(obs)
     order = np.lexsort((frame, cam))
     cam, frame, t = cam[order], frame[order], t[order]
-    same = cam[1:] == cam[:-1]
-    df = np.diff(frame)[same]
-    dt = np.diff(t)[same].astype(np.float64)
-    ok = (df > 0) & (dt > 0)
-    if not ok.any():
-        return None
-    return float(np.median(dt[ok] / df[ok]))
+    step = (cam[1:] == cam[:-1]) & (np.diff(frame) == 1)
+    dt = np.diff(t)[step].astype(np.float64)
+    dt = dt[dt > 0]
+    if len(dt) < 3:
+        return said
+    seen = float(np.median(dt))
+    return said if said is not None and abs(seen - said) <= 0.1 * said else seen
 
 
 def frames_are_instants(obs: Observations, period_ns: float | None = None) -> bool:
