@@ -15,12 +15,22 @@ CPU time is what the work costs), median and worst over --repeats:
 Pose errors against the truth are printed for the tracked take (every valid pose counted,
 gross: > 20 mm or > 5 deg).
 
+With --big-csv PATH (a file from benchmarks/gen_points_csv.py, its bodies beside it) it
+measures instead, each in a child process of its own, wall time, CPU time and peak RSS
+(the child's own, from os.wait4) of: reading the points CSV whole (c3dio.read_points_csv,
+the reader `mocapd track` used before; the baseline), reading it streamed
+(daemon/markers/points_csv.py), and the whole `mocapd track` command.
+
     python benchmarks/bench_track.py [--minutes 10] [--repeats 3] [--baseline-frames 6000]
+    python benchmarks/gen_points_csv.py --mb 1000 --out /tmp/points_1g.csv
+    python benchmarks/bench_track.py --big-csv /tmp/points_1g.csv --repeats 1
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import subprocess
 import sys
 import tempfile
 import time
@@ -73,7 +83,11 @@ def main() -> None:
     parser.add_argument("--minutes", type=float, default=10.0)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--baseline-frames", type=int, default=6000)
+    parser.add_argument("--big-csv", type=Path, default=None)
     args = parser.parse_args()
+    if args.big_csv is not None:
+        big_csv(args.big_csv, args.repeats)
+        return
     pts, bodies, defs = scene(args.minutes)
     cloud = cloud_from_points(pts, RATE)
     n = len(cloud)
@@ -131,6 +145,48 @@ def main() -> None:
           f"position RMS {np.sqrt(np.mean(dp ** 2)):.3f} mm (max {dp.max():.2f}), "
           f"orientation RMS {np.sqrt(np.mean(da ** 2)):.3f} deg (max {da.max():.2f}); "
           f"gross {gross}")
+
+
+READ_WHOLE = ("from daemon.markers.c3dio import read_points_csv as r; "
+              "p = r({path!r}); print(len(p.frame))")
+READ_STREAMED = ("from daemon.markers.points_csv import read_points_csv as r; "
+                 "p, b = r({path!r}); print(len(p.frame))")
+
+
+def _child(argv: list[str]) -> tuple[float, float, float]:
+    """(wall s, CPU s, peak RSS MB) of one child process, its output dropped."""
+    start = time.perf_counter()
+    proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - start
+    err = proc.stderr.read().decode(errors="replace")
+    proc.stderr.close()
+    if os.waitstatus_to_exitcode(status) != 0:
+        raise SystemExit(f"{' '.join(argv[:4])} ... failed: {err[-500:]}")
+    return wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024.0
+
+
+def big_csv(path: Path, repeats: int) -> None:
+    """Time and peak memory of reading and tracking a big points CSV (see the docstring)."""
+    bodies = path.parent / f"{path.name}.bodies.toml"
+    out = Path(tempfile.mkdtemp()) / "poses.csv"
+    py = sys.executable
+    cases = {
+        "read whole (c3dio, before)": [py, "-c", READ_WHOLE.format(path=str(path))],
+        "read streamed (points_csv)": [py, "-c", READ_STREAMED.format(path=str(path))],
+        "mocapd track (streamed read)": [py, "-m", "daemon.cli", "track", str(path),
+                                         "--bodies", str(bodies), "--out", str(out)],
+    }
+    size_mb = path.stat().st_size / 1e6
+    print(f"{path.name}: {size_mb:.0f} MB; {repeats} repeat(s), median (worst); "
+          f"load {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+    print(f"{'what':>30s} | {'wall s':>15s} | {'CPU s':>15s} | {'peak RSS MB':>17s}")
+    for name, argv in cases.items():
+        runs = np.array([_child(argv) for _ in range(repeats)])
+        med, worst = np.median(runs, axis=0), runs.max(axis=0)
+        print(f"{name:>30s} | {med[0]:7.1f} ({worst[0]:5.1f}) | {med[1]:7.1f} "
+              f"({worst[1]:5.1f}) | {med[2]:8.0f} ({worst[2]:6.0f})")
+    out.unlink(missing_ok=True)
 
 
 def _run(run_app, app):

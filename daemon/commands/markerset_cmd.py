@@ -9,6 +9,7 @@ import typer
 
 from calibkit.clitools import Progress, print_table, write_json
 from calibkit.core.errors import UserError
+from daemon.commands.points_input import bad_rows_json, read_points_for_command
 
 JsonOpt = Annotated[Path | None, typer.Option("--json", help="Write the figures as JSON.")]
 RateOpt = Annotated[float | None, typer.Option(
@@ -113,7 +114,7 @@ def register(app: typer.Typer) -> None:
         segment's proportions, markers placed otherwise or missing, and a verdict."""
         import numpy as np
 
-        from daemon.markers.c3dio import Points, read_points_csv, read_take
+        from daemon.markers.c3dio import Points, read_take
         from daemon.markers.markerset import open_set
         from daemon.markers.markerset_fit import check_fit, check_points
 
@@ -138,7 +139,8 @@ def register(app: typer.Typer) -> None:
             extra = [n for n in take.labels if n not in ms.labels]
             fit = check_fit(ms, xyz, "labels", extra)
         else:
-            pts = Points.from_take(take) if labelled else read_points_csv(take_path)
+            pts = Points.from_take(take) if labelled else \
+                read_points_for_command(take_path)[0]
             if not len(pts.frame):
                 raise UserError(f"{take_path} holds no points")
             fit = check_points(ms, pts.split()[1])
@@ -177,11 +179,14 @@ def register(app: typer.Typer) -> None:
         old_labels: Annotated[Path | None, typer.Option("--seed", hidden=True)] = None,
         rate: RateOpt = None,
         json_path: JsonOpt = None,
+        strict: Annotated[bool, typer.Option(
+            "--strict", help="Refuse a points CSV with bad rows (text, NaN, inf, wrong "
+                             "column count) instead of skipping and counting them.")] = False,
     ) -> None:
         """Name every point of every frame; ghosts are left out."""
         import numpy as np
 
-        from daemon.markers.c3dio import Points, read_points_csv, read_take, write_take
+        from daemon.markers.c3dio import Points, read_take, write_take
         from daemon.markers.label_offline import (
             duplicate_trajectories,
             label_take,
@@ -201,6 +206,7 @@ def register(app: typer.Typer) -> None:
         rate_hz = rate
         first_labels = None
         twins: list = []
+        bad = None
         if points.suffix.lower() == ".c3d":
             labelled = read_take(points)
             pts = Points.from_take(labelled)
@@ -209,7 +215,7 @@ def register(app: typer.Typer) -> None:
             if start_frames and start_labels is None:
                 first_labels = labelled
         elif points.suffix.lower() == ".csv":
-            pts = read_points_csv(points)
+            pts, bad = read_points_for_command(points, strict)
         elif points.suffix.lower() == ".mcrec":
             pts, rec_rate = _triangulated(points, rig_path)
             rate_hz = rate_hz or rec_rate
@@ -252,6 +258,8 @@ def register(app: typer.Typer) -> None:
                    "duplicate_trajectories": [list(t[:2]) for t in twins],
                    "per_marker_seen": {n: int(c) for n, c in zip(ms.labels, seen.sum(0),
                                                                    strict=True)}}
+        if bad is not None:
+            figures["bad_rows"] = bad_rows_json(bad)
         twice = f" ({merged} as a duplicate)" if merged else ""
         typer.echo(f"wrote {out}: {take.n_frames} frames, {int(seen.sum()) + merged} of {n_pts} "
                    f"points labelled{twice}, median confidence "

@@ -13,6 +13,7 @@ import typer
 
 from calibkit.clitools import Progress, print_table, write_json
 from calibkit.core.errors import UserError
+from daemon.commands.points_input import bad_rows_json, read_points_for_command
 
 
 def register(app: typer.Typer) -> None:
@@ -56,6 +57,9 @@ def register(app: typer.Typer) -> None:
             "--up-axis", help="The input's up axis, y or z (default: Motive's y for a "
                               "Motive CSV, z for C3D and points CSV); outputs are "
                               "z-up.")] = None,
+        strict: Annotated[bool, typer.Option(
+            "--strict", help="Refuse a points CSV with bad rows (text, NaN, inf, wrong "
+                             "column count) instead of skipping and counting them.")] = False,
     ) -> None:
         """Find and pose rigid bodies in a file of 3D markers with the daemon's own rigid
         tracker; one CSV row per frame and body (see docs/track.md)."""
@@ -93,8 +97,10 @@ def register(app: typer.Typer) -> None:
             rigid_cfg = replace(rigid_cfg, distance_tol_m=distance_tol_mm / 1000.0)
         if max_error_mm is not None:
             rigid_cfg = replace(rigid_cfg, max_error_m=max_error_mm / 1000.0)
+        points, bad, rate = _points_csv(markers, rate, strict)
         cloud, motive, kind, up = load_markers(markers, rate,
-                                               up_axis.lower() if up_axis else None)
+                                               up_axis.lower() if up_axis else None, points)
+        del points  # packed into the cloud: not held through the tracking
         if from_file:
             defs = bodies_from_motive(motive, markers)
         progress = Progress("track", len(cloud))
@@ -102,6 +108,8 @@ def register(app: typer.Typer) -> None:
                                        progress.update, refine_bodies)
         progress.finish(f"{figs['poses']} poses")
         figs["input"] = {"file": str(markers), "kind": kind, "up_axis": up}
+        if bad is not None:
+            figs["input"]["bad_rows"] = bad_rows_json(bad)
         if out.suffix.lower() == ".mcap":
             from daemon.publish.mcap_poses import write_poses_mcap
 
@@ -126,6 +134,21 @@ def register(app: typer.Typer) -> None:
                    f"{figs['poses']} poses ({100 * figs['valid_fraction']:.1f}% valid)")
         if json_path is not None:
             write_json(json_path, figs)
+
+
+def _points_csv(markers: Path, rate: float | None, strict: bool):
+    """(Points, BadRows, frame rate) of a points CSV, streamed with its bad rows counted
+    (None, None, rate for other files: load_markers reads those); its frame rate is asked
+    for before the long read."""
+    from daemon.markers.motive_csv import sniff
+    from daemon.markers.points_csv import points_header
+
+    if markers.suffix.lower() != ".csv" or not markers.is_file() or sniff(markers):
+        return None, None, rate
+    rate = rate or points_header(markers).rate_hz
+    if rate is None:
+        raise UserError(f"{markers} has no frame rate: give --rate HZ (the cameras' rate)")
+    return (*read_points_for_command(markers, strict), rate)
 
 
 def _check_outputs(markers: Path, out: Path, motive_out: Path | None) -> None:

@@ -40,7 +40,8 @@ from daemon.markers.trajectory_io import PoseTable
 from daemon.rigid import BodyDef, RigidConfig
 
 
-def load_markers(path: Path, rate_hz: float | None, up_axis: str | None = None):
+def load_markers(path: Path, rate_hz: float | None, up_axis: str | None = None,
+                 points=None):
     """(MarkerCloud, MotiveTake or None, what the file is, the file's up axis) from any 3D
     marker file, in mocapd's z-up world. `up_axis` overrides the file's own: Motive's
     world is y-up (a table export made with a z-up axis convention needs 'z'); C3D and our
@@ -64,7 +65,7 @@ def load_markers(path: Path, rate_hz: float | None, up_axis: str | None = None):
         motive = to_z_up(motive)
         return (cloud_from_arrays(motive.all_markers(), motive.t_s, motive.frame), motive,
                 f"Motive CSV {motive.meta.get('format_version', '')}", up)
-    points = read_points_csv(path)
+    points = read_points_csv(path) if points is None else points  # given: read by the caller
     rate = rate_hz or csv_rate(path)
     if rate is None:
         raise UserError(f"{path} has no frame rate: give --rate HZ (the cameras' rate)")
