@@ -3,12 +3,16 @@
 Scene (the one docs/extrinsic.md sets its targets on): 6 cameras round a 4 x 4 m floor, a
 ceiling projector (1280 x 800, 60 degrees, k1 = 0.02), a 1.6 x 0.9 m table at 0.75 m; 0.2 px
 centroid noise, 5 mm (per axis) error in the tape-measured reference points (16 on the
-floor, 5 on the table). Each variant runs on `--seeds` scenes (different rigs, projector
-placements and tape errors); the table gives the median and the worst camera of each run, the median
-over runs of the mean ray distance at the floor and at 1.7 m (points seen exactly by the
-true cameras, cast back by the calibrated ones), and the median solve time. Ratios are
-against the baseline run in the same process: floor dots only, each camera on its own
-(PnP), the way a projector-only calibration without the table would.
+floor, 5 on the table) and 2 mm (SD) in the tape's table height, as `extrinsic --sim` draws
+them. Each variant runs on `--seeds` scenes (different rigs, projector placements and tape
+errors); the table gives the median and the worst camera of each run, the median over runs
+of the mean ray distance at the floor and at 1.7 m (points seen exactly by the true cameras,
+cast back by the calibrated ones), the median |scale error| `calibkit compare` finds (ppm),
+and the median solve time. Ratios are against the baseline run in the same process: floor
+dots only, each camera on its own (PnP), the way a projector-only calibration without the
+table would. A second table follows the table height per variant: the tape's error, the
+dots' own measure of it (extrinsic_solve.measure_table_height) and the height used, RMS
+over scenes against the truth, and the dots' error over their stated sigma.
 
 The estimate starts from estimated intrinsics, as a user's does: each camera calibrated by
 the intrinsic step on its own simulated monitor views (calibkit.calibrate.intrinsic.calibrate on the
@@ -39,6 +43,7 @@ from calibkit.calibrate import extrinsic_solve as exs
 from calibkit.calibrate.compare import compare_rigs
 from calibkit.clitools import print_table, write_json
 from calibkit.synthetic import projector as sp
+from calibkit.synthetic.extrinsic_sim import TAPE_HEIGHT_ERROR_MM
 from projector.patterns import coded_schedule
 
 PROJ = (1280, 800)
@@ -51,8 +56,10 @@ class Variant:
     table: bool = True
     joint: bool = True
     n_refs: int = 4  # n x n floor reference points
-    height_error_m: float = 0.0
+    height_error_m: float = TAPE_HEIGHT_ERROR_MM / 1000.0  # the tape's table height, SD
     ref_error_m: float = 0.005
+    height_misread_m: float = 0.0  # added to the tape's table height (a misreading)
+    refine_height: bool = True  # the solve checks the tape's height against the dots
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,8 +73,11 @@ VARIANTS = [
     Variant("floor + table, PnP per camera", joint=False),
     Variant("floor + table, joint (default)"),
     Variant("floor + table, joint, 3x3 floor refs", n_refs=3),
-    Variant("floor + table, joint, table height 2 mm off", height_error_m=0.002),
-    Variant("floor + table, joint, exact tape", ref_error_m=0.0),
+    Variant("floor + table, joint, exact table height", height_error_m=0.0),
+    Variant("floor + table, joint, height misread +10 mm", height_misread_m=0.010),
+    Variant("floor + table, joint, height misread +10 mm, not checked", height_misread_m=0.010,
+            refine_height=False),
+    Variant("floor + table, joint, exact tape", ref_error_m=0.0, height_error_m=0.0),
     TrueIntrinsics("BASELINE: floor + table, joint, from the TRUE intrinsics"),
 ]
 _INTRINSICS: dict[int, object] = {}
@@ -109,7 +119,7 @@ def run(v: Variant, seed: int, noise_px: float = 0.2) -> dict:
     refs = exr.References(m["floor_px"], m["floor_xy_m"],
                          m["table_px"] if v.table else np.zeros((0, 2)),
                          m["table_xy_m"] if v.table else np.zeros((0, 2)),
-                         m["table_height_m"] if v.table else None)
+                         m["table_height_m"] + v.height_misread_m if v.table else None)
     floor, table = exr.plane_maps(refs)
     sch = coded_schedule(PROJ, 64, 2, 8)
     fd = sp.simulated_dots(scene, sch.points_xy, False, noise_px, seed=seed)
@@ -122,12 +132,21 @@ def run(v: Variant, seed: int, noise_px: float = 0.2) -> dict:
     intrinsics = scene.rig if isinstance(v, TrueIntrinsics) else \
         monitor_intrinsics(scene.rig, seed)[0]
     t0 = time.perf_counter()
-    res = exs.calibrate(intrinsics, dots, floor, table, exs.SolveOptions(joint=v.joint))
+    res = exs.calibrate(intrinsics, dots, floor, table,
+                        exs.SolveOptions(joint=v.joint, refine_height=v.refine_height))
     dt = time.perf_counter() - t0
     cmp = compare_rigs(scene.rig, res.rig, align=False)
     pos = [c["position_mm"] for c in cmp["cameras"]]
     rot = [c["rotation_deg"] for c in cmp["cameras"]]
-    return {"pos": pos, "rot": rot, "time_s": dt,
+    h = res.report.get("table_height")
+    true_m = scene.table.height_m
+    height = None if not v.table else {
+        "tape_mm": 1000 * (refs.table_height_m - true_m),
+        "dots_mm": 1000 * (h["dots_m"] - true_m) if h else float("nan"),
+        "dots_sigma_mm": h["dots_sigma_mm"] if h else float("nan"),
+        "used_mm": 1000 * ((h["used_m"] if h else refs.table_height_m) - true_m)}
+    return {"pos": pos, "rot": rot, "time_s": dt, "height": height,
+            "scale_ppm": cmp["scale"]["error_ppm"],
             "ray0": sp.ray_distance_at_height(res.rig, scene.rig, 0.0, VOLUME),
             "ray17": sp.ray_distance_at_height(res.rig, scene.rig, 1.7, VOLUME),
             "calibrated": len(res.rig)}
@@ -143,7 +162,7 @@ def with_wand(seed: int, n_frames: int) -> dict:
     v = Variant("default")
     scene = sp.make_scene(6, VOLUME, 0.75, seed=seed)
     m = sp.measured_references(scene, exr.reference_layout_px(PROJ), sp.table_reference_px(scene),
-                               v.ref_error_m, seed=seed)
+                               v.ref_error_m, v.height_error_m, seed=seed)
     refs = exr.References(m["floor_px"], m["floor_xy_m"], m["table_px"], m["table_xy_m"],
                          m["table_height_m"])
     floor, table = exr.plane_maps(refs)
@@ -177,7 +196,7 @@ def rendered(seed: int) -> dict:
     """One full capture through rendered images: frames per session and wall time."""
     scene = sp.make_scene(6, VOLUME, 0.75, seed=seed)
     m = sp.measured_references(scene, exr.reference_layout_px(PROJ), sp.table_reference_px(scene),
-                               0.005, seed=seed)
+                               0.005, TAPE_HEIGHT_ERROR_MM / 1000.0, seed=seed)
     refs = exr.References(m["floor_px"], m["floor_xy_m"], m["table_px"], m["table_xy_m"],
                          m["table_height_m"])
     floor, table = exr.plane_maps(refs)
@@ -210,7 +229,7 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
     results = {}
-    rows = []
+    rows, hrows = [], []
     base17 = base0 = None
     for v in VARIANTS:
         runs = [run(v, s) for s in range(args.seeds)]
@@ -225,7 +244,20 @@ def main(argv=None) -> int:
                                           for p, r in zip(pos_max, rot_max, strict=True))),
             "ray_floor_mm": float(np.median([r["ray0"] for r in runs])),
             "ray_1p7_mm": float(np.median([r["ray17"] for r in runs])),
+            "scale_ppm_median_abs": float(np.median([abs(r["scale_ppm"]) for r in runs])),
             "solve_s": float(np.median([r["time_s"] for r in runs]))}
+        if v.table:
+            hs = {k: np.array([r["height"][k] for r in runs])
+                  for k in ("tape_mm", "dots_mm", "dots_sigma_mm", "used_mm")}
+            rms = {k: float(np.sqrt(np.mean(hs[k] ** 2))) for k in ("tape_mm", "dots_mm",
+                                                                      "used_mm")}
+            fig["table_height"] = {**{f"{k}_rms": val for k, val in rms.items()},
+                                   "dots_sigma_mm_median": float(np.median(hs["dots_sigma_mm"])),
+                                   "dots_error_over_sigma_rms": float(np.sqrt(np.mean(
+                                       (hs["dots_mm"] / hs["dots_sigma_mm"]) ** 2)))}
+            hrows.append([v.name, rms["tape_mm"], rms["dots_mm"],
+                          fig["table_height"]["dots_sigma_mm_median"],
+                          fig["table_height"]["dots_error_over_sigma_rms"], rms["used_mm"]])
         if base17 is None:
             base0, base17 = fig["ray_floor_mm"], fig["ray_1p7_mm"]
         fig["ray_1p7_ratio"] = fig["ray_1p7_mm"] / base17
@@ -234,7 +266,8 @@ def main(argv=None) -> int:
         rows.append([v.name, fig["position_median_mm"], fig["position_worst_mm"],
                      fig["rotation_median_deg"], fig["rotation_worst_deg"],
                      f"{fig['runs_within_target']}/{args.seeds}", fig["ray_floor_mm"],
-                     fig["ray_1p7_mm"], fig["ray_1p7_ratio"], fig["solve_s"]])
+                     fig["ray_1p7_mm"], fig["ray_1p7_ratio"], fig["scale_ppm_median_abs"],
+                     fig["solve_s"]])
         print(f"{v.name}: done", file=sys.stderr)
     intr = [monitor_intrinsics(sp.make_scene(6, VOLUME, 0.75, seed=s).rig, s)
             for s in range(args.seeds)]
@@ -246,7 +279,11 @@ def main(argv=None) -> int:
           f"{results['intrinsics_in']['principal_px_worst']:.3f} px) except the BASELINE row")
     print_table(rows, ["variant", "pos_med_mm", "pos_worst_mm", "rot_med_deg",
                        "rot_worst_deg", "in target", "ray@0_mm", "ray@1.7_mm",
-                       "ray@1.7 ratio", "solve_s"])
+                       "ray@1.7 ratio", "|scale|_ppm", "solve_s"])
+    print("\ntable height against the truth, RMS over scenes (mm); dots: the solve's own "
+          "measure (used only when the tape disagrees beyond 3 sigma)")
+    print_table(hrows, ["variant", "tape_mm", "dots_mm", "dots_sigma_mm", "dots err/sigma",
+                        "used_mm"])
     sch = coded_schedule(PROJ, 64, 2, 8)
     cfg = sp.ProjectorSimConfig()
     lat = sp.latency_frames(cfg, 6)
