@@ -258,7 +258,9 @@ def test_one_marker_wand_needs_initial_poses_for_its_scale():
     start = Rig(tuple(t.replace(t=-t.R @ c.centre) for t, c in zip(turned, rig, strict=True)))
     cal = calibrate(obs, rig, (0.0,), initial=start)
     assert cal.report["held_out"]["reprojection_rms_px"] < 0.35
-    assert cal.report["grade"] in ("excellent", "good")
+    # the pixels fit, but a single marker's rays leave the cameras loosely determined
+    # (position SDs of 15-25 mm here, the rig ~6 mm off): the grade says so
+    assert cal.report["grade"] == "usable" and "ppm" in cal.report["grade_reason"]
     # the scale is held at the starting rig's (true) size; a single marker gives rays only,
     # so the shape is known less well (exact without noise, checked by hand) and the
     # reported uncertainty says so: the errors are of its size

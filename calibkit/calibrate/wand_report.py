@@ -45,6 +45,13 @@ SYSTEMATIC_GRADES = (("excellent", 0.02), ("good", 0.05), ("usable", 0.1))
 # a file whose values the wand moves many of its own sigmas is wrong or over-confident, and
 # then the capture alone vouches for the result (docs/wand.md).
 INTRINSIC_SIGMA_GRADES = (("excellent", 3.0), ("good", 5.0))
+# How well the solve determines the cameras, per grade: the largest camera position
+# standard deviation (the marginals, intrinsics' uncertainty included) over its distance
+# from the reference camera, ppm at most. On the simulator (4 m volume) the rig's grid
+# error was 0.4-1.8 um per ppm (docs/wand.md: 64-69 ppm for rigs 0.09-0.10 mm off, 118-172
+# ppm for 0.20-0.31 mm, 1006 ppm for 0.43 mm, 5657 ppm for 6.1 mm): loose limits, for rigs
+# the capture leaves loosely determined, not for tenths of a millimetre.
+POSITION_PPM_GRADES = (("excellent", 300.0), ("good", 1500.0))
 BEHIND_SHARE = 0.01  # more observations than this behind their camera: a mirrored solution
 
 
@@ -219,12 +226,16 @@ def checks(rig: Rig, points_xyz: np.ndarray, behind_share: float) -> dict:
 
 
 def grade(held: dict, found: dict, wand_length_m: float, syst: dict | None = None,
-          intrinsics: list[dict] | None = None, basis: str = "held-out") -> tuple[str, str]:
+          intrinsics: list[dict] | None = None, basis: str = "held-out",
+          position_ppm: tuple[str, float] | None = None) -> tuple[str, str]:
     """(grade, the reason in plain words) from the held-out figures (`basis` names the frames
     they come from: "solved" when none were held out), the checks, the systematic length
     errors (`systematics`) and how far the solve moved each camera's intrinsics from the
-    file's (`intrinsics`: rows with largest_change_sigmas, as the report's): the worst of
-    the grades each allows. A figure that could not be computed (NaN) caps nothing."""
+    file's (`intrinsics`: rows with largest_change_sigmas, as the report's) and how well the
+    solve determines the cameras (`position_ppm`: the camera whose position standard
+    deviation, over its distance from the reference camera, is the largest, and that share
+    in ppm): the worst of the grades each allows. A figure that could not be computed (NaN)
+    caps nothing."""
     name, reason = _grade_held(held, found, wand_length_m, basis)
     if name in ("failed", "poor"):
         return name, reason
@@ -260,6 +271,17 @@ def grade(held: dict, found: dict, wand_length_m: float, syst: dict | None = Non
                    "their uncertainties are wrong, and what the wand made of them is judged "
                    "by this capture alone; recalibrate the intrinsics (calibkit intrinsic) "
                    "or solve with the monitor's views")
+    if position_ppm is not None and np.isfinite(position_ppm[1]):
+        cam, ppm = position_ppm
+        allowed = next((g for g, limit in POSITION_PPM_GRADES if ppm <= limit), "usable")
+        if order.index(allowed) > order.index(worst):
+            worst = allowed
+            missed = order[order.index(allowed) - 1]
+            why = (f"the capture determines camera {cam}'s position only to {ppm:.0f} ppm of "
+                   f"its distance from the reference camera (the solve's own standard "
+                   f"deviation; '{missed}' allows {dict(POSITION_PPM_GRADES)[missed]:g} ppm):"
+                   " wave the wand through more of the volume and every camera's image, or "
+                   "give the intrinsics with their monitor views")
     if why:
         return worst, why
     return name, reason + (f"; systematic length errors within the {dict(SYSTEMATIC_GRADES)[name]}"

@@ -232,9 +232,11 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
     found = wand_report.checks(rig, solved["xyz"], solved["behind_share"])
     moved_rows = [dict(m, name=prior[k].name) for k, m in enumerate(intrinsics_moved)
                   if refine[k] and m]
+    determined = _position_ppm(rig, cov)
     grade, reason = wand_report.grade(solved if held is None else held, found, spec.length_m,
                                       syst, moved_rows,
-                                      "held-out" if held is not None else "solved")
+                                      "held-out" if held is not None else "solved",
+                                      determined)
     if held is None:
         reason += " (graded on the solved frames: none were held out, so over-fitting cannot show)"
     if not length_known and not scaled:
@@ -247,6 +249,9 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
                                  warnings, never + missing, wand, intr, world is not None,
                                  held_reason)
     report["systematic"] = syst
+    report["position_ppm"] = {"camera": determined[0], "ppm": determined[1]} \
+        if determined else {"camera": None, "ppm": float("nan"),
+                            "reason": "no uncertainty (the marginals failed)"}
     report["held_out"]["random_frames"] = int(len(held_random))
     report["held_out"]["region_frames"] = int(len(held_region))
     report["intrinsics"] = wand_summary.intrinsics_report(refine, prior, sigmas, prior_source,
@@ -277,6 +282,21 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
                                         if k in ("volume_m",)}, **meta})
     return WandCalibration(rig, report, wand, solved, solved if held is None else held,
                            result, held_frames)
+
+
+def _position_ppm(rig: Rig, cov: dict | None) -> tuple[str, float] | None:
+    """The camera known least well relative to its distance from the reference camera, and
+    that standard deviation in ppm of the distance (scale-free)."""
+    if cov is None:
+        return None
+    ref = rig.centres()[rig.index(cov["reference_camera"])]
+    dist = np.linalg.norm(rig.centres() - ref, axis=1)
+    ppm = np.where(dist > 0, 1e6 * cov["position_std_total_m"] / np.maximum(dist, 1e-12),
+                   np.nan)
+    if not np.isfinite(ppm).any():
+        return None
+    k = int(np.nanargmax(ppm))
+    return rig[k].name, float(ppm[k])
 
 
 def _scale_report(spec: WandSpec, length_known: bool) -> dict:

@@ -111,6 +111,7 @@ def report(rig: Rig, spec: WandSpec, result: BundleResult, solved: dict, held: d
                              for g, p, m in wand_report.GRADES],
         "systematic_thresholds_pct": dict(wand_report.SYSTEMATIC_GRADES),
         "intrinsic_sigma_grades": dict(wand_report.INTRINSIC_SIGMA_GRADES),
+        "position_ppm_grades": dict(wand_report.POSITION_PPM_GRADES),
         "left_out_cameras": left_out, "warnings": warnings,
         "world_frame": "floor" if floor_given else "cameras (provisional: run calibkit floor)",
         "identification": {"frames_with_wand": dict(zip(intr.names,

@@ -277,6 +277,10 @@ def _print(report: dict) -> None:
                f"{report['world_frame']}; scale: "
                + ("from the " + scale["source"] if scale["known"] else
                   "unknown, " + scale["unit"]))
+    det = report.get("position_ppm") or {}
+    if det.get("camera") is not None:
+        typer.echo(f"least determined camera: {det['camera']}, position SD {det['ppm']:.0f} "
+                   "ppm of its distance from the reference camera")
     for w in report["warnings"]:
         typer.echo(f"warning: {w}")
     typer.echo(f"grade: {report['grade']} ({report['grade_reason']})")
