@@ -238,6 +238,11 @@ def wand_page(report: dict, rig: Rig, points: np.ndarray | None,
                                             ("region", "held-out regions"),
                                             ("trend", "trend with position"))],
                          "systematic"))
+    det = report.get("position_ppm") or {}
+    if det.get("camera") is not None:
+        out.append(f'<p id="determination" class="muted">least determined camera: '
+                   f'{esc(det["camera"])}, position SD {number(det["ppm"], 0)} ppm of its '
+                   "distance from the reference camera (the solve's own uncertainty)</p>")
     out += _wand_intrinsics(report)
     scale = report.get("scale") or {}
     if scale and not scale.get("known", True):
