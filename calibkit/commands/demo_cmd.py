@@ -12,6 +12,7 @@ import math
 import shlex
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Annotated
@@ -76,8 +77,9 @@ def _intrinsic_rows(intr: dict) -> list[list]:
 def register(app: typer.Typer) -> None:
     @app.command("demo")
     def demo(
-        out: Annotated[Path, typer.Option("--out", help="Folder for the files it makes.")]
-        = Path("calibkit-demo"),
+        out: Annotated[Path | None, typer.Option(
+            "--out", help="Folder for the files it makes (default: a new folder under the "
+                          "system's temporary folder, named when the demo starts).")] = None,
         seed: Annotated[int, typer.Option("--seed", help="Random seed.")] = 0,
         cameras: Annotated[int, typer.Option("--cameras", help="Simulated cameras.")] = 6,
         wand_frames: Annotated[int, typer.Option(
@@ -92,6 +94,8 @@ def register(app: typer.Typer) -> None:
         if cameras < 3 or wand_frames < 200 or track_frames < 10:
             raise UserError("the demo needs --cameras >= 3, --wand-frames >= 200 and "
                             "--track-frames >= 10")
+        if out is None:  # never the current folder: a clone is not the place for its files
+            out = Path(tempfile.mkdtemp(prefix="calibkit-demo-"))
         out.mkdir(parents=True, exist_ok=True)
         log = out / "demo.log"
         log.write_text("", encoding="utf-8")
