@@ -13,6 +13,10 @@ from calibkit.core.camera import Rig
 from calibkit.core.recording import load_observations
 
 
+def dots_height_m(path) -> float:
+    return load_dots(path).plane_height_m[1]
+
+
 def _one_line_error(res, code=2):
     assert res.code == code, res.out + res.err
     lines = [line for line in res.err.strip().splitlines() if line]
@@ -68,6 +72,7 @@ def test_sim_writes_the_rig_truth_and_plane_observations(calibkit_cli, tmp_path)
     assert abs(th["tape_error_mm"] - 1000 * (refs.table_height_m - 0.75)) <= 0.05
     assert abs(report["table_height"]["tape_m"] - refs.table_height_m) <= 0.05e-3
     assert abs(th["used_error_mm"]) < 4.0 and "scale_error_ppm" in report["truth"]
+    assert dots_height_m(tmp_path / "rig.dots.npz") == report["table_height"]["best_m"]
     dots = load_dots(tmp_path / "rig.dots.npz")
     assert set(dots.camera_names) == set(rig.names) and len(dots) > 1000
     floor_obs, _ = load_observations(tmp_path / "rig.floor.mcrec", rig)

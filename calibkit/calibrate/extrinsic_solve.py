@@ -11,11 +11,14 @@ user can act on.
 The table's height is a scale in z: 10 mm off (1.3 %) moves cameras 4 m away by 15 mm.
 The dots measure it too: with the table dots left free, the cameras that agree on the floor
 dots triangulate the table top, as well as the floor map knows its own scale (the tape's
-error over the reference points' spread: about 1 mm). That figure carries the floor map's
-scale error, so within the tape's stated error it does not place the cameras better than
-the tape (measured: docs/extrinsic.md); it is a check. A tape reading further from it than
-both uncertainties allow is taken for a misreading: the height used is then the two
-weighted by their uncertainties, and the user is told to re-measure.
+error over the reference points' spread: about 1 mm). The two measures are independent, so
+their mean weighted by their uncertainties is the best estimate of the true height, and
+that is what the dots file carries for solves that bring their own scale (the wand).
+These poses, though, live in the floor map's frame, and the dots' figure carries that
+map's scale error: within the tape's stated error it placed the cameras no better than the
+tape alone (measured: docs/extrinsic.md). So the poses use the tape's height unless the
+two disagree beyond both uncertainties: then the tape is taken for a misreading, the
+poses use the weighted height too, and the user is told to re-measure.
 """
 
 from __future__ import annotations
@@ -143,20 +146,21 @@ def _joint(rig: Rig, dots: DotObservations, use: np.ndarray, opts: SolveOptions
 @dataclass(frozen=True)
 class TableHeight:
     """The table top's height as the tape gave it, as the dots measure it (NaN when too few
-    table dots were seen by two cameras), the standard deviation of the dots' figure, and
-    the height used: the tape's, or when the two disagree, both weighted by their
-    uncertainties."""
+    table dots were seen by two cameras), the standard deviation of the dots' figure, both
+    weighted by their uncertainties (best_m: the dots file's), and the height the poses
+    used (the tape's, or best_m when the two disagree)."""
 
     tape_m: float
     dots_m: float
     dots_sigma_m: float
+    best_m: float
     used_m: float
     disagreement_sigmas: float  # |dots - tape| over both uncertainties combined
 
     def as_dict(self) -> dict:
         return {"tape_m": self.tape_m, "dots_m": self.dots_m,
-                "dots_sigma_mm": self.dots_sigma_m * 1000.0, "used_m": self.used_m,
-                "disagreement_sigmas": self.disagreement_sigmas}
+                "dots_sigma_mm": self.dots_sigma_m * 1000.0, "best_m": self.best_m,
+                "used_m": self.used_m, "disagreement_sigmas": self.disagreement_sigmas}
 
 
 def measure_table_height(rig: Rig, dots: DotObservations, use: np.ndarray, floor: PlaneMap,
@@ -165,9 +169,9 @@ def measure_table_height(rig: Rig, dots: DotObservations, use: np.ndarray, floor
     z = 0 and near their mapped places) and the table dots free, so the cameras triangulate
     the table top; its mean z is the dots' height. Its uncertainty is what the floor map
     leaves of the scale (height x the tape's error over the floor references' spread) with
-    the dots' own scatter; the tape's is opts.height_sigma_m. Further apart than
-    opts.height_check_sigmas of both, the tape is taken for a misreading (used_m: the
-    weighted mean); otherwise used_m is the tape's."""
+    the dots' own scatter; the tape's is opts.height_sigma_m. best_m is the two weighted;
+    used_m is the tape's, or best_m when they are further apart than
+    opts.height_check_sigmas of both (the tape misread)."""
     sel = dots.select(use)
     index = np.array([rig.names.index(n) if n in rig.names else -1 for n in dots.camera_names])
     used = np.unique(sel.point[index[sel.camera] >= 0])
@@ -177,7 +181,7 @@ def measure_table_height(rig: Rig, dots: DotObservations, use: np.ndarray, floor
     held = dataclasses.replace(data, known_point=pts, known_xyz=data.xyz[pts], plane_point=pts,
                                plane_normal=data.plane_normal[pts],
                                plane_offset_m=data.plane_offset_m[pts])
-    tape_only = TableHeight(tape_m, math.nan, math.inf, tape_m, 0.0)
+    tape_only = TableHeight(tape_m, math.nan, math.inf, tape_m, tape_m, 0.0)
     if not np.isfinite(floor.spread_m) or np.count_nonzero(~on_floor) < opts.min_height_dots:
         return tape_only
     result = bundle.solve(held, bundle.BundleOptions(
@@ -192,9 +196,9 @@ def measure_table_height(rig: Rig, dots: DotObservations, use: np.ndarray, floor
                        float(np.std(z)) / math.sqrt(len(z)))
     w_tape, w_dots = 1.0 / opts.height_sigma_m**2, 1.0 / sigma**2
     apart = abs(dots_m - tape_m) / math.hypot(opts.height_sigma_m, sigma)
-    used_m = tape_m if apart <= opts.height_check_sigmas else \
-        (tape_m * w_tape + dots_m * w_dots) / (w_tape + w_dots)
-    return TableHeight(tape_m, dots_m, sigma, float(used_m), float(apart))
+    best_m = float((tape_m * w_tape + dots_m * w_dots) / (w_tape + w_dots))
+    used_m = tape_m if apart <= opts.height_check_sigmas else best_m
+    return TableHeight(tape_m, dots_m, sigma, best_m, used_m, float(apart))
 
 
 def at_height(dots: DotObservations, height_m: float) -> DotObservations:
@@ -301,6 +305,8 @@ def calibrate(intrinsics: Rig, dots: DotObservations, floor: PlaneMap,
         poses = [_refigure(r, rig) for r in poses]
     report = figures(rig, poses, dots, inlier, floor, table, refined)
     report["table_height"] = None if height is None else height.as_dict()
+    if height is not None:
+        dots = at_height(dots, height.best_m)  # for solves with their own scale
     meta = {"source": "calibkit extrinsic --projector", "world_frame": "projector floor"}
     quality = {"extrinsic": {
         "reprojection_rms_px": report["reprojection_rms_px"],

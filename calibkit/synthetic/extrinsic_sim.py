@@ -129,10 +129,11 @@ def score(run: ProjectorSimRun, result: ExtrinsicResult, out: Path) -> dict:
              "scale_error_ppm": cmp["scale"]["error_ppm"]}
     if run.scene.table is not None:
         true_m = run.scene.table.height_m
-        used = (result.report.get("table_height") or {}).get("used_m", run.refs.table_height_m)
+        h = result.report.get("table_height") or {}
+        tape = run.refs.table_height_m
         truth["table_height"] = {
-            "true_m": true_m,
-            "tape_error_mm": 1000.0 * (run.refs.table_height_m - true_m),
-            "used_error_mm": 1000.0 * (used - true_m)}
+            "true_m": true_m, "tape_error_mm": 1000.0 * (tape - true_m),
+            "used_error_mm": 1000.0 * (h.get("used_m", tape) - true_m),
+            "best_error_mm": 1000.0 * (h.get("best_m", tape) - true_m)}
     result.report["truth"] = truth
     return truth
