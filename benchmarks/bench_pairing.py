@@ -11,7 +11,7 @@ Pairings, all through the same multiplexer: `counter` groups by each camera's ow
 counter (what mocapd did before pairing by time); `offset only` maps each camera's clock
 with an offset but no drift; `time` is mocapd's (offset and drift learned online).
 
-Wand captures (calibkit's side, calibkit.calibrate.pairing): a wand dance of
+Wand captures (calibkit's side, calibkit.core.pairing): a wand dance of
 `--wand-frames` frames at 100 fps seen by 6 cameras (0.1 px noise, 0.2 stray blobs per
 camera and frame), each camera opening within 0.5 s, stamping on a clock +-1 ms off and
 +-30 ppm fast or slow with 50 us jitter (calibkit.synthetic.camclocks); cam2 loses 1 % of
@@ -35,10 +35,10 @@ import numpy as np
 
 import daemon.clocks as clocks
 from calibkit.calibrate.compare import compare_rigs
-from calibkit.calibrate.pairing import pair_frames
 from calibkit.calibrate.wand_solve import calibrate
 from calibkit.clitools import print_table, write_json
 from calibkit.core.errors import UserError
+from calibkit.core.pairing import pair_frames
 from calibkit.synthetic import camclocks, sim
 from daemon.config import SimConfig
 from daemon.multiplexer import Multiplexer

@@ -22,6 +22,7 @@ import numpy as np
 from calibkit import cameras
 from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
+from calibkit.core.pairing import pair_frames
 from calibkit.core.recording import load_observations
 from calibkit.vision.detect import DetectorConfig, detect
 
@@ -65,10 +66,12 @@ class ReplayScene:
     """A recording (.mcrec or CSV) played back to the daemon, camera by camera.
 
     The recording's cameras are matched to the rig's by name; frames are taken in order
-    at the recording's frame rate (or as fast as the tracker goes)."""
+    at the recording's frame rate (or as fast as the tracker goes). A recording of each
+    camera's own frames (a calibkit wand capture) is paired by capture time first
+    (calibkit.core.pairing); one numbered by instant (mocapd's) is played as it is."""
 
     def __init__(self, path, rig: Rig) -> None:
-        obs, _ = load_observations(path)
+        obs = pair_frames(load_observations(path)[0]).obs
         index = {n: i for i, n in enumerate(rig.names)}
         unknown = [n for n in obs.camera_names if n not in index]
         if unknown:

@@ -62,3 +62,22 @@ def test_the_fast_daemon_run_goes_through_the_multiplexer(tmp_path):
     # computer's clock, within 3 ppm of the simulator's
     learned = np.array([c["clock"]["drift_ppm"] for c in fig["cameras"]])
     np.testing.assert_allclose(learned, daemon.scene.drift_ppm, atol=3.0)
+
+
+def test_a_replayed_recording_of_each_cameras_own_frames_is_paired_first(tmp_path):
+    """A calibkit capture (each camera's own counter and stamps, one camera losing frames)
+    replayed to the daemon: its sets are instants, never counter n of every camera."""
+    from calibkit.core.recording import save_observations
+    from calibkit.synthetic import camclocks, sim
+    from daemon.sources import ReplayScene
+
+    rig = sim.make_rig(4, 4.0, seed=3)
+    truth, _ = sim.rigid_body_motion(2, 600, FPS, 4.0, seed=3)
+    obs = sim.observe(rig, truth, noise_px=0.1, fps=FPS, seed=3)
+    raw, frame_truth = camclocks.per_camera(
+        obs, camclocks.make_clocks(4, 3, drop={LOSSY: 0.01}), 600, FPS, 3)
+    save_observations(tmp_path / "cap.mcrec", raw)
+    scene = ReplayScene(tmp_path / "cap.mcrec", rig)
+    assert camclocks.sets_mixing_instants(scene.obs, frame_truth, FPS)["mixing"] == 0
+    assert camclocks.sets_mixing_instants(raw, frame_truth, FPS)["mixing"] > 100
+    assert scene.n_frames >= 600 - 0.5 * FPS  # all but the cameras' opening

@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from calibkit.calibrate.pairing import pair_frames
 from calibkit.core.camera import Rig
+from calibkit.core.pairing import pair_frames
 from calibkit.core.recording import load_observations, save_observations
 from calibkit.synthetic import sim
 

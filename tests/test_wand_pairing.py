@@ -1,4 +1,4 @@
-"""Wand frames paired by capture time (calibkit.calibrate.pairing), against the simulator's
+"""Wand frames paired by capture time (calibkit.core.pairing), against the simulator's
 truth of which instant each camera frame shows (calibkit.synthetic.camclocks)."""
 
 from __future__ import annotations
@@ -6,10 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibkit.calibrate import pairing, wand_pipeline
+from calibkit.calibrate import wand_pipeline
 from calibkit.calibrate.compare import compare_rigs
 from calibkit.calibrate.wand import WandSpec
 from calibkit.calibrate.wand_solve import calibrate
+from calibkit.core import pairing
 from calibkit.core.recording import load_observations, save_observations
 from calibkit.synthetic import camclocks, sim, wand_sim
 

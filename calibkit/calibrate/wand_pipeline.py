@@ -6,7 +6,7 @@ and prints, and the simulator (calibkit.synthetic.wand_sim) can hand in its batc
 frames and its floor recording without the rest knowing. What hardware gives is each
 camera's own frames: its own counter and capture times, frames lost on the way. They are
 recorded as they are and grouped into wand frames by capture time before the solve
-(calibkit.calibrate.pairing); older recordings that number frames by instant are read as
+(calibkit.core.pairing); older recordings that number frames by instant are read as
 they are.
 """
 
@@ -22,12 +22,12 @@ import numpy as np
 from calibkit.calibrate import floor, plane_views, wand_report
 from calibkit.calibrate.extrinsic_capture import load_dots
 from calibkit.calibrate.extrinsic_solve import bundle_data
-from calibkit.calibrate.pairing import PER_CAMERA, pair_frames
 from calibkit.calibrate.wand import CaptureMonitor, WandSpec, identify
 from calibkit.cameras import open_camera
 from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
 from calibkit.core.observations import Observations
+from calibkit.core.pairing import PER_CAMERA, pair_frames
 from calibkit.core.recording import RecordingWriter, load_observations
 from calibkit.vision.detect import DetectorConfig, detect
 
