@@ -58,6 +58,7 @@ from daemon.config_check import (
 )
 from daemon.nodes.zenoh_table import parse_daemon_zenoh
 from daemon.publish.mavlink import MESSAGES, WORLD_TO_NED
+from daemon.publish.natnet_commands import networks
 from daemon.rigid import BodyDef, RigidConfig
 from daemon.tracker import TrackerConfig
 
@@ -169,6 +170,10 @@ class NatnetOut:
     marker_sets: bool = True
     markerset_id: int = 65535  # model id of the live marker set's labelled markers
     record_dir: Path | None = None  # where StartRecording records (None: it answers -1)
+    # who may send the recording commands (addresses or networks): they write to the disk
+    record_from: tuple[str, ...] = ("127.0.0.1",)
+    record_max_s: float = 3600.0  # a take StartRecording began stops after this (0: never)
+    record_max_mb: float = 2000.0  # ... or at this size, whichever first (0: no limit)
 
 
 @dataclass(frozen=True)
@@ -345,7 +350,7 @@ def parse_config(data: dict, path: Path | None = None, base: Path | None = None)
     changes["vrpn"] = tuple(_vrpn(w, t, f"vrpn[{i}].")
                             for i, t in enumerate(_list(w, data, "vrpn")))
     if "zenoh" in data or any(c.source.startswith("zenoh:") for c in changes["cameras"]):
-        changes["zenoh"] = parse_daemon_zenoh(w, _table(w, data, "zenoh"))
+        changes["zenoh"] = parse_daemon_zenoh(w, _table(w, data, "zenoh"), base)
     return replace(cfg, **changes)
 
 
@@ -570,7 +575,21 @@ def _natnet(w, t, p, base: Path | None = None) -> NatnetOut:
                      _bool(w, t, "marker_sets", p, d.marker_sets),
                      _number(w, t, "markerset_id", p, d.markerset_id, int, 1, 65535),
                      (base or Path.cwd()) / _string(w, t, "record_dir", p)
-                     if "record_dir" in t else None)
+                     if "record_dir" in t else None,
+                     _record_from(w, t, p, d.record_from),
+                     _number(w, t, "record_max_s", p, d.record_max_s, lo=0, hi=1e7),
+                     _number(w, t, "record_max_mb", p, d.record_max_mb, lo=0, hi=1e9))
+
+
+def _record_from(w, t, p, default) -> tuple[str, ...]:
+    v = t.get("record_from", list(default))
+    if not isinstance(v, list) or not all(isinstance(a, str) for a in v):
+        w.fail(p + "record_from", f"expected a list of addresses, got {v!r}")
+    try:
+        networks(v)
+    except ValueError as exc:
+        w.fail(p + "record_from", f"expected IP addresses or networks (\"10.0.0.0/24\"): {exc}")
+    return tuple(v)
 
 
 def _ipv4(text: str) -> bool:

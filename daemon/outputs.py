@@ -46,7 +46,9 @@ def make_publishers(config: Config, bodies=(), markerset=None, control=None, hub
                                     markerset=None if markerset is None else
                                     (markerset.name, list(markerset.labels)),
                                     markerset_id=n.markerset_id, fps=fps,
-                                    record_dir=n.record_dir, control=control))
+                                    record_dir=n.record_dir, control=control,
+                                    record_from=n.record_from, record_max_s=n.record_max_s,
+                                    record_max_mb=n.record_max_mb))
     for v in config.vrpn:
         pubs.append(VrpnPublisher(bodies, v.host, v.port, v.rate_hz, v.udp,
                                   name=f"vrpn:{v.host}:{v.port}"))

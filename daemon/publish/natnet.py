@@ -110,11 +110,13 @@ class NatNetPublisher(Publisher):
                  keepalive_timeout_s: float = 10.0, name: str = "natnet",
                  marker_sets: bool = True, markerset=None,
                  markerset_id: int = MARKERSET_ID, fps: float = 240.0,
-                 record_dir=None, control=None) -> None:
+                 record_dir=None, control=None, record_from=("127.0.0.1",),
+                 record_max_s: float = 3600.0, record_max_mb: float = 2000.0) -> None:
         """`markerset`: (name, marker names) of the live marker set, if one is configured;
         its labelled markers carry model id `markerset_id`. `fps`: the cameras' rate
         (FrameRate, the timecode's subframes); `record_dir` and `control` (the daemon's
-        control handler): where and how StartRecording records."""
+        control handler): where and how StartRecording records; `record_from`,
+        `record_max_s`, `record_max_mb`: who may record and for how long (Commands)."""
         # if the port is taken (another program; a server of another process), retry soon
         super().__init__(rate_hz=rate_hz, retry_s=0.1)
         axes(up_axis)
@@ -143,7 +145,9 @@ class NatNetPublisher(Publisher):
         self._modeldefs: dict[tuple[int, int], bytes] = {}
         self._marker_model = MarkerModel(self.bodies, markerset) if marker_sets else None
         self._info = server_info(data_port, multicast, group)
-        self.commands = Commands(fps, self.bodies, record_dir, control)
+        self.commands = Commands(fps, self.bodies, record_dir, control, record_from,
+                                 record_max_s, record_max_mb)
+        self.bad = self.commands.bad  # refused requests by kind, logged once a minute each
         # the capture clock (monotonic) to UTC, for the timecode and precision timestamp
         self._wall_offset_ns = time.time_ns() - time.monotonic_ns()
         self.echoes = 0
@@ -240,6 +244,7 @@ class NatNetPublisher(Publisher):
         st = super().status()
         with self._lock:
             st["unicast_clients"] = len(self.subscribers) + len(self.direct)
+        st["bad_requests"] = dict(self.bad.counts)
         # what is exposed: the command port's address (0.0.0.0: every interface)
         st["address"] = f"{self.interface}:{self.command_port}"
         return st
@@ -317,6 +322,10 @@ class NatNetPublisher(Publisher):
         sock = self.cmd_sock
         while not self._cmd_stop.is_set():
             try:
+                self.commands.check_budget()
+            except Exception as exc:  # noqa: BLE001 - the budget must not end the server
+                self.bad("failure stopping a take over its budget", exc)
+            try:
                 data, addr, arrived_ns = receive_stamped(sock)
             except TimeoutError:
                 continue
@@ -327,7 +336,8 @@ class NatNetPublisher(Publisher):
             try:
                 reply = self.handle(data, addr, arrived_ns)
             except Exception as exc:  # noqa: BLE001 - a bad request must not end the server
-                log.warning("%s: bad request from %s:%d: %s", self.name, *addr, exc)
+                self.bad(f"request that failed ({type(exc).__name__})",
+                         f"from {addr[0]}: {exc}")
                 continue
             if reply:
                 try:
@@ -339,6 +349,7 @@ class NatNetPublisher(Publisher):
         """The reply to one command-port datagram (None: no reply). `arrived_ns`: when the
         kernel received it (monotonic), if the socket stamps arrivals."""
         if len(data) < 4:
+            self.bad("datagram shorter than a message header", f"from {addr[0]}")
             return None
         msg_id, size = struct.unpack_from("<HH", data)
         self.requests += 1
@@ -375,6 +386,7 @@ class NatNetPublisher(Publisher):
                            or addr[0] in self.direct)
             reply = self.commands.answer(text, addr, unicast)
             return reply if reply is not None else message(NAT_UNRECOGNIZED_REQUEST, b"")
+        self.bad("unknown message id", f"{msg_id} from {addr[0]}")
         return message(NAT_UNRECOGNIZED_REQUEST, b"")
 
     def _disconnect(self, addr) -> None:

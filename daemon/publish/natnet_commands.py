@@ -13,6 +13,7 @@ PacketClient reads the text to the end of the datagram).
 
 from __future__ import annotations
 
+import ipaddress
 import logging
 import re
 import struct
@@ -21,6 +22,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from calibkit.core.errors import UserError
+from daemon.publish.bad_input import BadInput
 from daemon.publish.natnet_wire import (
     DEFAULT_VERSION,
     EVERYTHING,
@@ -42,6 +44,15 @@ LIVE_NOOPS = ("timelineplay", "timelinestop", "setplaybackcurrentframe",
 DATA_TYPES = ("rigidbody", "skeleton", "forceplate", "device", "labeledmarkers",
               "markersetmarkers", "legacyunlabeledmarkers", "alltypes")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9 _.-]{0,63}$")
+# what only an allowed address may send: they write to the disk
+RECORDING = ("setrecordtakename", "setcurrentsession", "startrecording", "stoprecording")
+BUDGET_CHECK_S = 0.5  # how often a NatNet-started recording's duration and size are looked at
+
+
+def networks(addresses) -> tuple:
+    """The allowed senders of recording commands: addresses or networks ("10.0.0.0/24");
+    raises ValueError naming the first that is neither."""
+    return tuple(ipaddress.ip_network(a, strict=False) for a in addresses)
 
 
 def code(value: int) -> bytes:
@@ -62,10 +73,16 @@ class Commands:
 
     `bodies` (BodyDef) resolve subscriptions by name; `control` is the daemon's control
     request handler (daemon.service.Daemon.handle), through which StartRecording and
-    StopRecording record as `mocapd record` does, into `record_dir`."""
+    StopRecording record as `mocapd record` does, into `record_dir`.
+
+    Recording writes to the disk, so its commands are taken only from `record_from`
+    (addresses or networks; loopback by default) and a take it starts stops by itself after
+    `record_max_s` seconds or `record_max_mb` megabytes (0: no limit), whichever comes
+    first: a client that starts a take and goes away does not fill the disk."""
 
     def __init__(self, fps: float, bodies=(), record_dir: Path | None = None,
-                 control=None) -> None:
+                 control=None, record_from=("127.0.0.1",), record_max_s: float = 3600.0,
+                 record_max_mb: float = 2000.0) -> None:
         self.fps = float(fps)
         self.body_ids = {b.name: int(b.id) for b in bodies}
         self.record_dir = None if record_dir is None else Path(record_dir)
@@ -75,6 +92,12 @@ class Commands:
         self.take: str | None = None
         self.session: str | None = None
         self.recording: str | None = None  # the path being recorded
+        self.record_from = networks(record_from)
+        self.record_max_s, self.record_max_mb = float(record_max_s), float(record_max_mb)
+        self.bad = BadInput(log, "NatNet")
+        self._started = 0.0  # monotonic time the recording started
+        self._next_check = 0.0
+        self.budget_stops = 0
 
     def version(self, addr) -> tuple[int, int]:
         return self.versions.get(addr, DEFAULT_VERSION)
@@ -91,6 +114,10 @@ class Commands:
         word, _, arg = request.partition(",")
         word = word.strip().lower()
         args = [a.strip() for a in arg.split(",")] if arg.strip() else []
+        if word in RECORDING and not self.may_record(addr):
+            self.bad("recording command from an address not in record_from",
+                     f"{word} from {addr[0]}")
+            return code(FAILED)
         if word == "bitstream":
             return self._bitstream(args, addr, unicast)
         if word == "framerate":
@@ -115,7 +142,15 @@ class Commands:
             return code(self._start_recording())
         if word == "stoprecording":
             return code(self._stop_recording())
+        self.bad("unrecognised command", word[:40])
         return None
+
+    def may_record(self, addr) -> bool:
+        try:
+            ip = ipaddress.ip_address(addr[0])
+        except (ValueError, TypeError, IndexError):
+            return False
+        return any(ip in net for net in self.record_from)
 
     # ---- bitstream -------------------------------------------------------------------------
 
@@ -185,8 +220,7 @@ class Commands:
     def _set_name(self, what: str, args) -> int:
         name = args[0] if args else ""
         if not _NAME.match(name):
-            log.warning("NatNet: %s name %r refused (letters, digits, space, _ . -)", what,
-                        name)
+            self.bad(f"{what} name that is not letters, digits, space, _ . -", repr(name))
             return FAILED
         setattr(self, what, name)
         return OK
@@ -210,8 +244,32 @@ class Commands:
             log.warning("NatNet: StartRecording failed: %s", exc)
             return FAILED
         self.recording = str(path)
+        self._started = time.monotonic()
         log.info("NatNet: recording to %s", path)
         return OK
+
+    def check_budget(self) -> None:
+        """Stop a recording StartRecording began once it is older than record_max_s or
+        larger than record_max_mb (looked at every BUDGET_CHECK_S)."""
+        now = time.monotonic()
+        path = self.recording
+        if path is None or now < self._next_check:
+            return
+        self._next_check = now + BUDGET_CHECK_S
+        over = None
+        if self.record_max_s > 0 and now - self._started >= self.record_max_s:
+            over = f"{self.record_max_s:g} s (record_max_s)"
+        elif self.record_max_mb > 0:
+            try:
+                size_mb = Path(path).stat().st_size / 1e6
+            except OSError:
+                size_mb = 0.0  # not written yet
+            if size_mb >= self.record_max_mb:
+                over = f"{self.record_max_mb:g} MB (record_max_mb)"
+        if over is not None:
+            log.warning("NatNet: the take %s reached %s: stopping it", path, over)
+            self.budget_stops += 1
+            self._stop_recording()
 
     def _stop_recording(self) -> int:
         if self.control is None:
