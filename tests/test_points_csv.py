@@ -79,6 +79,17 @@ def test_streaming_equals_the_whole_file_read(tmp_path):
         assert np.array_equal(streamed.frame, pts.frame)
 
 
+def test_windows_line_ends_and_a_byte_order_mark_read_as_any_other(tmp_path):
+    """What a spreadsheet saves: CRLF line ends, a UTF-8 byte order mark, the z column
+    last (so its value is followed by the CR)."""
+    (tmp_path / "win.csv").write_bytes(b"\xef\xbb\xbfframe,x,y,z\r\n0,1.5,2,3\r\n"
+                                       b"\r\n1,4,5,6.25\r\n")
+    for block in (1 << 20, 9):
+        pts, bad = stream_points(tmp_path / "win.csv", block_bytes=block)
+        assert pts.frame.tolist() == [0, 1] and bad.count == 0
+        assert pts.xyz_m.tolist() == [[1.5, 2.0, 3.0], [4.0, 5.0, 6.25]]
+
+
 def test_files_that_hold_nothing_are_one_clear_error(tmp_path):
     cases = {"empty.csv": ("", "is empty"),
              "nohead.csv": ("# only a comment\n", "is empty"),

@@ -86,7 +86,7 @@ def points_header(path: str | Path) -> PointsHeader:
         with open(path, "rb") as handle:
             for number, raw in enumerate(handle, 1):
                 offset += len(raw)
-                text = raw.decode("utf-8").strip()
+                text = raw.decode("utf-8").lstrip("\ufeff").strip()  # a BOM: Excel's CSV
                 if text.startswith("#"):
                     if text.replace(" ", "").startswith("#rate_hz="):
                         rate = _rate(path, text.split("=", 1)[1])
