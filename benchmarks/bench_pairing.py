@@ -21,13 +21,21 @@ counter, `time` is calibkit's. Each capture is solved from the true intrinsics (
 and scored against the true rig: grid RMS (compare_rigs), and the sets mixing instants
 scored from the simulator's truth; medians over `--wand-seeds` seeds.
 
+The cost of pairing on `mocapd start --sim --fast` (`--fast-sets`): ms per frame set to
+make the sets of the default simulated scene (8 cameras at 240 fps, 4 bodies) by the old
+way (every camera's sample of trigger i in set i: SimScene.sample) and by the fast path's
+(daemon.synthetic.virtual.frame_sets: the cameras in virtual time through the
+multiplexer), alternately, median of 5 runs each, in one process. The tracker's own cost
+per set is what bench_tracking measures; the difference here is what a fast run loses.
+
     python benchmarks/bench_pairing.py [--seconds-scale 1.0] [--wand-frames 1500]
-                                       [--wand-seeds 3] [--json out.json]
+                                       [--wand-seeds 3] [--fast-sets 2400] [--json out.json]
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import time
 from pathlib import Path
 
@@ -43,7 +51,7 @@ from calibkit.synthetic import camclocks, sim
 from daemon.config import SimConfig
 from daemon.multiplexer import Multiplexer
 from daemon.synthetic.scene import SimScene
-from daemon.synthetic.virtual import START_NS, capture, spread_ns
+from daemon.synthetic.virtual import START_NS, capture, frame_sets, spread_ns
 
 
 class CounterMultiplexer(Multiplexer):
@@ -129,25 +137,61 @@ def wand_table(frames: int, seeds: int) -> tuple[list, dict]:
     return rows, out
 
 
+def fast_sets_cost(n_sets: int, repeats: int = 5) -> dict:
+    """ms per set: trigger-indexed sets (the old fast path) against the multiplexer's."""
+    from daemon.multiplexer import FrameSet
+
+    cfg = SimConfig(realtime=False)
+    old, new = [], []
+    for _ in range(repeats):
+        sc = SimScene(cfg, n_frames=n_sets)
+        t0 = time.perf_counter()
+        for i in range(n_sets):
+            t = round(i * 1e9 / sc.fps)
+            FrameSet(i, t, t, [sc.sample(c, i, t) for c in range(len(sc.rig))
+                               if not sc.dropped(c, i)])
+        old.append((time.perf_counter() - t0) * 1e3 / n_sets)
+        sc = SimScene(cfg, n_frames=n_sets)
+        t0 = time.perf_counter()
+        got = sum(1 for _ in itertools.islice(frame_sets(sc), n_sets))
+        new.append((time.perf_counter() - t0) * 1e3 / got)
+    return {"trigger_index_ms_per_set": float(np.median(old)),
+            "multiplexer_ms_per_set": float(np.median(new)), "sets": n_sets,
+            "cameras": cfg.cameras, "fps": cfg.fps}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seconds-scale", type=float, default=1.0,
-                    help="run each scene this many times as long")
+                    help="run each scene this many times as long (0: no scenes)")
     ap.add_argument("--wand-frames", type=int, default=1500,
                     help="wand frames per capture (0: no wand table)")
     ap.add_argument("--wand-seeds", type=int, default=3, help="wand captures per case")
+    ap.add_argument("--fast-sets", type=int, default=2400,
+                    help="frame sets for the fast path's cost (0: none)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     out, rows = {}, []
-    for name in SCENES:
+    for name in SCENES if args.seconds_scale > 0 else ():
         for pairing in ("counter", "offset only", "time"):
             r = run(name, pairing, args.seconds_scale)
             out[f"{name} / {pairing}"] = r
             rows.append([name, pairing, r["sets"], r["mixing_instants"],
                          round(r["worst_spread_ms"], 1), r["late_samples"],
                          r["settling_samples"], r["incomplete_sets"]])
-    print_table(rows, ["scene", "pairing", "sets", "mixing_instants", "worst_ms", "late",
-                       "settling", "incomplete"])
+    if rows:
+        print_table(rows, ["scene", "pairing", "sets", "mixing_instants", "worst_ms", "late",
+                           "settling", "incomplete"])
+    if args.fast_sets > 0:
+        f = fast_sets_cost(args.fast_sets)
+        out["fast_path_sets"] = f
+        print(f"\nmocapd --sim --fast, making {f['sets']} frame sets ({f['cameras']} cameras, "
+              f"{f['fps']:g} fps), median of 5")
+        print_table([["trigger index (before)", round(f["trigger_index_ms_per_set"], 4)],
+                     ["multiplexer, virtual time (now)", round(f["multiplexer_ms_per_set"], 4)],
+                     ["difference", round(f["multiplexer_ms_per_set"]
+                                          - f["trigger_index_ms_per_set"], 4)]],
+                    ["sets made by", "ms_per_set"])
     if args.wand_frames > 0:
         wrows, wout = wand_table(args.wand_frames, args.wand_seeds)
         out.update(wout)
