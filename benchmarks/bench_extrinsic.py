@@ -11,8 +11,10 @@ cast back by the calibrated ones), the median |scale error| `calibkit compare` f
 and the median solve time. Ratios are against the baseline run in the same process: floor
 dots only, each camera on its own (PnP), the way a projector-only calibration without the
 table would. A second table follows the table height per variant: the tape's error, the
-dots' own measure of it (extrinsic_solve.measure_table_height) and the height used, RMS
-over scenes against the truth, and the dots' error over their stated sigma.
+dots' own measure of it (extrinsic_solve.measure_table_height), the two weighted (what the
+dots file carries) and the height the poses used, RMS over scenes against the truth, and
+the dots' error over their stated sigma. `--wand N` joins a wand dance to the plane dots
+as the file passes them on, and again with the table at the tape's height (the baseline).
 
 The estimate starts from estimated intrinsics, as a user's does: each camera calibrated by
 the intrinsic step on its own simulated monitor views (calibkit.calibrate.intrinsic.calibrate on the
@@ -144,6 +146,7 @@ def run(v: Variant, seed: int, noise_px: float = 0.2) -> dict:
         "tape_mm": 1000 * (refs.table_height_m - true_m),
         "dots_mm": 1000 * (h["dots_m"] - true_m) if h else float("nan"),
         "dots_sigma_mm": h["dots_sigma_mm"] if h else float("nan"),
+        "best_mm": 1000 * ((h["best_m"] if h else refs.table_height_m) - true_m),
         "used_mm": 1000 * ((h["used_m"] if h else refs.table_height_m) - true_m)}
     return {"pos": pos, "rot": rot, "time_s": dt, "height": height,
             "scale_ppm": cmp["scale"]["error_ppm"],
@@ -154,7 +157,11 @@ def run(v: Variant, seed: int, noise_px: float = 0.2) -> dict:
 
 def with_wand(seed: int, n_frames: int) -> dict:
     """The default calibration, then a wand dance (true labels, 0.2 px) solved together
-    with the plane dots (extrinsic.bundle_data + join_bundle_data), no world transform."""
+    with the plane dots (extrinsic.bundle_data + join_bundle_data), no world transform:
+    the dots held on their planes and near their mapped places ("near maps"), or on their
+    planes only as `calibkit wand --dots` does ("planes only"); each with the dots as the
+    calibration passes them on (the table at the tape's and the dots' heights weighted)
+    and, as a baseline, with the table at the tape's height."""
     from calibkit.calibrate import bundle
     from calibkit.calibrate.wand_solve import labelled_wand_data
     from calibkit.synthetic import sim
@@ -177,17 +184,24 @@ def with_wand(seed: int, n_frames: int) -> dict:
     obs = sim.observe(scene.rig, sim.wand_motion(n_frames, 100.0, VOLUME, spacing, seed=seed),
                       noise_px=0.2, seed=seed)
     wand = labelled_wand_data(res.rig, obs, spacing)
-    t0 = time.perf_counter()
-    out = bundle.solve(exs.join_bundle_data(wand, exs.bundle_data(
-        res.rig, res.dots.select(res.inlier))), bundle.BundleOptions(
-        known_sigma_m=0.005, plane_sigma_m=0.002, noise_px=0.3))
-    dt = time.perf_counter() - t0
+    opts = bundle.BundleOptions(known_sigma_m=0.005, plane_sigma_m=0.002, noise_px=0.3)
+    tape_dots = exs.at_height(res.dots, res.report["table_height"]["tape_m"])
+    rigs, times = [("extrinsic", res.rig)], []
+    for known in (True, False):
+        for height, dots in (("", res.dots), (", table at the tape's height", tape_dots)):
+            t0 = time.perf_counter()
+            out = bundle.solve(exs.join_bundle_data(wand, exs.bundle_data(
+                res.rig, dots.select(res.inlier), known=known)), opts)
+            times.append(time.perf_counter() - t0)
+            rigs.append((f"wand+planes{' near maps' if known else ' only'}{height}", out.rig))
+    dt = float(np.median(times))
     figs = {}
-    for name, rig in (("extrinsic", res.rig), ("wand+planes", out.rig)):
+    for name, rig in rigs:
         cmp = compare_rigs(scene.rig, rig, align=False)
         figs[name] = (max(c["position_mm"] for c in cmp["cameras"]),
                       max(c["rotation_deg"] for c in cmp["cameras"]),
-                      sp.ray_distance_at_height(rig, scene.rig, 1.7, VOLUME))
+                      sp.ray_distance_at_height(rig, scene.rig, 1.7, VOLUME),
+                      abs(cmp["scale"]["error_ppm"]), cmp["grid_rms_mm"])
     figs["time_s"] = dt
     return figs
 
@@ -248,16 +262,17 @@ def main(argv=None) -> int:
             "solve_s": float(np.median([r["time_s"] for r in runs]))}
         if v.table:
             hs = {k: np.array([r["height"][k] for r in runs])
-                  for k in ("tape_mm", "dots_mm", "dots_sigma_mm", "used_mm")}
+                  for k in ("tape_mm", "dots_mm", "dots_sigma_mm", "best_mm", "used_mm")}
             rms = {k: float(np.sqrt(np.mean(hs[k] ** 2))) for k in ("tape_mm", "dots_mm",
-                                                                      "used_mm")}
+                                                                      "best_mm", "used_mm")}
             fig["table_height"] = {**{f"{k}_rms": val for k, val in rms.items()},
                                    "dots_sigma_mm_median": float(np.median(hs["dots_sigma_mm"])),
                                    "dots_error_over_sigma_rms": float(np.sqrt(np.mean(
                                        (hs["dots_mm"] / hs["dots_sigma_mm"]) ** 2)))}
             hrows.append([v.name, rms["tape_mm"], rms["dots_mm"],
                           fig["table_height"]["dots_sigma_mm_median"],
-                          fig["table_height"]["dots_error_over_sigma_rms"], rms["used_mm"]])
+                          fig["table_height"]["dots_error_over_sigma_rms"], rms["best_mm"],
+                          rms["used_mm"]])
         if base17 is None:
             base0, base17 = fig["ray_floor_mm"], fig["ray_1p7_mm"]
         fig["ray_1p7_ratio"] = fig["ray_1p7_mm"] / base17
@@ -281,9 +296,10 @@ def main(argv=None) -> int:
                        "rot_worst_deg", "in target", "ray@0_mm", "ray@1.7_mm",
                        "ray@1.7 ratio", "|scale|_ppm", "solve_s"])
     print("\ntable height against the truth, RMS over scenes (mm); dots: the solve's own "
-          "measure (used only when the tape disagrees beyond 3 sigma)")
+          "measure; best: tape and dots weighted (the dots file's); used: the poses' (the "
+          "tape's unless they disagree beyond 3 sigma)")
     print_table(hrows, ["variant", "tape_mm", "dots_mm", "dots_sigma_mm", "dots err/sigma",
-                        "used_mm"])
+                        "best_mm", "used_mm"])
     sch = coded_schedule(PROJ, 64, 2, 8)
     cfg = sp.ProjectorSimConfig()
     lat = sp.latency_frames(cfg, 6)
@@ -303,19 +319,22 @@ def main(argv=None) -> int:
     if args.wand:
         runs = [with_wand(s, args.wand) for s in range(args.seeds)]
         wrows = []
-        for name in ("extrinsic", "wand+planes"):
+        for name in (n for n in runs[0] if n != "time_s"):
             w = np.array([r[name] for r in runs])
             wrows.append([name, float(np.median(w[:, 0])), float(w[:, 0].max()),
                           float(np.median(w[:, 1])), float(w[:, 1].max()),
-                          float(np.median(w[:, 2]))])
+                          float(np.median(w[:, 2])), float(np.median(w[:, 3])),
+                          float(np.median(w[:, 4]))])
             results[f"wand_{name}"] = dict(zip(["pos_worst_median_mm", "pos_worst_mm",
                                                 "rot_worst_median_deg", "rot_worst_deg",
-                                                "ray_1p7_mm"], wrows[-1][1:], strict=True))
+                                                "ray_1p7_mm", "scale_ppm_median_abs",
+                                                "grid_rms_mm_median"], wrows[-1][1:],
+                                               strict=True))
         print(f"\nwand dance of {args.wand} frames joined to the plane dots "
               f"({args.seeds} scenes; per scene its worst camera; solve "
               f"{np.median([r['time_s'] for r in runs]):.1f} s median):")
         print_table(wrows, ["rig", "pos_worst_med_mm", "pos_worst_mm", "rot_worst_med_deg",
-                            "rot_worst_deg", "ray@1.7_mm"])
+                            "rot_worst_deg", "ray@1.7_mm", "|scale|_ppm", "grid_mm (unaligned)"])
     if args.render:
         r = rendered(0)
         results["rendered"] = r
