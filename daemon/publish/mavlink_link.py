@@ -16,10 +16,15 @@ print and swallow), so the caller notices and reopens.
 
 from __future__ import annotations
 
+import logging
 import math
 import select
 import threading
 import time
+
+from daemon.publish.bad_input import BadInput
+
+log = logging.getLogger("mocapd.publish")
 
 HEARTBEAT_PERIOD_S = 1.0
 TIMESYNC_PERIOD_S = 1.0
@@ -66,6 +71,10 @@ class MavlinkLink:
         self.timesync_offset_ns: int | None = None  # autopilot clock minus ours
         self.origin_sent = 0
         self.received = 0
+        # bytes that are no MAVLink message we know (line noise, another dialect, junk):
+        # counted by kind, logged once a minute each
+        self.bad = BadInput(log, f"mavlink {device}")
+        self.other_dialect = 0  # messages of ids outside the common dialect
 
     # ---- the connection ------------------------------------------------------------------
 
@@ -140,8 +149,31 @@ class MavlinkLink:
                 raise OSError("the autopilot closed the connection")
         else:
             data = conn.recv()
-        for msg in self.parser.parse_buffer(bytes(data)) or ():
-            self.handle(msg)
+        self.receive(bytes(data))
+
+    def receive(self, data: bytes) -> None:
+        """Parse bytes from the autopilot and handle its messages. Junk is counted, never
+        raised: a noisy UART must not make the link reopen. Only a failed write of our
+        answer (OSError) goes up, to the caller that reopens the link."""
+        try:
+            msgs = self.parser.parse_buffer(data) or ()
+        except Exception as exc:  # noqa: BLE001 - pymavlink's MAVError, struct errors...
+            self.bad(f"bytes the parser refused ({type(exc).__name__})", exc)
+            return
+        for msg in msgs:
+            kind = msg.get_type()
+            if kind == "BAD_DATA":
+                self.bad("bad data (CRC, length or framing)", getattr(msg, "reason", ""))
+                continue
+            if kind.startswith("UNKNOWN_"):  # another dialect's (ArduPilot sends many):
+                self.other_dialect += 1      # normal traffic, not junk, so not logged
+                continue
+            try:
+                self.handle(msg)
+            except OSError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - a message with values we cannot use
+                self.bad(f"{kind} that failed ({type(exc).__name__})", exc)
 
     def handle(self, msg) -> None:
         if msg.get_srcSystem() == self.mav.srcSystem and \
@@ -217,4 +249,5 @@ class MavlinkLink:
         return {"autopilot": ap, "messages_sent": self.mav.total_packets_sent,
                 "messages_received": self.received,
                 "timesync_answered": self.timesync_answered,
-                "timesync_rtt_ms": self.timesync_rtt_ms, "origin_sent": self.origin_sent}
+                "timesync_rtt_ms": self.timesync_rtt_ms, "origin_sent": self.origin_sent,
+                "bad_input": dict(self.bad.counts), "other_dialect": self.other_dialect}
