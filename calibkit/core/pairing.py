@@ -8,10 +8,11 @@ time. A wand is captured by a triggered (or at least evenly clocked) rig, so eac
 camera's stamps lie on a grid of its frame period: stamp = start + period * n + jitter,
 with its own start (the transfer delay, the moment the driver's clock was mapped) and
 its own period (its crystal, tens of ppm from the nominal rate). Those two numbers are
-learned per camera from its stamps alone: the trigger count n from the rounded gaps
-between successive stamps (exact whatever the gap, since a crystal is never a tenth of
-a frame off over a capture), then a straight line through (n, stamp), refitted without
-the stamps that sit far from it (a frame handed over late). The fitted grid replaces
+learned per camera from its stamps alone: the trigger count n of each stamp is read off
+a straight line through (n, stamp) fitted on ever longer spans from the first stamps on
+(counting from the rounded gaps instead, one gap that jitter rounded wrong would shift
+every later count), each fit refitted without the stamps that sit far from it (a frame
+handed over late). The fitted grid replaces
 each stamp, which takes the jitter out; a frame whose stamp is more than a quarter of a
 period off its camera's grid is not trusted and left unpaired.
 
@@ -21,7 +22,9 @@ period from every instant, or that shares its instant with a nearer frame of its
 is left unpaired, never paired with the wrong instant. The one thing times cannot tell
 is a whole number of periods between two cameras' clocks: stamps are assumed to agree to
 within half a period at the start (one computer's clock, or device clocks mapped to it),
-and the drift that builds up after that is what the fit follows.
+and the drift that builds up after that is what the fit follows. Stamps may jitter by up
+to about a fifth of a period (6 ms SD at 30 fps: webcams stamped when the computer reads
+them; tests/test_wand_pairing.py); beyond that a camera's grid is not found reliably.
 
 Recordings that already number frames by instant (older calibkit recordings, other
 tools' files, cameras that share a hardware frame id) are kept as they are:
@@ -41,6 +44,8 @@ PER_CAMERA = "per camera"  # meta["frames"]: each camera's own counter (pair by 
 INSTANTS = "instants"  # meta["frames"]: one number per instant, shared by the cameras
 TRUST_FRAC = 0.25  # a stamp this many periods off its camera's grid is not trusted
 MIN_FRAMES = 3  # a camera with fewer timed frames cannot have its grid fitted
+MAX_RATE_ERROR = 0.002  # a camera's fitted period this far from the nominal one is no
+# crystal's drift (tens of ppm) but a fit misled by jitter: none of its frames is trusted
 
 
 @dataclass(eq=False)
@@ -105,25 +110,47 @@ def frames_are_instants(obs: Observations, period_ns: float | None = None) -> bo
     return bool(np.mean(off) <= 0.01)
 
 
-def _grid(t: np.ndarray, period_ns: float) -> tuple[np.ndarray, float, float, np.ndarray]:
-    """One camera's stamps (sorted) on its own grid: (trigger count of each, start, period,
-    whether the stamp is trusted). Counts come from the rounded gaps; the line is fitted by
-    least squares, then again without the stamps more than TRUST_FRAC periods off it."""
-    gaps = np.maximum(np.rint(np.diff(t) / period_ns), 1).astype(np.int64)
-    n = np.r_[0, np.cumsum(gaps)]
-    x = n.astype(np.float64)
-    y = (t - t[0]).astype(np.float64)
-    keep = np.ones(len(t), dtype=bool)
-    start, step = 0.0, period_ns
+def _fit(x: np.ndarray, y: np.ndarray, period_ns: float) -> tuple[float, float]:
+    """(start, step) of the line y = start + step * x, by least squares, refitted twice
+    without the points more than 6 robust SDs (at most TRUST_FRAC periods) off it."""
+    keep = np.ones(len(x), dtype=bool)
+    start, step = float(y[0] - period_ns * x[0]), period_ns
     for _ in range(3):
-        if keep.sum() < 2:
+        if keep.sum() < 2 or np.ptp(x[keep]) == 0:
             break
         step, start = np.polyfit(x[keep], y[keep], 1)
         resid = y - (start + step * x)
         scale = 1.4826 * np.median(np.abs(resid[keep] - np.median(resid[keep])))
         keep = np.abs(resid) <= min(TRUST_FRAC * period_ns, max(6 * scale, 1e-3 * period_ns))
-    resid = y - (start + step * x)
-    return n, float(t[0] + start), float(step), np.abs(resid) <= TRUST_FRAC * period_ns
+    return float(start), float(step)
+
+
+def _grid(t: np.ndarray, period_ns: float) -> tuple[np.ndarray, float, float, np.ndarray]:
+    """One camera's stamps (sorted) on its own grid: (trigger count of each, start, period,
+    whether the stamp is trusted). The first 16 stamps are counted in nominal periods
+    from their mean phase (not from the first stamp, whose jitter would shift them all;
+    nor from the gaps, where one rounded wrong would shift every later count); the line is
+    fitted on them, the counts of twice as many are then read off it and the line
+    refitted, and so on to the last stamp (the error a fit leaves in the period is never
+    half a period over the span it is extended to)."""
+    y = (t - t[0]).astype(np.float64)
+    m = min(len(t), 16)
+    turn = np.exp(2j * np.pi * y[:m] / period_ns)
+    phase = np.angle(turn.mean()) / (2 * np.pi) * period_ns  # the first stamps' own jitter
+    n = np.rint((y - phase) / period_ns)  # averaged out
+    while True:
+        start, step = _fit(n[:m], y[:m], period_ns)
+        if m == len(t):
+            break
+        m = min(len(t), 2 * m)
+        n[:m] = np.rint((y[:m] - start) / step)
+    n = np.rint((y - start) / step)
+    start, step = _fit(n, y, period_ns)
+    resid = y - (start + step * n)
+    trusted = np.abs(resid) <= TRUST_FRAC * period_ns
+    if abs(step / period_ns - 1) > MAX_RATE_ERROR:  # no crystal: the fit lost its way
+        trusted[:] = False
+    return n.astype(np.int64), float(t[0] + start), float(step), trusted
 
 
 def pair_by_time(obs: Observations, period_ns: float | None = None) -> Pairing:
@@ -149,7 +176,9 @@ def pair_by_time(obs: Observations, period_ns: float | None = None) -> Pairing:
     slot = np.full(len(cam), np.iinfo(np.int64).min)
     off = np.full(len(cam), np.inf)
     if grids:
-        ref = max(grids, key=lambda c: counts[c])
+        # the reference: the camera with most frames among those whose grid is a clock's
+        # (a camera whose fit lost its way trusts none of its frames)
+        ref = max(grids, key=lambda c: (bool(grids[c][-1].any()), counts[c]))
         stats["reference"] = names[ref]
         _, _, ref_start, ref_step, _ = grids[ref]
         for c, (idx, n, start, step, trusted) in grids.items():
