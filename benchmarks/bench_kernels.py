@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -66,6 +67,7 @@ def main() -> None:
                                           for _ in range(args.repeats)]
     rows["  the same, --refine-bodies off"] = [
         _child([*track, "--refine-bodies", "off"], tmp / "built") for _ in range(args.repeats)]
+    shutil.rmtree(tmp)  # the take and both caches
     print(f"mocapd track on {args.frames} frames, 10 bodies; median (worst) of the runs; "
           f"load {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores at the end")
     print(f"{'what':>32s} | runs | {'wall s':>13s} | {'CPU s':>13s} | {'peak RSS MB':>11s} | "
