@@ -15,13 +15,17 @@ tracked markers over 60 frames clustered). The truth is read by the scorer only
 (daemon.synthetic.evaluator.Evaluator: track swaps, gross errors over 2 cm / 5 degrees, RMS).
 
 Speed, one core: Pipeline.process per frame set (tracker, rigid bodies, no outputs) on
-frame sets prepared beforehand, median of `--repeats` runs; in the same process: the
+frame sets prepared beforehand (paired by the multiplexer from the simulated cameras' own
+stamps, as `mocapd start --sim --fast` pairs them: daemon.synthetic.virtual; the cameras
+open up to 0.3 s apart, so the first sets lack some), median of `--repeats` runs; in the
+same process: the
 tracker fed the blobs' areas directly (as the pipeline now does too: the two rows should
 agree), and the baseline of matching every frame from scratch with the epipolar
 correspondence (calibkit.vision.correspondence.match_frame), no bodies.
 
 Long run: `--minutes` of motion in 30 s scenes (daemon.synthetic.scene.SimScene), each with
-its own 10 bodies defined live first, through the Pipeline as fast as it goes (no pacing).
+its own 10 bodies defined live first, through the multiplexer and the Pipeline as fast as
+it goes (no pacing).
 
 Latency: `mocapd start --sim` in a subprocess (8 capture threads at 240 fps, triggered
 multiplexer) sending UDP to this process on 127.0.0.1; latency = receive time minus the
@@ -37,6 +41,7 @@ apart; the first second is left out.
 from __future__ import annotations
 
 import argparse
+import itertools
 import socket
 import subprocess
 import sys
@@ -54,6 +59,7 @@ from daemon.pipeline import FrameSet, Pipeline
 from daemon.rigid import BodyDef, RigidConfig
 from daemon.rigid_define import body_from_snapshots
 from daemon.sources import CameraSample
+from daemon.synthetic import virtual
 from daemon.synthetic.evaluator import Evaluator
 from daemon.synthetic.scene import SimScene
 from daemon.tracker import TrackerConfig
@@ -164,13 +170,9 @@ def live_bodies(scene, true_rig, rig, seed):
 
 
 def scene_sets(scene, n_frames):
-    """The scene's frame sets as the capture threads would hand them over (frame i of every
-    camera at i / fps: a triggered rig)."""
-    out = []
-    for i in range(n_frames):
-        t = int(i * 1e9 / scene.fps)
-        out.append(FrameSet(i, t, t, [scene.sample(c, i, t) for c in range(len(scene.rig))]))
-    return out
+    """The scene's frame sets as the multiplexer makes them from the simulated cameras
+    (each opening, counting and stamping on its own clock; daemon.synthetic.virtual)."""
+    return list(itertools.islice(virtual.frame_sets(scene), n_frames))
 
 
 def time_pipeline(rig, bodies, sets, repeats):
@@ -235,9 +237,8 @@ def long_run(true_rig, rig, size, minutes, seed=100):
         bodies = live_bodies(scene, true_rig, rig, seed + 10 * k)
         ev = Evaluator(scene, slots=False)
         pipe = Pipeline(rig, TrackerConfig(), RigidConfig(), bodies, hooks=[ev])
-        for i in range(n):
-            t = int(i * 1e9 / FPS)
-            pipe.process(FrameSet(i, t, t, [scene.sample(c, i, t) for c in range(len(rig))]))
+        for fs in itertools.islice(virtual.frame_sets(scene), n):
+            pipe.process(fs)
         tot["frames"] += n
         tot["poses"] += int(ev.valid.sum())
         tot["body_frames"] += (ev.frames - ev.skip) * len(bodies)

@@ -95,11 +95,13 @@ def frame_sets(scene: SimScene, seconds: float | None = None, retry_s: float = 0
                 starts[c].append(t)
         live[c] = delivered[c] = True
         mux.push(s)
-        with mux.cond:
-            mux._expire(t)
-        ready = list(mux.ready)
-        mux.ready.clear()
-        yield from ready
+        if mux.pending:  # sets still gathering: the ones timed out go (as the frame loop's)
+            with mux.cond:
+                mux._expire(t)
+        if mux.ready:
+            ready = list(mux.ready)
+            mux.ready.clear()
+            yield from ready
         s = advance(c)
         heapq.heappush(heap, (s.arrival_ns, c, s))
 
