@@ -12,7 +12,7 @@ from calibkit.core.blas import one_blas_thread
 from daemon.markers.c3dio import Points, Take
 from daemon.markers.label import Labeller
 from daemon.markers.label_start import window_start
-from daemon.markers.label_verify import Verification, carry_back, verify_labels
+from daemon.markers.label_verify import Verification, carry_back, own_distances, verify_labels
 from daemon.markers.markerset import MarkerSet
 
 KERNELS_FROM = 8000      # frames from which loading the compiled kernels pays off
@@ -51,11 +51,13 @@ def _label_take(points, ms, rate_hz, start_labels, start_frames, progress, optio
     conf = np.zeros(n_frames)
     labels_out = []
     start = 0
+    own = None            # this body's distances from labelled start frames: they outrank the set
     if start_labels is not None and start_frames > 0:
         s = start_labels.select(ms.labels)
         use = min(start_frames, s.n_frames)
         sx = s.xyz_m[:use]
         lab.start_from_labelled_frames(sx)
+        own = own_distances(sx)
         fidx = np.arange(use) + s.first_frame - first
         keep = (fidx >= 0) & (fidx < n_frames)
         xyz[fidx[keep]] = sx[keep]
@@ -87,7 +89,7 @@ def _label_take(points, ms, rate_hz, start_labels, start_frames, progress, optio
             back.start_from_labelled_frames(wx[::-1])
             for i in range(w0 - 1, -1, -1):
                 out[i] = back.update(per_frame[i])
-    check = Verification(ms, per_frame, out, noise_m=lab.noise_m) if verify else None
+    check = Verification(ms, per_frame, out, noise_m=lab.noise_m, own=own) if verify else None
     for n_done, i in enumerate(order):
         out[i] = lab.update(per_frame[i])
         if check is not None:

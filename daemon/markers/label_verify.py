@@ -36,6 +36,7 @@ from daemon.markers.label_assign import (
     to_marker_track,
 )
 from daemon.markers.label_body import BodyTerms
+from daemon.markers.label_own import own_agrees
 from daemon.markers.label_start import link_window
 from daemon.markers.markerset import MarkerSet, signed_volume
 from daemon.markers.markerset_fit import check_fit
@@ -50,7 +51,7 @@ NEW_MISFIT = 2.0      # a track takes a new marker within 2 allowances (2 SD) of
 
 
 def relabel_window(xyz: np.ndarray, ms: MarkerSet, noise_m: float = 0.003,
-                   extra: np.ndarray | None = None
+                   extra: np.ndarray | None = None, own: tuple | None = None
                    ) -> tuple[np.ndarray, np.ndarray] | None:
     """For a window's labelled positions (W, n, 3) and the tracks of its unlabelled
     points `extra` (E, W, 3): the new marker of each marker (n,) (-1: its label is taken
@@ -61,7 +62,10 @@ def relabel_window(xyz: np.ndarray, ms: MarkerSet, noise_m: float = 0.003,
     tracker's errors mostly are); then, if the window still does not fit the set, the
     whole assignment from the set alone. New labels only reorder the labelled tracks'
     markers and give unlabelled tracks others: on a window with markers hidden the score
-    gains by moving a label onto a marker seen in too few frames to be a track."""
+    gains by moving a label onto a marker seen in too few frames to be a track.
+    `own`: this body's distances (mean, SD (n, n)) from labelled start frames, which
+    outrank the set: new labels that fit them worse than the current ones are refused
+    (a body built otherwise than the set's looks "wrong" to the set alone)."""
     W = len(xyz)
     tracks = np.nonzero(np.isfinite(xyz).all(2).sum(0) >= MIN_SEEN * W)[0]
     E = 0 if extra is None else len(extra)
@@ -95,7 +99,7 @@ def relabel_window(xyz: np.ndarray, ms: MarkerSet, noise_m: float = 0.003,
                 and not _misfits(check_fit(ms, _positions(X, full, ms.n)[::4],
                                            noise_m=noise_m), full, cur, ms, before):
             lab = full
-    if np.array_equal(lab, cur):
+    if np.array_equal(lab, cur) or not own_agrees(X, lab, cur, own, ms.sd_m, noise_m):
         return None
     T = len(tracks)
     perm = np.arange(ms.n)
@@ -254,14 +258,14 @@ def apply_window(labels: dict, win: list[int], perm: np.ndarray, gained: np.ndar
         labels[i] = (new, c)
 
 
-def check_window(per_frame, labels, win, ms, noise_m):
+def check_window(per_frame, labels, win, ms, noise_m, own=None):
     """Check one window and relabel it in place if it went wrong. Returns (perm, the
     markers the unlabelled tracks took, their positions (E, W, 3), their points' rows
     (E, W)) or None."""
     if len(win) < 10:
         return None
     xyz, X, rows = window_labels(per_frame, labels, win, ms.n)
-    got = relabel_window(xyz, ms, noise_m, X)
+    got = relabel_window(xyz, ms, noise_m, X, own)
     if got is None:
         return None
     perm, gained = got
@@ -351,7 +355,8 @@ def taken_up(gained: np.ndarray, X: np.ndarray, per_frame: list[np.ndarray], lab
 
 
 def verify_labels(per_frame: list[np.ndarray], labels: dict, frames: range, ms: MarkerSet,
-                  width: int = WINDOW, stride: int = STRIDE, noise_m: float = 0.003) -> int:
+                  width: int = WINDOW, stride: int = STRIDE, noise_m: float = 0.003,
+                  own: tuple | None = None) -> int:
     """Check the labels (frame index -> (marker per point, confidence)) over `frames`,
     every `stride`-th window of `width` frames, and relabel, in place, a window whose
     labels the set says are wrong, with the windows before it back to one that is
@@ -366,7 +371,7 @@ def verify_labels(per_frame: list[np.ndarray], labels: dict, frames: range, ms: 
             win = idx[starts[k]:starts[k] + width]
             if k == len(starts) - 1:
                 win = idx[starts[k]:]
-            done[k] = check_window(per_frame, labels, win, ms, noise_m) is not None
+            done[k] = check_window(per_frame, labels, win, ms, noise_m, own) is not None
         return done[k]
 
     for k in range(0, len(starts), stride):
@@ -388,8 +393,10 @@ class Verification:
     labels on and forgets the distances it learned from wrong ones."""
 
     def __init__(self, ms: MarkerSet, per_frame: list[np.ndarray], labels: dict,
-                 width: int = WINDOW, stride: int = STRIDE, noise_m: float = 0.003) -> None:
+                 width: int = WINDOW, stride: int = STRIDE, noise_m: float = 0.003,
+                 own: tuple | None = None) -> None:
         self.ms, self.per_frame, self.labels = ms, per_frame, labels
+        self.own = own            # the body's distances from labelled start frames
         self.width, self.stride, self.noise_m = width, stride, noise_m
         self.windows: list[list[int]] = []
         self.right: dict[int, bool] = {}
@@ -399,7 +406,7 @@ class Verification:
 
     def _fix(self, k: int):
         got = check_window(self.per_frame, self.labels, self.windows[k], self.ms,
-                            self.noise_m)
+                            self.noise_m, self.own)
         self.right[k] = got is None
         self.fixed += got is not None
         return got

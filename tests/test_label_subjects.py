@@ -1,0 +1,101 @@
+"""Labelling subjects that are not the marker set's (issue 29): a real CMU take performed by
+a body re-proportioned per segment (daemon/synthetic/subjects.py), and the rule that a
+correct labelled start never ends worse than the set alone or than no verification."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from daemon.markers.c3dio import read_c3d
+from daemon.markers.label_offline import label_take
+from daemon.markers.markerset import MarkerSet
+from daemon.synthetic.labelling import hide_spans, points_with_ghosts
+from daemon.synthetic.subjects import (
+    SEGMENTS,
+    Subject,
+    markers_of,
+    random_subject,
+    reproportion,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT / "fixtures" / "cmu_c3d"
+
+
+@pytest.fixture(scope="module")
+def cmu41():
+    return MarkerSet.load(ROOT / "daemon" / "markers" / "sets" / "cmu41.toml")
+
+
+@pytest.fixture(scope="module")
+def take(cmu41):
+    return read_c3d(DATA / "85_02.c3d").select(cmu41.labels)
+
+
+def _dist(x, a, b, labels):
+    return np.linalg.norm(x[:, labels.index(a)] - x[:, labels.index(b)], axis=1)
+
+
+def test_a_reproportioned_subject_is_the_same_motion_by_another_body(take):
+    """Each segment's own distances scale by its factor in every frame (the shank's SHN
+    to ANK, the forearm's WRA to WRB); the identity subject gives the take back; extra
+    markers keep their distance to their segment, and the truth of the extra markers
+    maps to no marker of the set."""
+    same = reproportion(take, Subject())
+    assert np.allclose(same.xyz_m, take.xyz_m, equal_nan=True)
+    subject = Subject((("Lshank", 1.15), ("Rforearm", 0.85), ("Lthigh", 0.9)), 0.0, 2, 1)
+    other = reproportion(take, subject)
+    L = take.labels
+    for a, b, k in (("LSHN", "LANK", 1.15), ("RWRA", "RWRB", 0.85), ("LTHI", "LKNE", 0.9),
+                    ("LHEE", "LTOE", 1.0)):
+        ratio = _dist(other.xyz_m, a, b, other.labels) / _dist(take.xyz_m, a, b, L)
+        assert np.allclose(ratio, k, atol=1e-9), (a, b)
+    # the motion is kept: the knee angle's cosine (thigh and shank) is the same per frame
+    def cos_knee(x, labels):
+        u = x[:, labels.index("LTHI")] - x[:, labels.index("LKNE")]
+        v = x[:, labels.index("LANK")] - x[:, labels.index("LKNE")]
+        return (u * v).sum(1) / np.linalg.norm(u, axis=1) / np.linalg.norm(v, axis=1)
+    assert np.allclose(cos_knee(other.xyz_m, other.labels), cos_knee(take.xyz_m, L),
+                       atol=1e-9)
+    assert other.labels[-2:] == ["X1", "X2"]
+    for e in ("X1", "X2"):
+        d = np.linalg.norm(other.xyz_m[:, other.labels.index(e)][:, None]
+                           - other.xyz_m[:, :len(L)], axis=2).min(1)
+        assert np.ptp(d) < 0.02 and 0.03 < d.min()
+    assert list(markers_of(other, L)[-2:]) == [-1, -1]
+    assert {s for s, _ in random_subject(0).scale} <= set(SEGMENTS)
+
+
+def _right_wrong(take, cmu41, seed, start_frames, verify=True):
+    t = hide_spans(take, 0.1, seed=seed)
+    pts, mk = points_with_ghosts(t, 2, seed=seed)
+    to_set = markers_of(t, cmu41.labels)
+    truth = np.where(mk >= 0, to_set[np.maximum(mk, 0)], -1)
+    _, _, labels = label_take(pts, cmu41, take.rate_hz, t if start_frames else None,
+                              start_frames, verify=verify)
+    order = np.argsort(pts.frame, kind="stable")
+    _, starts = np.unique(pts.frame[order], return_index=True)
+    want = np.concatenate(np.split(truth[order], starts[1:])[10:])
+    got = np.concatenate(labels[10:])          # the same frames for every start
+    real = want >= 0
+    return (float((got[real] == want[real]).mean()),
+            float(((got[real] >= 0) & (got[real] != want[real])).mean()))
+
+
+def test_a_correct_start_never_ends_worse_on_another_body(take, cmu41):
+    """85_02 by another body (subject 3: shanks 0.91, upper arms 1.12 ..., markers 10 mm
+    off, 3 extra markers the set lacks), 10 % hidden and 2 ghosts: with 10 correctly
+    labelled start frames the take ends at least as right as from the set alone and as
+    without verification. Before the start's own distances outranked the set,
+    verification took a thigh marker for the pelvis's (the subject "repaired" toward the
+    set): 96.0 % right and 2.1 % wrong, against 97.8 % and none without it."""
+    other = reproportion(take, random_subject(3, extra_markers=3))
+    alone, _ = _right_wrong(other, cmu41, 3, 0)
+    start, start_wrong = _right_wrong(other, cmu41, 3, 10)
+    unverified, _ = _right_wrong(other, cmu41, 3, 10, verify=False)
+    assert start >= alone
+    assert start >= unverified
+    assert start_wrong < 0.002
