@@ -35,12 +35,14 @@ from daemon.nodes import wire
 from daemon.nodes.clock import NodeClock
 from daemon.nodes.session import all_blobs_key, all_sets_key, check_name, ping_key
 from daemon.nodes.zenoh_table import DaemonZenoh, is_remote
+from daemon.publish.bad_input import BadInput
 from daemon.sources import CameraSample
 
 log = logging.getLogger("mocapd.nodes")
 PING_HZ = 20.0
 WATCH_HZ = 100.0  # how often silent cameras are looked for
 NODE_SILENT_S = 3.0  # a node not heard (announcements, pongs) for this long is gone
+MAX_NODES = 64  # nodes remembered before the silent ones are forgotten
 
 
 class _Camera:
@@ -85,6 +87,8 @@ class NodeHub:
         self.session = None
         self.unknown = 0  # blobs of cameras the daemon does not take
         self.bad = 0  # messages that failed to decode
+        # ... by kind, each logged once a minute: junk on the bus must not flood the log
+        self.refused = BadInput(log, "zenoh")
         self._stop = threading.Event()
         self._seq = 0
         self._captures: list[RemoteCapture] | None = None
@@ -156,28 +160,57 @@ class NodeHub:
                             del self.nodes[o.boot]
                     else:
                         log.info("node %s joined (boot %08x)", name, boot)
+                    if len(self.nodes) >= MAX_NODES:  # forget the silent: a stream of
+                        now = time.monotonic()        # made-up boot ids cannot grow this
+                        for o in [n for n in self.nodes.values()
+                                  if now - n.last_heard > NODE_SILENT_S]:
+                            del self.nodes[o.boot]
                     node = self.nodes[boot] = _Node(name, boot)
         node.last_heard = time.monotonic()
         return node
 
-    def _on_pong(self, sample) -> None:
-        t4 = time.monotonic_ns()
+    def _refuse(self, kind: str, detail: object = "") -> None:
+        self.bad += 1
+        self.refused(kind, detail)
+
+    def _safely(self, what: str, handle, sample) -> None:
+        """A callback's work: whatever a message holds, nothing escapes into Zenoh's
+        thread (which would print a traceback per message and drop the rest)."""
         try:
-            boot, _, t1, t2, t3 = wire.decode_pong(sample.payload.to_bytes())
-        except wire.WireError:
-            self.bad += 1
-            return
+            handle(sample)
+        except wire.WireError as exc:
+            self._refuse(f"{what} message that does not decode", exc)
+        except Exception as exc:  # noqa: BLE001 - a message no check foresaw
+            self._refuse(f"{what} message that failed ({type(exc).__name__})", exc)
+
+    def _on_pong(self, sample) -> None:
+        self._safely("clock", self._pong, sample)
+
+    def _on_announce(self, sample) -> None:
+        self._safely("announcement", self._announce, sample)
+
+    def _on_blobs(self, sample) -> None:
+        self._safely("blobs", self._blobs, sample)
+
+    def _on_sets(self, sample) -> None:
+        self._safely("blob-sets", self._sets, sample)
+
+    def _pong(self, sample) -> None:
+        t4 = time.monotonic_ns()
+        boot, _, t1, t2, t3 = wire.decode_pong(sample.payload.to_bytes())
         name = str(sample.key_expr).split("/")[-2]
         self._node(name, boot).clock.add(t1, t2, t3, t4)
 
-    def _on_announce(self, sample) -> None:
+    def _announce(self, sample) -> None:
         try:
             msg = json.loads(sample.payload.to_bytes())
-            node = self._node(str(msg["node"]), int(msg["boot"]))
-            node.cameras = [str(c) for c in msg["cameras"]]
-        except (ValueError, KeyError, TypeError):
-            self.bad += 1
-            return
+            name, boot, cameras = str(msg["node"]), int(msg["boot"]), msg["cameras"]
+            if not isinstance(cameras, list) or not 0 <= boot < 2 ** 32:
+                raise TypeError("cameras not a list, or boot not a 32-bit id")
+        except (ValueError, KeyError, TypeError, OverflowError) as exc:
+            raise wire.WireError(f"{type(exc).__name__}: {exc}") from None
+        node = self._node(name, boot)
+        node.cameras = [str(c) for c in cameras]
         now = time.monotonic()
         for cam in node.cameras:
             others = [n.name for n in list(self.nodes.values()) if n is not node
@@ -192,27 +225,22 @@ class NodeHub:
                                 "give each camera one node", cam, node.name, others[0])
 
     def _warn_once(self, key, message: str, *args) -> None:
-        if key not in self._warned:
-            self._warned.add(key)
-            log.warning(message, *args)
+        if key in self._warned:
+            return
+        if len(self._warned) >= 4 * MAX_NODES:  # made-up names: once a minute from here
+            self.refused("announcement warning beyond the first ones", message % args)
+            return
+        self._warned.add(key)
+        log.warning(message, *args)
 
-    def _on_blobs(self, sample) -> None:
+    def _blobs(self, sample) -> None:
         """One camera's frame (a node with `publish = "cameras"`)."""
         name = str(sample.key_expr).split("/")[-2]
-        try:
-            m = wire.decode_blobs(sample.payload.to_bytes())
-        except wire.WireError:
-            self.bad += 1
-            return
-        self._take(((name, m),))
+        self._take(((name, wire.decode_blobs(sample.payload.to_bytes())),))
 
-    def _on_sets(self, sample) -> None:
+    def _sets(self, sample) -> None:
         """The frames of one trigger from all of a node's cameras."""
-        try:
-            frames = wire.decode_sets(sample.payload.to_bytes())
-        except wire.WireError:
-            self.bad += 1
-            return
+        frames = wire.decode_sets(sample.payload.to_bytes())
         if frames:
             self._take(frames)
 

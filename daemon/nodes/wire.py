@@ -80,7 +80,10 @@ def _blob_bytes(uv, area, peak) -> bytes:
 
 
 def _blobs(data: bytes, n: int, at: int):
-    """uv (N, 2), area, peak in float64 from n blob records at offset `at`."""
+    """uv (N, 2), area, peak in float64 from n blob records at offset `at`; a NaN or
+    infinity (no detector makes one) is refused here rather than tracked."""
+    if not np.isfinite(np.frombuffer(data, "<f4", 4 * n, at)).all():
+        raise WireError("a message with non-finite blob values (NaN or infinity)")
     body = np.frombuffer(data, BLOB, n, at)
     uv = np.empty((n, 2), np.float64)
     uv[:, 0], uv[:, 1] = body["u"], body["v"]
