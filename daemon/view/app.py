@@ -23,7 +23,8 @@ import numpy as np
 from calibkit.core.errors import UserError
 from calibkit.vision.masks import load_mask
 from daemon.control import request
-from daemon.view import draw
+from daemon.publish.bad_input import BadInput
+from daemon.view import draw, quiet
 from daemon.view.detection_panel import DetectionPanel
 
 log = logging.getLogger("mocapd.view")
@@ -40,6 +41,7 @@ BODY_COLOURS = [(230, 80, 60), (70, 160, 240), (250, 200, 40), (160, 90, 220),
 def main(conn, host: str, port: int) -> None:
     """The process: serve, say so (or why not), then follow the daemon until it stops."""
     logging.basicConfig(level=logging.WARNING, format="mocapd-view: %(message)s")
+    quiet.install(log)  # bad requests: one line per kind a minute, never a traceback
     try:
         # deferred on purpose: loads viser only where used
         import viser
@@ -64,6 +66,14 @@ def main(conn, host: str, port: int) -> None:
         view.close()
 
 
+
+
+def _finite(*values) -> list[np.ndarray]:
+    """Values of a page's event as float arrays; ValueError if one is not finite."""
+    out = [np.asarray(v, dtype=np.float64) for v in values]
+    if not all(np.isfinite(v).all() for v in out):
+        raise ValueError("a value that is not a finite number")
+    return out
 
 
 def _next(due: float, hz: float, now: float) -> float:
@@ -92,6 +102,7 @@ class LiveView:
         self._rates = deque(maxlen=2)  # (time, scenes drawn, thumbnail rounds drawn)
         self._stop = threading.Event()
         self._busy = threading.Lock()  # one body edit at a time
+        self.bad = BadInput(log, "view")  # crafted page events, once a minute per kind
         server.gui.configure_theme(control_width="large", dark_mode=True, show_logo=False,
                                   show_share_button=False)
         server.scene.set_up_direction("+z")
@@ -375,16 +386,25 @@ class LiveView:
                                                           sorted(self.picked)) or "none"))
 
     def _on_click(self, event) -> None:
-        ids, xyz = self._free_seen()
-        k = draw.pick_by_ray(xyz, event.ray_origin, event.ray_direction)
+        try:
+            ids, xyz = self._free_seen()
+            k = draw.pick_by_ray(xyz, *_finite(event.ray_origin, event.ray_direction))
+        except (TypeError, ValueError) as exc:  # a crafted click: no ray, NaN, text...
+            self.bad("click that is no ray", exc)
+            return
         if k >= 0:
             self._set_picked(self.picked ^ {int(ids[k])})
 
     def _on_rect(self, event) -> None:
-        ids, xyz = self._free_seen()
-        cam = event.client.camera
-        inside = draw.pick_in_rect(xyz, cam.position, cam.wxyz, cam.fov, cam.aspect,
-                                   event.screen_min, event.screen_max)
+        try:
+            ids, xyz = self._free_seen()
+            cam = event.client.camera
+            inside = draw.pick_in_rect(xyz, *_finite(cam.position, cam.wxyz, cam.fov,
+                                                     cam.aspect, event.screen_min,
+                                                     event.screen_max))
+        except (TypeError, ValueError) as exc:
+            self.bad("box selection that is no box", exc)
+            return
         self._set_picked(self.picked | {int(i) for i in ids[inside]})
 
     def run_edit(self, action, message) -> None:
@@ -414,7 +434,7 @@ class LiveView:
         from daemon.view.bodies import add_picked
 
         rt = self.desc["runtime_dir"]
-        name = self.new_name.value
+        name = quiet.text(self.new_name.value, "name", 64)
         body_id, n = add_picked(self.desc["config"], name, self.picked,
                                 lambda: request(rt, {"cmd": "markers"}))
         self._set_picked(set())
@@ -424,7 +444,8 @@ class LiveView:
         # deferred on purpose: loads numba (compiled kernels), tomli_w only where used
         from daemon.view.bodies import rename_body
 
-        old, new = self.body_choice.value, self.rename_to.value
+        old = quiet.choice(self.body_choice.value, self.body_choice.options, "body")
+        new = quiet.text(self.rename_to.value, "new name", 64)
         rename_body(self.desc["config"], old, new)
         return f"renamed {old!r} to {new.strip()!r}"
 
@@ -432,7 +453,7 @@ class LiveView:
         # deferred on purpose: loads numba (compiled kernels), tomli_w only where used
         from daemon.view.bodies import remove_body
 
-        name = self.body_choice.value
+        name = quiet.choice(self.body_choice.value, self.body_choice.options, "body")
         remove_body(self.desc["config"], name)
         return f"removed {name!r}"
 

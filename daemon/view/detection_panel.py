@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from daemon.view import camera_edit
+from daemon.view import camera_edit, quiet
 
 
 class DetectionPanel:
@@ -57,11 +57,17 @@ class DetectionPanel:
         self.min_area.value = float(c["min_area"])
         self.max_area.value = float(c["max_area"])
 
+    def _camera(self) -> str:
+        """The chosen camera, one of the tab's (a crafted message can send any name, and
+        the name makes the mask's file name)."""
+        return quiet.choice(self.choice.value, self.names, "camera")
+
     def _apply(self) -> str:
-        name = self.choice.value
+        name = self._camera()
         now = self.view.desc["cameras"][name]
-        thr = camera_edit.parse_threshold(self.threshold.value)
-        lo, hi = float(self.min_area.value), float(self.max_area.value)
+        thr = camera_edit.parse_threshold(quiet.text(self.threshold.value, "threshold", 20))
+        lo = quiet.number(self.min_area.value, "min area", 0.0, 1e7)
+        hi = quiet.number(self.max_area.value, "max area", 0.0, 1e7)
         if lo >= hi:
             raise camera_edit.UserError(f"min area ({lo:g}) must be below max area ({hi:g})")
         # only what changed is written: a file keeps its defaults unwritten
@@ -73,7 +79,7 @@ class DetectionPanel:
         return f"{name}: threshold {thr}, blob area {lo:g} to {hi:g} px saved"
 
     def _mask_now(self) -> str:
-        name = self.choice.value
+        name = self._camera()
         rig = self.view.desc["rig"]
         c = rig.names.index(name)
         uv, area = self.view.blobs.get(c, (np.zeros((0, 2)), np.zeros(0)))
@@ -84,6 +90,6 @@ class DetectionPanel:
         return f"{name}: {len(uv)} blobs masked ({path.name})"
 
     def _clear(self) -> str:
-        name = self.choice.value
+        name = self._camera()
         camera_edit.set_mask(self.view.desc["config"], name, None)
         return f"{name}: mask cleared"
