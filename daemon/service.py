@@ -722,7 +722,7 @@ class Daemon:
             "frames": st.frames,
             "rate_hz": (len(st.done) - 1) / elapsed if elapsed > 0 else None,
             "latency_to_poses": latency_figures(st.all_latency),
-            "markers_tracked_median": float(np.median(st.markers_seen)) if st.markers_seen
+            "markers_tracked_median": float(np.median(st.markers_seen)) if len(st.markers_seen)
             else 0.0,
             "bodies_valid_fraction": {str(i): st.body_valid[i] / st.body_frames[i]
                                       for i in st.body_frames},

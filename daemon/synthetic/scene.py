@@ -34,6 +34,7 @@ from calibkit.synthetic import sim
 from daemon.config import SimConfig
 from daemon.multiplexer import FrameSet
 from daemon.sources import CameraSample, fine_timer_slack
+from daemon.synthetic.ledger import Ledger
 from daemon.synthetic.robot import LiveRobot
 
 PERSON_MARKER_BASE = 2000  # the simulated person's truth marker ids start here
@@ -108,7 +109,7 @@ class SimScene:
         self.transfer_ns = rng.uniform(*TRANSFER_NS, m).round().astype(np.int64)
         # the ledger: per camera, by (frame id, device time), what each delivered frame
         # was (trigger, when taken); a reconnected camera reuses frame ids, not times
-        self._ledger: list[dict] = [{} for _ in range(m)]
+        self._ledger = Ledger(m, LEDGER)  # compact: a dict of them grew to 76 MB (issue 30)
         self.lost_fraction = np.zeros(m)
         for c, f in (lost_frames or {}).items():
             if not 0 <= f < 1:
@@ -198,10 +199,7 @@ class SimScene:
                 arrival_ns: int, taken_ns: int) -> CameraSample:
         """What camera `camera` delivers for trigger `trigger`, as its driver would: blobs,
         its frame counter and timestamp; the ledger keeps the truth of it."""
-        book = self._ledger[camera]
-        book[frame_id, device_ns] = (trigger, taken_ns)
-        if len(book) > LEDGER:
-            del book[next(iter(book))]  # the oldest
+        self._ledger.add(camera, frame_id, device_ns, trigger, taken_ns)
         uv, area, peak, _ = self._blobs(camera, trigger)
         return CameraSample(camera, frame_id, t_ns, arrival_ns, uv, area, peak, device_ns,
                             frame_id)
@@ -217,8 +215,7 @@ class SimScene:
     def _entry(self, sample) -> tuple[int, int] | None:
         """(trigger, taken_ns) of a delivered sample, found by its camera, frame id and
         timestamp; None if the ledger never held it or has forgotten it."""
-        return self._ledger[sample.camera].get((sample.device_frame_id,
-                                                sample.device_time_ns))
+        return self._ledger.get(sample.camera, sample.device_frame_id, sample.device_time_ns)
 
     def trigger_of(self, sample) -> int:
         """The trigger (the scene's frame counter) a delivered sample was taken at, or -1."""
