@@ -230,3 +230,57 @@ def test_node_in_a_network_namespace_over_a_delayed_link(namespaces, tmp_path):
     assert np.median(err_us) <= 50.0 and err_us.max() <= 100.0, err_us
     drift_err = np.abs(np.array(drifts) - DRIFT_PPM)
     assert np.median(drift_err) < 3.0 and drift_err.max() < 10.0, drifts
+
+
+def test_a_node_without_the_credentials_is_refused_across_namespaces(namespaces, tmp_path):
+    """The daemon listens on the namespaces' network with a users file: the node that
+    presents a listed user's password serves its cameras; one without credentials, and one
+    with a wrong password, are refused at Zenoh's handshake and their cameras never come."""
+    from daemon.control import request
+
+    a, b = namespaces["daemon"], namespaces["node"]
+    port = 18000 + os.getpid() % 1000
+    runtime = tmp_path / "run"
+    users = tmp_path / "zenoh-users.txt"
+    users.write_text("node-a:correct horse battery\n")
+    conf = tmp_path / "mocapd.toml"
+    conf.write_text(f'runtime_dir = "{runtime}"\n[sim]\ncameras = 6\n'
+                    f'[zenoh]\nrig = "auth"\nlisten = ["tcp/10.213.77.1:{port}"]\n'
+                    f'cameras = "announced"\nusers_file = "{users}"\n')
+    procs = [subprocess.Popen(["ip", "netns", "exec", a, sys.executable, "-m", "daemon.cli",
+                               "start", "--config", str(conf), "--duration", "40"],
+                              cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL,
+                              stderr=(tmp_path / "daemon.err").open("w"))]
+    listed = 'user = "node-a"\npassword = "correct horse battery"\n'
+    for name, cams, creds in (("good", "0-1", listed), ("none", "2-3", ""),
+                              ("wrong", "4-5", 'user = "node-a"\npassword = "guess"\n')):
+        node_toml = tmp_path / f"{name}.toml"
+        node_toml.write_text(f'name = "{name}"\n[zenoh]\nrig = "auth"\n'
+                             f'connect = ["tcp/10.213.77.1:{port}"]\n{creds}')
+        procs.append(subprocess.Popen(
+            ["ip", "netns", "exec", b, sys.executable, "-m", "daemon.cli", "node", "--config",
+             str(node_toml), "--sim", "--sim-cameras", "6", "--cameras", cams,
+             "--duration", "45"], cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL,
+            stderr=(tmp_path / f"{name}.err").open("w")))
+    seen, nodes = set(), set()
+    try:
+        end = time.monotonic() + 90
+        good_since = None
+        while time.monotonic() < end:
+            time.sleep(0.5)
+            try:
+                st = request(runtime, {"cmd": "status"}, timeout_s=2.0)
+            except Exception:  # noqa: BLE001 - not up yet
+                continue
+            seen |= {c["name"] for c in st["cameras"] if c.get("frames", 0) > 0}
+            nodes |= {n["name"] for n in st.get("nodes") or []}
+            if {"cam0", "cam1"} <= seen and good_since is None:
+                good_since = time.monotonic()
+            if good_since is not None and time.monotonic() - good_since > 8:
+                break  # the refused nodes had the same time to join as the good one
+    finally:
+        stop(procs)
+    logs = {p.name: p.read_text()[-600:] for p in tmp_path.glob("*.err")}
+    assert {"cam0", "cam1"} <= seen, f"the node with the credentials never came: {logs}"
+    assert not seen & {"cam2", "cam3", "cam4", "cam5"}, (seen, nodes, logs)
+    assert nodes == {"good"}, nodes

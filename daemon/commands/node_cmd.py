@@ -55,7 +55,7 @@ def register(app: typer.Typer) -> None:
         from daemon.config import SimConfig
         from daemon.logs import setup_logging
         from daemon.nodes.node import Node, NodeTime, live_sources
-        from daemon.nodes.session import ZenohSettings, check_endpoint, check_name
+        from daemon.nodes.session import check_endpoint, check_name
         from daemon.nodes.settings import PUBLISH, load_node_config, parse_camera_list
         from daemon.synthetic.node_sim import sim_capture, sim_sources
 
@@ -75,11 +75,11 @@ def register(app: typer.Typer) -> None:
                 cfg = replace(cfg, publish=publish)
             s = cfg.session
             if rig is not None or connect or listen:
-                s = ZenohSettings(check_name(rig, "--rig") if rig is not None else s.rig,
-                                  tuple(check_endpoint(e) for e in listen) if listen
-                                  else s.listen,
-                                  tuple(check_endpoint(e) for e in connect) if connect
-                                  else s.connect, s.multicast_scouting)
+                s = replace(s, rig=check_name(rig, "--rig") if rig is not None else s.rig,
+                            listen=tuple(check_endpoint(e) for e in listen) if listen
+                            else s.listen,
+                            connect=tuple(check_endpoint(e) for e in connect) if connect
+                            else s.connect)
             cfg = replace(cfg, session=s)
         except ValueError as exc:
             raise UserError(str(exc)) from None

@@ -5,18 +5,28 @@ wants the opposite by default: the daemon listens on the endpoints it is given, 
 connects to the daemon's, and nothing multicasts unless asked (`multicast_scouting`).
 Peers talk to the peers they connect to; gossip (peers telling each other about the
 peers they know) stays off with multicast, so a node never tries to reach another node.
+
+Who may join: with `users_file` (lines `user:password`), Zenoh's own user-password
+authentication admits only peers that present one of its users (`user`, `password` in the
+joining side's file); others are refused at the handshake, before any message. A session
+that listens beyond loopback with no users file says once that anyone who reaches the port
+may send it blobs.
 """
 
 from __future__ import annotations
 
+import ipaddress
 import json
+import logging
 import re
 from dataclasses import dataclass
+from pathlib import Path
 
 from calibkit.core.errors import UserError
 
 ENDPOINT = re.compile(r"^(tcp|udp|quic|tls|unixsock-stream)/.+$")
 KEY_CHUNK = re.compile(r"^[A-Za-z0-9_.\-]+$")  # a camera, body, node or rig name in a key
+log = logging.getLogger("mocapd.zenoh")
 
 
 @dataclass(frozen=True)
@@ -27,6 +37,15 @@ class ZenohSettings:
     listen: tuple[str, ...] = ()
     connect: tuple[str, ...] = ()
     multicast_scouting: bool = False
+    user: str = ""  # the credentials this side presents to a peer that asks for them
+    password: str = ""
+    users_file: str = ""  # who may join this side: lines user:password ("" : anyone)
+
+    def exposed(self) -> list[str]:
+        """Listen endpoints beyond loopback that any host reaching them may join."""
+        if self.users_file:
+            return []
+        return [e for e in self.listen if not _loopback(e)]
 
     def config(self):
         """A zenoh.Config for a peer with exactly these endpoints."""
@@ -43,6 +62,13 @@ class ZenohSettings:
         # keep retrying the daemon's endpoint: nodes may start before it
         conf.insert_json5("connect/timeout_ms", "-1")
         conf.insert_json5("connect/exit_on_failure", "false")
+        auth = {}
+        if self.user:
+            auth.update(user=self.user, password=self.password)
+        if self.users_file:
+            auth["dictionary_file"] = str(Path(self.users_file).resolve())
+        if auth:
+            conf.insert_json5("transport/auth/usrpwd", json.dumps(auth))
         return conf
 
     def open(self):
@@ -50,11 +76,46 @@ class ZenohSettings:
         # deferred on purpose: loads Zenoh only where used
         import zenoh
 
+        for endpoint in self.exposed():
+            log.warning("zenoh: listening on %s with no access control: any host that reaches "
+                        "it may join and send blobs; set users_file in [zenoh] (docs/nodes.md)",
+                        endpoint)
         try:
             return zenoh.open(self.config())
         except Exception as exc:  # noqa: BLE001 - zenoh raises its own ZError
             where = ", ".join(self.listen) or ", ".join(self.connect) or "no endpoint"
             raise UserError(f"zenoh: cannot open a session ({where}): {exc}") from None
+
+
+def _loopback(endpoint: str) -> bool:
+    """Whether a locator's address is this computer's own (127.0.0.0/8, ::1, localhost)."""
+    if endpoint.startswith("unixsock-stream/"):
+        return True
+    host = endpoint.split("/", 1)[1].rsplit(":", 1)[0].strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def read_users(path: Path) -> list[str]:
+    """The user names of a users file (lines `user:password`, read by Zenoh as they are: no
+    comments, spaces belong to the name or password); ValueError with the line at fault, so
+    a typo is found at start, not as nodes refused for no visible reason."""
+    names = []
+    for n, line in enumerate(Path(path).read_text(encoding="utf-8").splitlines(), 1):
+        if not line.strip():
+            continue
+        user, sep, password = line.partition(":")
+        if not sep or not user or not password or user != user.strip():
+            raise ValueError(f"line {n}: expected user:password (Zenoh reads the file as "
+                             "it is: no comments, no spaces around the name)")
+        names.append(user)
+    if not names:
+        raise ValueError("no user:password line")
+    return names
 
 
 def check_endpoint(text: str) -> str:

@@ -11,7 +11,7 @@ the problem, before anything opens.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import tomllib
@@ -58,10 +58,12 @@ def parse_node_config(data: dict, path: Path | None = None,
         check_name(name, "node name")
     except ValueError as exc:
         w.fail("name", str(exc))
-    session = _session(w, _table(w, data, "zenoh"), "zenoh.")
+    zt = _table(w, data, "zenoh")
+    _check_keys(w, zt, {"rig", "listen", "connect", "multicast_scouting", "user", "password",
+                        "users_file"}, "zenoh.")
+    session = _session(w, zt, "zenoh.", (), base)
     if not session.connect and not session.listen:
-        session = ZenohSettings(session.rig, (), (f"tcp/127.0.0.1:{DEFAULT_PORT}",),
-                                session.multicast_scouting)
+        session = replace(session, connect=(f"tcp/127.0.0.1:{DEFAULT_PORT}",))
     cameras = tuple(_camera(w, t, f"camera[{i}].", base or Path.cwd())
                     for i, t in enumerate(_list(w, data, "camera")))
     for i, c in enumerate(cameras):

@@ -6,9 +6,10 @@ Apart from those so that daemon.config can read it without importing them back."
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from daemon.config_check import _bool, _check_keys, _number, _string
-from daemon.nodes.session import ZenohSettings, check_endpoint, check_name
+from daemon.nodes.session import ZenohSettings, check_endpoint, check_name, read_users
 
 DEFAULT_PORT = 7447  # Zenoh's own default port
 
@@ -25,7 +26,7 @@ class DaemonZenoh:
     max_lag_ms: float = 100.0  # a sample older than this on arrival is late (node behind)
 
 
-def _session(w, t, prefix: str, listen_default=()) -> ZenohSettings:
+def _session(w, t, prefix: str, listen_default=(), base: Path | None = None) -> ZenohSettings:
     def endpoints(key, default):
         v = t.get(key, list(default))
         if isinstance(v, str):
@@ -42,16 +43,32 @@ def _session(w, t, prefix: str, listen_default=()) -> ZenohSettings:
         check_name(rig, "rig")
     except ValueError as exc:
         w.fail(prefix + "rig", str(exc))
+    user = _string(w, t, "user", prefix, "")
+    password = _string(w, t, "password", prefix, "")
+    if bool(user) != bool(password) or ":" in user:
+        w.fail(prefix + ("password" if user else "user"),
+               "give user and password together (a user name has no ':')")
+    users_file = ""
+    if "users_file" in t:
+        path = (base or Path.cwd()) / _string(w, t, "users_file", prefix)
+        try:
+            read_users(path)
+        except OSError as exc:
+            w.fail(prefix + "users_file", f"cannot read {path}: {exc.strerror}")
+        except ValueError as exc:
+            w.fail(prefix + "users_file", f"{path}: {exc}")
+        users_file = str(path)
     return ZenohSettings(rig, endpoints("listen", listen_default), endpoints("connect", ()),
-                         _bool(w, t, "multicast_scouting", prefix, False))
+                         _bool(w, t, "multicast_scouting", prefix, False), user, password,
+                         users_file)
 
 
-def parse_daemon_zenoh(w, t: dict) -> DaemonZenoh:
+def parse_daemon_zenoh(w, t: dict, base: Path | None = None) -> DaemonZenoh:
     """mocapd.toml's [zenoh] table (`w`: daemon.config's error helper)."""
     p = "zenoh."
     _check_keys(w, t, {"rig", "listen", "connect", "multicast_scouting", "cameras", "poses",
-                       "timeout_ms", "max_lag_ms"}, p)
-    session = _session(w, t, p, (f"tcp/0.0.0.0:{DEFAULT_PORT}",))
+                       "timeout_ms", "max_lag_ms", "user", "password", "users_file"}, p)
+    session = _session(w, t, p, (f"tcp/0.0.0.0:{DEFAULT_PORT}",), base)
     return DaemonZenoh(session, _string(w, t, "cameras", p, "configured",
                                         ("configured", "announced")),
                        _bool(w, t, "poses", p, True),
