@@ -77,6 +77,7 @@ def main() -> None:
     ap.add_argument("--marker-sd-mm", type=float, default=10.0)
     ap.add_argument("--takes", default="85_02,01_01")
     ap.add_argument("--no-baseline", action="store_true")
+    ap.add_argument("--starts", default="0,10", help="labelled start frames to run")
     args = ap.parse_args()
     warnings.simplefilter("ignore")
     ms = MarkerSet.load(ROOT / "daemon" / "markers" / "sets" / "cmu41.toml")
@@ -86,23 +87,25 @@ def main() -> None:
         kinds = [("other subjects", True)] + ([] if args.no_baseline else
                                               [("the take's own subject", False)])
         for kind, other in kinds:
-            res = {0: [], 10: []}
+            starts = [int(v) for v in args.starts.split(",")]
+            res = {sf: [] for sf in starts}
             for s in range(args.first, args.first + args.patterns):
                 t = take
                 if other:
                     t = reproportion(take, random_subject(s, args.spread,
                                                           args.marker_sd_mm / 1000,
                                                           args.extra))
-                for sf in (0, 10):
+                for sf in starts:
                     res[sf].append(one(t, ms, args.hidden, args.ghosts, sf, s))
                 print(name, kind, s, *(f"{100 * res[sf][-1][0]:.2f}/{100 * res[sf][-1][1]:.2f}"
-                                       for sf in (0, 10)), flush=True, file=sys.stderr)
-            alone = np.array([r[0] for r in res[0]])
-            for sf in (0, 10):
+                                       for sf in starts), flush=True, file=sys.stderr)
+            alone = np.array([r[0] for r in res[0]]) if 0 in starts else None
+            for sf in starts:
                 r = np.array(res[sf])
                 low = ", ".join(f"{args.first + i}: {100 * v:.1f}"
                                 for i, v in enumerate(r[:, 0]) if v < 0.97)
-                worse = int((r[:, 0] < alone - 1e-9).sum()) if sf else "-"
+                worse = int((r[:, 0] < alone - 1e-9).sum()) if sf and alone is not None \
+                    else "-"
                 rows.append([name, kind, sf, round(100 * float(np.median(r[:, 0])), 2),
                              round(100 * float(r[:, 0].min()), 2),
                              round(100 * float(r[:, 1].max()), 2), low or "-", worse,

@@ -1,13 +1,15 @@
 """Speed of labelling a whole take (`label_take`), from the marker set alone and from 10
 labelled start frames, on both CMU takes (labels stripped, points shuffled).
 
-    python benchmarks/bench_label_take.py [--repeats 3] [--command]
+    python benchmarks/bench_label_take.py [--repeats 3] [--command] [--subjects 0,1,2]
 
 Prints frames/s of CPU time (median of the repeats, after a warm-up run). --command: the
 whole `mocapd label POINTS.csv --markerset cmu41 --out X.c3d` instead, Python's start and
 imports included (user + system CPU time of the child process, best of the repeats: the
 least disturbed by the machine's other work), on the takes' points written as CSV, after
 one untimed run that caches the bytecode of every module the command loads.
+--subjects SEEDS (with --command): each take also performed by those other bodies
+(daemon/synthetic/subjects.py: segments re-proportioned +-15 %, markers 10 mm off).
 
 To compare with another version of the labeller, run the same script
 with PYTHONPATH at that version's tree (e.g. `git archive REV daemon calibkit projector
@@ -42,11 +44,13 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--command", action="store_true")
+    ap.add_argument("--subjects", default="", help="seeds of other bodies (--command)")
     args = ap.parse_args()
     warnings.simplefilter("ignore")
     cmu = open_set("cmu41")
     if args.command:
-        return command_table(cmu, args.repeats)
+        seeds = [int(v) for v in args.subjects.split(",") if v]
+        return command_table(cmu, args.repeats, seeds)
     warm = read_c3d(DATA / "85_02.c3d").select(cmu.labels)
     label_take(Points.from_take(warm, seed=9), cmu, 120.0)
     rows = []
@@ -68,7 +72,7 @@ def main() -> None:
     print_table(rows, ["take", "frames", "start_frames", "fps_median", "fps_worst"])
 
 
-def command_table(cmu, repeats: int) -> None:
+def command_table(cmu, repeats: int, subjects: list[int] | None = None) -> None:
     """The whole command, start-up included, from the set alone, in child processes."""
     import os
     import resource
@@ -85,9 +89,13 @@ def command_table(cmu, repeats: int) -> None:
     # otherwise have every timed run compile the labeller from source (about 45 ms)
     env.pop("PYTHONDONTWRITEBYTECODE", None)
     with tempfile.TemporaryDirectory() as tmp:
-        for name in ("85_02", "01_01"):
+        for name, subject in [(n, s) for n in ("85_02", "01_01") for s in [None, *subjects]]:
             take = read_c3d(DATA / f"{name}.c3d").select(cmu.labels)
-            csv = Path(tmp) / f"{name}.csv"
+            if subject is not None:
+                from daemon.synthetic.subjects import random_subject, reproportion
+                take = reproportion(take, random_subject(subject))
+                name = f"{name} subject {subject}"
+            csv = Path(tmp) / "points.csv"
             write_points_csv(csv, Points.from_take(take, seed=1))
             cpu = []
             for _ in range(repeats + 1):              # the first run caches bytecode
