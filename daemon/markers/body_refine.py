@@ -23,6 +23,10 @@ is to refine the body on the data; this is that, on a file:
 
 The learned template replaces the definition when a marker sits more than REFINE_ABOVE x
 the distance tolerance from where the definition puts it (2 mm at the default 4 mm).
+In `auto` a cheap first look comes before all that: a definition found as it is, every
+marker, in the first MIN_FRAMES frames scanned, each marker within AGREES_M of the fit, is
+kept without the loose search (which costs about 0.2 s of CPU a body, and changes nothing
+for a definition that fits: 2.3 of 4.0 s on a 10-body take where all fitted).
 When a body is still not found, closest_fit says how far its distances were from the
 best candidate points, for the message that tells the user what to change.
 """
@@ -48,6 +52,9 @@ WANT_FRAMES = 60  # frames learned from (the first ones found)
 SCAN_FRAMES = 300  # frames looked at, at most, evenly spaced from the start
 HINT_TOL_M = 0.025  # how far off the closest-fit search looks for a body's distances
 HINT_FRAMES = 60  # frames it looks at (a loose search per frame is slow: a hint only)
+# auto's first look: a marker this far from the definition's fit at most (a marker off by
+# REFINE_ABOVE x tol shows about 3/4 of that after a fit that spreads it over four markers)
+AGREES_M = 0.001
 
 
 @dataclass(eq=False)
@@ -160,6 +167,20 @@ def learn_geometry(xyz: np.ndarray, body: BodyDef, tol_m: float) -> BodyRefit:
     return BodyRefit(body.name, int(consistent.sum()), moved, shift, use)
 
 
+def definition_fits(xyz: np.ndarray, body: BodyDef, tol_m: float) -> bool:
+    """Whether the definition, as it is, finds the body with every marker in MIN_FRAMES of
+    the first frames scanned, each marker within AGREES_M of the fitted definition (median
+    over those frames): then there is nothing to learn."""
+    k = len(body.markers)
+    _, P = _matches(xyz, body, tol_m, k, MIN_FRAMES)
+    if len(P) < MIN_FRAMES or np.isnan(P).any():
+        return False
+    src = np.broadcast_to(body.markers, P.shape)
+    R, t = kabsch_batch(src, P, np.ones(P.shape[:2]))
+    fitted = np.einsum("bij,bkj->bki", R, src) + t[:, None, :]
+    return float(np.median(np.linalg.norm(P - fitted, axis=2), axis=0).max()) <= AGREES_M
+
+
 def refine_bodies(xyz: np.ndarray, bodies: list[BodyDef], tol_m: float,
                   mode: str = "auto") -> tuple[list[BodyDef], list[BodyRefit]]:
     """The definitions to track with, and what was learned about each. mode 'off' keeps
@@ -170,6 +191,10 @@ def refine_bodies(xyz: np.ndarray, bodies: list[BodyDef], tol_m: float,
     out, refits = [], []
     for body in bodies:
         if mode == "off":
+            out.append(body)
+            refits.append(BodyRefit(body.name, 0, None, None, None))
+            continue
+        if mode == "auto" and definition_fits(xyz, body, tol_m):
             out.append(body)
             refits.append(BodyRefit(body.name, 0, None, None, None))
             continue
