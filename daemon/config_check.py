@@ -35,6 +35,8 @@ def _number(w, table, key, prefix, default, kind=float, lo=None, hi=None):
                                                                   not isinstance(v, int)):
         w.fail(prefix + key, f"expected {'an integer' if kind is int else 'a number'}, "
                              f"got {v!r}")
+    if v != v:  # TOML's nan passes every range check below
+        w.fail(prefix + key, "expected a number, got nan")
     if (lo is not None and v < lo) or (hi is not None and v > hi):
         rng = f"between {lo} and {hi}" if hi is not None else f"at least {lo}"
         w.fail(prefix + key, f"must be {rng}, got {v}")

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import csv
 import io
-import struct
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -138,6 +137,12 @@ def read_c3d(path: str | Path, strip_prefix: bool = True) -> Take:
             n_points = int(reader.point_used)
             n_frames = int(reader.last_frame) - int(reader.first_frame) + 1
             labels_raw = list(reader.point_labels)[:n_points]
+            # a damaged header can claim billions of frames: never allocate more than the
+            # file can hold (each point of a frame is at least 4 int16 values)
+            if n_points < 0 or max(n_frames, 0) * n_points * 8 > len(data):
+                raise UserError(f"{path}: truncated C3D file: the header says {n_frames} "
+                                f"frames of {n_points} points, more than its "
+                                f"{len(data)} bytes hold")
             xyz = np.full((max(n_frames, 0), n_points, 3), np.nan)
             filled = np.zeros((max(n_frames, 0), n_points), bool)
             i = -1
@@ -157,14 +162,24 @@ def read_c3d(path: str | Path, strip_prefix: bool = True) -> Take:
     except AssertionError as exc:
         raise UserError(f"{path}: inconsistent C3D header ({exc}); re-export the file") \
             from None
-    except (ValueError, KeyError, IndexError, struct.error, EOFError) as exc:
-        raise UserError(f"{path}: unreadable C3D file ({exc})") from None
+    except UserError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - the c3d package trusts the file: a damaged
+        # one fails anywhere inside it (IndexError, struct.error, UnboundLocalError, ...)
+        raise UserError(f"{path}: unreadable C3D file ({type(exc).__name__}: "
+                        f"{str(exc)[:80]})") from None
     if i + 1 < n_frames:
         raise UserError(f"{path}: truncated C3D file: {i + 1} of {n_frames} frames present")
+    if not (np.isfinite(rate) and rate > 0):
+        raise UserError(f"{path}: the C3D header's frame rate is {rate}, not a positive "
+                        "number")
     scale = UNIT_TO_M.get(units)
     if scale is None:
         raise UserError(f"{path}: unknown POINT:UNITS {units!r} (expected mm, cm or m)")
     labels = [_clean_label(s) if strip_prefix else s.strip() for s in labels_raw]
+    if len(labels) != n_points:
+        raise UserError(f"{path}: {len(labels)} point labels for {n_points} points; "
+                        "re-export the file")
     xyz *= scale
     # C3D files mark missing samples with a negative residual; some writers use zeros.
     zero = (xyz == 0).all(axis=2)
