@@ -130,23 +130,17 @@ def config_text(ports: dict, extra_udp: int | None, bodies: str, drop: tuple | N
 
 
 def proc_figures(pid: int) -> dict:
-    """RSS (MB), open files and threads (with their names) of a process, from /proc."""
+    """RSS (MB), open files and threads of a process, from /proc."""
     rss_kb = 0
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
             if line.startswith("VmRSS:"):
                 rss_kb = int(line.split()[1])
         fds = len(os.listdir(f"/proc/{pid}/fd"))
-        names = []
-        for t in os.listdir(f"/proc/{pid}/task"):
-            try:
-                names.append(Path(f"/proc/{pid}/task/{t}/comm").read_text().strip())
-            except OSError:
-                pass
+        threads = len(os.listdir(f"/proc/{pid}/task"))
     except OSError:
-        return {"rss_mb": None, "open_files": None, "threads": None, "thread_names": []}
-    return {"rss_mb": rss_kb / 1024, "open_files": fds, "threads": len(names),
-            "thread_names": sorted(names)}
+        return {"rss_mb": None, "open_files": None, "threads": None}
+    return {"rss_mb": rss_kb / 1024, "open_files": fds, "threads": threads}
 
 
 class Soak:
@@ -171,6 +165,7 @@ class Soak:
         self.bodies = ""
         self.errors: list[str] = []  # what went wrong on our side (a request refused...)
         self.recordings: list[dict] = []
+        self.recording = False
         self.stalled: list[socket.socket] = []
         self.log_path = self.dir / "mocapd.log"
 
@@ -182,17 +177,33 @@ class Soak:
         tmp.write_text(text)
         tmp.replace(self.cfg)
 
-    def mocapd(self, *argv, timeout: float = 60.0) -> subprocess.CompletedProcess:
-        return subprocess.run([*MOCAPD, *argv, "--runtime-dir", str(self.ports["runtime"])],
-                              capture_output=True, text=True, timeout=timeout)
+    def request(self, message: dict, timeout: float = 60.0) -> dict:
+        """One request on the control socket, as `mocapd status --json`, `mocapd record`,
+        `mocapd reload` send it (the same JSON line; the CLI's own start took over a minute
+        on a machine loaded to 30, which is not what is measured here). A request not
+        answered within `timeout` is returned as {"ok": False, "error": ...}."""
+        path = str(self.ports["runtime"] / "mocapd.sock")
+        try:
+            with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as c:
+                c.settimeout(timeout)
+                c.connect(path)
+                c.sendall(json.dumps(message).encode() + b"\n")
+                data = b""
+                while not data.endswith(b"\n"):
+                    chunk = c.recv(1 << 16)
+                    if not chunk:
+                        break
+                    data += chunk
+            return json.loads(data)
+        except (OSError, ValueError) as exc:
+            return {"ok": False, "error": f"{message.get('cmd')}: {exc}"}
 
     def status(self) -> dict | None:
-        out = self.dir / "status.json"
-        r = self.mocapd("status", "--json", str(out))
-        if r.returncode != 0:
-            self.errors.append(f"status: {(r.stderr or r.stdout).strip()[-200:]}")
+        answer = self.request({"cmd": "status"})
+        if not answer.get("ok"):
+            self.errors.append(f"status: {answer.get('error')}")
             return None
-        return json.loads(out.read_text())
+        return answer
 
     def start(self) -> None:
         self.write_config()
@@ -202,7 +213,7 @@ class Soak:
         self.log = open(self.log_path, "w")  # noqa: SIM115 (the daemon's whole run)
         self.proc = subprocess.Popen(argv, stdout=self.log, stderr=subprocess.STDOUT,
                                      start_new_session=True)
-        deadline = time.monotonic() + 180
+        deadline = time.monotonic() + 600  # a first start compiles kernels (minutes, loaded)
         while self.reader.datagrams < 100:
             if self.proc.poll() is not None or time.monotonic() > deadline:
                 raise SystemExit(f"soak: mocapd did not start:\n{self.log_path.read_text()}")
@@ -257,19 +268,22 @@ class Soak:
         raise ValueError(name)
 
     def reload(self) -> None:
-        r = self.mocapd("reload")
-        if r.returncode != 0:
-            self.errors.append(f"reload: {(r.stderr or r.stdout).strip()[-200:]}")
+        answer = self.request({"cmd": "reload"})
+        if not answer.get("ok"):
+            self.errors.append(f"reload: {answer.get('error')}")
 
     def record(self, k: int) -> None:
         path = self.dir / f"take{k}.mcrec"
         before = self.status()
-        r = self.mocapd("record", str(path))
-        if r.returncode != 0:
-            self.errors.append(f"record: {(r.stderr or r.stdout).strip()[-200:]}")
+        self.recording = True  # the fuzzer leaves record_stop alone meanwhile
+        answer = self.request({"cmd": "record", "path": str(path)})
+        if not answer.get("ok"):
+            self.errors.append(f"record: {answer.get('error')}")
+            self.recording = False
             return
         time.sleep(min(RECORD_S, self.minute_s / 3))
-        r = self.mocapd("record", "--stop")
+        stopped = self.request({"cmd": "record_stop"})
+        self.recording = False
         after = self.status()
         frames = set()
         torn = 0
@@ -280,20 +294,19 @@ class Soak:
                     frames.add(json.loads(line)["f"])
                 except (json.JSONDecodeError, KeyError):
                     torn += 1
-        # the daemon's count: frames handed to the recorder ("recorded N frames"); the
-        # status frames around the window bracket it (they include the requests' time)
-        said = re.search(r"recorded (\d+) frames", r.stdout)
-        handed = int(said.group(1)) if said else None
-        rec = {"file": path.name, "stop_exit": r.returncode,
-               "stop_said": (r.stdout + r.stderr).strip()[-300:],
+        # the daemon's count: frames handed to the recorder; the status frames around the
+        # window bracket it (they include the requests' time)
+        handed = stopped.get("frames")
+        rec = {"file": path.name, "stop_answer": {k: v for k, v in stopped.items()
+                                                   if k != "path"},
                "frames_in_file": len(frames), "frames_recorder_handed": handed,
                "served_in_window": (after["frames"] - before["frames"]) if before and after
                else None, "torn_lines": torn}
         # lost: handed to the recorder and not in the file (the daemon's frame numbers skip
         # where the multiplexer dropped a set, so gaps in them are not losses)
         rec["frames_lost"] = (handed - len(frames)) if handed is not None else None
-        if handed is None or r.returncode != 0:
-            self.errors.append(f"record --stop: {rec['stop_said']}")
+        if not stopped.get("ok") or stopped.get("failed") or stopped.get("lost"):
+            self.errors.append(f"record_stop: {rec['stop_answer']}")
         self.recordings.append(rec)
         path.unlink(missing_ok=True)  # 20 s of blobs: a few MB each, not kept
 
@@ -343,7 +356,7 @@ class Soak:
         sock = str(self.ports["runtime"] / "mocapd.sock")
         bad = [b"not json\n", b"{\"cmd\": 5}\n", b"[1,2,3]\n", b"{\"cmd\": \"record\"}\n",
                b"{\"cmd\": \"nonsense\"}\n", b"{" * 5000 + b"\n", b"\xff\xfe\n", b"",
-               b"{\"cmd\": \"record_stop\"}\n" if not self.recording_now() else b"{}\n"]
+               b"{\"cmd\": \"record_stop\"}\n" if not self.recording else b"{}\n"]
         for msg in bad:
             try:
                 with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as c:
@@ -356,11 +369,6 @@ class Soak:
                 pass
         return f"fuzz: {n} datagrams, 5 TCP, {len(bad)} control requests"
 
-    def recording_now(self) -> bool:
-        return len(self.recordings) < sum(1 for m in range(self.minute)
-                                          if FAULTS[(m - 1) % len(FAULTS)] == "record"
-                                          and m >= 1)
-
     # ---- the run -------------------------------------------------------------------------
 
     def run(self) -> dict:
@@ -370,7 +378,7 @@ class Soak:
         first = proc_figures(pid)
         rows = []
         t0 = time.monotonic()
-        d0, p0 = self.reader.datagrams, self.reader.poses
+        d0, p0, s0 = self.reader.datagrams, self.reader.poses, time.monotonic()
         log_pos = 0
         for m in range(self.args.minutes):
             self.minute = m
@@ -384,7 +392,7 @@ class Soak:
             if self.proc.poll() is not None:
                 self.errors.append(f"mocapd exited in minute {m} with {self.proc.returncode}")
                 break
-            d1, p1 = self.reader.datagrams, self.reader.poses
+            d1, p1, s1 = self.reader.datagrams, self.reader.poses, time.monotonic()
             pf = proc_figures(pid)
             st = self.status() or {}
             text = self.log_path.read_text(errors="replace")
@@ -393,8 +401,7 @@ class Soak:
             outs = st.get("outputs", [])
             rows.append({
                 "minute": m, "fault": did,
-                "frames_per_s": (d1 - d0) / self.minute_s,
-                "poses_per_s": (p1 - p0) / self.minute_s,
+                "frames_per_s": (d1 - d0) / (s1 - s0), "poses_per_s": (p1 - p0) / (s1 - s0),
                 "rss_mb": pf["rss_mb"], "open_files": pf["open_files"],
                 "threads": pf["threads"],
                 "output_errors": {o.get("name", "?"): o.get("errors") for o in outs},
@@ -402,7 +409,7 @@ class Soak:
                 "output_sent": {o.get("name", "?"): o.get("sent") for o in outs},
                 "recording_status": st.get("recording_status"),
                 "daemon_frames": st.get("frames"), "logged": logged})
-            d0, p0 = d1, p1
+            d0, p0, s0 = d1, p1, s1
             r = rows[-1]
             print(f"{m:4d} {r['frames_per_s']:8.1f} {r['poses_per_s']:9.1f} "
                   f"{r['rss_mb'] or 0:8.1f} {r['open_files'] or 0:6d} {r['threads'] or 0:5d} "
@@ -421,7 +428,11 @@ class Soak:
             x = np.array([r["minute"] for r in late], float)
             y = np.array([r["rss_mb"] for r in late], float)
             slope = float(np.polyfit(x, y, 1)[0])
-        gone = sorted(set(first["thread_names"]) - set(end["thread_names"]))
+        # a dead worker shows as an output that stopped sending: compare the last two minutes
+        stalled = []
+        if len(rows) >= 2:
+            a, b = rows[-2]["output_sent"], rows[-1]["output_sent"]
+            stalled = sorted(k for k in b if k in a and b[k] is not None and b[k] <= a[k])
         return {
             "minutes": len(rows), "quiet_rate_fps": quiet,
             "rate_vs_quiet_pct": [float(v) for v in rel],
@@ -435,8 +446,8 @@ class Soak:
             "frames_lost_from_recordings": sum(r["frames_lost"] or 0 for r in self.recordings),
             "logged_warnings_errors": sum(len(r["logged"]) for r in rows),
             "soak_errors": self.errors,
-            "threads_start": first["thread_names"], "threads_end": end["thread_names"],
-            "threads_gone": gone,
+            "threads_start": first["threads"], "threads_end": end["threads"],
+            "outputs_not_sending_at_end": stalled,
             "udp_bad_datagrams": self.reader.bad,
             "exit_code": code, "load": os.getloadavg(),
             "rows": rows,
@@ -468,8 +479,9 @@ def print_summary(s: dict) -> None:
     print(f"daemon log lines of trouble or refused input: {s['logged_warnings_errors']}")
     for e in s["soak_errors"]:
         print(f"soak error: {e}")
-    print(f"threads at the start {len(s['threads_start'])}, at the end "
-          f"{len(s['threads_end'])}; gone: {s['threads_gone'] or 'none'}")
+    print(f"threads at the start {s['threads_start']}, at the end {s['threads_end']}; "
+          f"outputs that sent nothing in the last minute: "
+          f"{s['outputs_not_sending_at_end'] or 'none'}")
     print(f"mocapd exit code {s['exit_code']}; load average {s['load']}")
 
 
