@@ -171,3 +171,33 @@ def test_stamps_jittering_a_fifth_of_a_period_still_pair_right():
         paired = pairing.pair_frames(raw)
         score = camclocks.sets_mixing_instants(paired.obs, truth_f, 30.0)
         assert score["mixing"] == 0 and score["sets"] > 1500
+
+
+def test_triangulate_pairs_a_recording_whose_cameras_count_their_own_frames(dance, tmp_path,
+                                                                            calibkit_cli):
+    """`calibkit triangulate --from` a capture recorded per camera (each camera's own
+    counter and clock, one losing 1 %): its points are the markers, as from the same blobs
+    numbered by instant; read by the cameras' counters they would mix instants."""
+    rig, obs = dance
+    rig.save(tmp_path / "rig.toml")
+    (raw, _truth), _ = _delivered(obs, 0.01)
+    save_observations(tmp_path / "raw.mcrec", raw)
+    save_observations(tmp_path / "instants.mcrec", obs)
+    out = {}
+    for name in ("raw", "instants"):
+        r = calibkit_cli("triangulate", "--rig", tmp_path / "rig.toml", "--from",
+                         tmp_path / f"{name}.mcrec", "--out", tmp_path / f"{name}.csv")
+        assert r.code == 0, r.err
+        rows = np.loadtxt(tmp_path / f"{name}.csv", delimiter=",", skiprows=1, ndmin=2,
+                          usecols=range(7))
+        out[name] = rows
+    # three wand markers an instant in both; the per-camera one within its lost frames
+    per_frame = {k: len(v) / len(np.unique(v[:, 0])) for k, v in out.items()}
+    assert abs(per_frame["raw"] - per_frame["instants"]) < 0.05 * per_frame["instants"]
+    # and its points are as precise (counters alone: blobs of different instants, 20x the
+    # reprojection error)
+    reproj = {k: np.median(v[:, 4]) for k, v in out.items()}
+    assert reproj["raw"] < 1.5 * reproj["instants"]
+    assert "paired by capture time" in calibkit_cli(
+        "triangulate", "--rig", tmp_path / "rig.toml", "--from", tmp_path / "raw.mcrec",
+        "--out", tmp_path / "again.csv").err

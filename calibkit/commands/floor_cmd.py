@@ -70,6 +70,9 @@ def register(app: typer.Typer) -> None:
                 raise UserError("give --rig RIG.toml and --from REC (or --sim)")
             rig = Rig.load(rig_path)
             obs, _ = load_observations(source, rig)
+            from calibkit.core.pairing import pair_frames
+
+            obs = pair_frames(obs).obs  # per-camera frame counters: paired by capture time
         A, b = floor.world_from_recording(rig, obs, kind, lframe,
                                           parse_floats(spacing, "--spacing"))
         result = floor.transform_rig(rig, A, b)

@@ -67,6 +67,13 @@ def register(app: typer.Typer) -> None:
         obs, truth = load_observations(src, rig)
         if len(obs) == 0:
             raise UserError(f"{src}: holds no blobs")
+        from calibkit.core.pairing import pair_frames
+
+        paired = pair_frames(obs)  # cameras counting their own frames: paired by time
+        if paired.method == "time":
+            obs, truth = paired.obs, None  # the truth's frame numbers are the recording's
+            typer.echo(f"frames paired by capture time: {len(obs.frames())} instants",
+                       err=True)
         given = {k: v for k, v in (("epipolar_px", epipolar_px),
                                    ("max_reproj_px", max_reproj_px)) if v is not None}
         base = CorrespondenceConfig(min_cameras=min_cameras, two_camera=two_camera, **given)
