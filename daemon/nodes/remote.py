@@ -89,6 +89,7 @@ class NodeHub:
         self.bad = 0  # messages that failed to decode
         # ... by kind, each logged once a minute: junk on the bus must not flood the log
         self.refused = BadInput(log, "zenoh")
+        self._restart_said: dict[str, float] = {}
         self._stop = threading.Event()
         self._seq = 0
         self._captures: list[RemoteCapture] | None = None
@@ -155,7 +156,9 @@ class NodeHub:
                     old = [n for n in self.nodes.values() if n.name == name]
                     if old:
                         self.restarts[name] = self.restarts.get(name, 0) + 1
-                        log.warning("node %s restarted (boot %08x)", name, boot)
+                        if self._say_restart(name):
+                            log.warning("node %s restarted (boot %08x; %d restarts so far)",
+                                        name, boot, self.restarts[name])
                         for o in old:
                             del self.nodes[o.boot]
                     else:
@@ -168,6 +171,17 @@ class NodeHub:
                     node = self.nodes[boot] = _Node(name, boot)
         node.last_heard = time.monotonic()
         return node
+
+    def _say_restart(self, name: str) -> bool:
+        """A node's restarts said once a minute: two processes claiming one name (or a
+        forger) flip its boot id at every message, and each flip is counted, not logged."""
+        now = time.monotonic()
+        if now - self._restart_said.get(name, -1e18) < 60.0:
+            return False
+        if len(self._restart_said) >= 4 * MAX_NODES:
+            self._restart_said.clear()
+        self._restart_said[name] = now
+        return True
 
     def _refuse(self, kind: str, detail: object = "") -> None:
         self.bad += 1

@@ -227,8 +227,7 @@ class Commands:
 
     def _start_recording(self) -> int:
         if self.control is None or self.record_dir is None:
-            log.warning("NatNet: StartRecording refused: set record_dir in [natnet] to "
-                        "record takes")
+            self.bad("StartRecording without record_dir in [natnet] (set it to record takes)")
             return FAILED
         folder = self.record_dir / self.session if self.session else self.record_dir
         take = self.take or time.strftime("take_%Y-%m-%d_%H-%M-%S")
