@@ -14,16 +14,19 @@ import numpy as np
 
 from daemon.markers.label_assign import pair_stats
 
-OWN_MISFIT = 3.0      # a new marker's track within 3 tolerances of the start's own distances
+OWN_MISFIT = 3.0      # a track taking a marker: within 3 tolerances of the start's distances
+OWN_WORSE = 0.5       # a labelled track renamed may fit them at most this much worse
 
 
 def own_agrees(X: np.ndarray, lab: np.ndarray, cur: np.ndarray, own: tuple | None,
                 spread: np.ndarray, noise_m: float) -> bool:
     """Whether new labels `lab` of tracks X agree with the body's own distances `own`
     (from labelled start frames; `spread` the set's SD of each pair, how a body moves
-    it) : every track given a new marker must sit where those
-    distances put that marker (OWN_MISFIT), unless its current marker fits them no
-    better. Pairs the start frames never saw cannot tell, and leave it to the set."""
+    it): a labelled track renamed must fit them about as well or better under its new
+    marker (OWN_WORSE: an extra marker on the head took LBHD's name and LBHD's track
+    RBHD's, which the set scored higher), and an unlabelled track given a marker must
+    sit where they put it (OWN_MISFIT). Pairs the start frames never saw cannot tell,
+    and leave it to the set."""
     if own is None:
         return True
     moved = np.nonzero((lab >= 0) & (lab != cur))[0]
@@ -32,7 +35,8 @@ def own_agrees(X: np.ndarray, lab: np.ndarray, cur: np.ndarray, own: tuple | Non
     D, _ = pair_stats(X)
     new = own_misfit(D, lab, moved, own, spread, noise_m)
     was = own_misfit(D, cur, moved, own, spread, noise_m)
-    bad = np.isfinite(new) & (new > OWN_MISFIT) & ~(np.nan_to_num(was, nan=np.inf) <= new)
+    held = np.isfinite(was)
+    bad = np.isfinite(new) & np.where(held, new > was + OWN_WORSE, new > OWN_MISFIT)
     return not bad.any()
 
 
