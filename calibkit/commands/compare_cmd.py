@@ -7,9 +7,7 @@ from typing import Annotated
 
 import typer
 
-from calibkit.calibrate.compare import GROSS_MM, compare_rigs
 from calibkit.clitools import print_table, write_json
-from calibkit.core.camera import Rig
 
 
 def register(app: typer.Typer) -> None:
@@ -32,6 +30,9 @@ def register(app: typer.Typer) -> None:
         """Per camera: position (mm), orientation (deg), focal length (%) and principal point
         (px) differences; the RMS 3D difference of a grid of points filling the volume; how
         much longer B measures lengths than A (the alignment's scale); and a verdict."""
+        from calibkit.calibrate.compare import GROSS_MM, compare_rigs
+        from calibkit.core.camera import Rig
+
         rig_a, rig_b = Rig.load(a), Rig.load(b)
         result = compare_rigs(rig_a, rig_b, align=align, scale=scale)
         rows = [[c["name"], c["position_mm"], c["rotation_deg"], c["focal_pct"],
