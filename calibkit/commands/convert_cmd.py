@@ -4,19 +4,21 @@ moves to and from other tools."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from calibkit.core import easywand
-from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
-from calibkit.core.recording import load_observations, save_observations, truth_path_for
+
+if TYPE_CHECKING:
+    from calibkit.core.camera import Rig
 
 
 def _read_xypts(src: Path, rig_obj: Rig | None, profile: Path | None, y_origin: str,
                 fps: float | None, rig_out: Path | None):
     """A DLTdv/easyWand xypts file with its cameras from the profile (or the rig)."""
+    from calibkit.core import easywand
+
     cams = easywand.read_easywand_profile(profile, y_origin) if profile is not None else rig_obj
     obs = easywand.read_xypts(src, cams, y_origin, fps)
     if rig_out is not None:
@@ -52,6 +54,10 @@ def register(app: typer.Typer) -> None:
         """Convert observations between our recording format and the plain CSV
         (frame,camera,t_ns,u,v,area,peak), or read a DLTdv/easyWand xypts file into either
         (docs/easywand.md); ground truth travels along."""
+        from calibkit.core import easywand
+        from calibkit.core.camera import Rig
+        from calibkit.core.recording import load_observations, save_observations, truth_path_for
+
         if out.resolve() == src.resolve():
             raise UserError(f"--out {out} is the input file; give another path")
         if profile is not None and rig is not None:
