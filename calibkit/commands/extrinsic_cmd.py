@@ -5,19 +5,20 @@ from __future__ import annotations
 import sys
 from contextlib import ExitStack
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
-import numpy as np
 import typer
 
-from calibkit.calibrate import extrinsic_pipeline as pipeline
-from calibkit.calibrate.extrinsic_capture import LiveProjectorRig
-from calibkit.calibrate.extrinsic_reference import References, load_references
-from calibkit.calibrate.extrinsic_solve import ExtrinsicResult, SolveOptions
 from calibkit.clitools import Progress, parse_size, print_table, write_json
-from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
-from calibkit.synthetic.runs import truth_rig_path
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from calibkit.calibrate import extrinsic_pipeline as pipeline
+    from calibkit.calibrate.extrinsic_reference import References
+    from calibkit.calibrate.extrinsic_solve import ExtrinsicResult
+    from calibkit.core.camera import Rig
 
 
 def _check_options(out: Path | None, samples: int, shifts: int, step: float, radius: float,
@@ -32,6 +33,10 @@ def _check_options(out: Path | None, samples: int, shifts: int, step: float, rad
 
 def _live_inputs(refs_path: Path | None, intrinsics: Path | None, table: bool | None,
                  camera: list[str] | None) -> tuple[References, Rig]:
+    from calibkit.calibrate import extrinsic_pipeline as pipeline
+    from calibkit.calibrate.extrinsic_reference import load_references
+    from calibkit.core.camera import Rig
+
     if refs_path is None:
         raise UserError("--refs REFS.toml is required (make one with --template "
                         "and a tape; see docs/extrinsic.md)")
@@ -49,6 +54,8 @@ def _capture_live(intr: Rig, specs: list[str], monitor: int, sessions: pipeline.
                   samples: int) -> pipeline.Captured:
     """The projector on monitor `monitor`, the cameras from their specs (calibkit.cameras:
     device numbers, files, basler:SERIAL, genicam:SERIAL)."""
+    from calibkit.calibrate import extrinsic_pipeline as pipeline
+    from calibkit.calibrate.extrinsic_capture import LiveProjectorRig
     from calibkit.cameras import open_camera
     from projector.display import WindowDisplay
     from projector.screens import require_display
@@ -84,6 +91,8 @@ def _show_references(pts: np.ndarray, monitor: int, radius: float) -> None:
 
 
 def _print_sessions(sessions: pipeline.Sessions) -> None:
+    from calibkit.calibrate import extrinsic_pipeline as pipeline
+
     lines, warnings = pipeline.map_notes(sessions)
     for line in lines:
         typer.echo(line)
@@ -100,6 +109,8 @@ def _print(result: ExtrinsicResult) -> None:
     r = result.report
 
     def mm(v: float) -> str:
+        import numpy as np
+
         return "-" if not np.isfinite(v) else f"{v:.2f} mm"
 
     typer.echo(f"\nall cameras: reprojection RMS {r['reprojection_rms_px']:.3f} px, mean ray "
@@ -190,6 +201,11 @@ def register(app: typer.Typer) -> None:
         seed: Annotated[int, typer.Option("--seed", help="--sim: random seed.")] = 0,
     ) -> None:
         """Every camera's pose from projected dots on the floor and a table top."""
+        from calibkit.calibrate import extrinsic_pipeline as pipeline
+        from calibkit.calibrate.extrinsic_reference import load_references
+        from calibkit.calibrate.extrinsic_solve import SolveOptions
+        from calibkit.synthetic.runs import truth_rig_path
+
         if not projector:
             raise UserError("say which method: --projector (dots cast by a ceiling "
                             "projector) is the one there is")
