@@ -6,17 +6,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated
 
-import numpy as np
 import typer
 
-from calibkit.calibrate import floor
 from calibkit.clitools import parse_floats, print_table, write_json
-from calibkit.core.camera import Rig, rotation_from_rvec, rvec_from_rotation
 from calibkit.core.errors import UserError
-from calibkit.core.observations import Truth
-from calibkit.core.recording import load_observations
-from calibkit.synthetic import sim
-from calibkit.synthetic.runs import truth_rig_path
 
 
 def register(app: typer.Typer) -> None:
@@ -47,6 +40,15 @@ def register(app: typer.Typer) -> None:
         seed: Annotated[int, typer.Option("--seed", help="--sim: random seed.")] = 0,
     ) -> None:
         """Set the world frame from the floor."""
+        import numpy as np
+
+        from calibkit.calibrate import floor
+        from calibkit.core.camera import Rig, rotation_from_rvec, rvec_from_rotation
+        from calibkit.core.observations import Truth
+        from calibkit.core.recording import load_observations
+        from calibkit.synthetic import sim
+        from calibkit.synthetic.runs import truth_rig_path
+
         if long_m <= 0 or short_m <= 0 or abs(long_m - short_m) < 0.02:
             raise UserError("--long and --short must be positive and differ by at least "
                             "2 cm (the arms tell x from y)")
