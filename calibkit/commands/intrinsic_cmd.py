@@ -4,19 +4,12 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
-import numpy as np
 import typer
 
-from calibkit.calibrate import intrinsic_pipeline as pipeline
-from calibkit.calibrate.intrinsic import (
-    PARAMS,
-    IntrinsicResult,
-    PlaneView,
-    calibrate,
-    distortion_plot_png,
-)
+if TYPE_CHECKING:
+    from calibkit.calibrate.intrinsic import IntrinsicResult, PlaneView
 from calibkit.clitools import Progress, parse_size, print_table, write_json
 from calibkit.core.errors import UserError
 from calibkit.core.fileio import write_bytes_atomic
@@ -45,6 +38,8 @@ def _check_modes(display: bool, images: Path | None, sim: bool, camera: str, vie
 
 def _board_views(images: Path, board: str | None
                  ) -> tuple[list[PlaneView], tuple[int, int]]:
+    from calibkit.calibrate import intrinsic_pipeline as pipeline
+
     if board is None:
         raise UserError("--images needs --board, e.g. --board chessboard:9x6:25")
     found, size, missed = pipeline.board_capture(images, board, Progress)
@@ -57,6 +52,7 @@ def _monitor_views(device: str, camera: str, monitor: int, pixel_pitch: float | 
                    n_views: int, step: float, shifts: int, radius: float, raster: bool,
                    samples: int, page=None) -> tuple[list[PlaneView], tuple[int, int], float]:
     """A live camera watching dots on a monitor: the views, the image size, the pitch."""
+    from calibkit.calibrate import intrinsic_pipeline as pipeline
     from calibkit.cameras import open_camera
     from projector.display import WindowDisplay
     from projector.screens import pick_screen, require_display
@@ -90,6 +86,8 @@ def _monitor_views(device: str, camera: str, monitor: int, pixel_pitch: float | 
 
 
 def _report(result: IntrinsicResult) -> None:
+    from calibkit.calibrate.intrinsic import PARAMS
+
     c = result.camera
     values = [c.fx, c.fy, c.cx, c.cy, c.skew, *c.dist]
     rows = [[name, float(v), float(result.std[name])]
@@ -177,6 +175,11 @@ def register(app: typer.Typer) -> None:
                  "the image).")] = 0.8,
     ) -> None:
         """Calibrate one camera's intrinsics (focal lengths, principal point, distortion)."""
+        import numpy as np
+
+        from calibkit.calibrate import intrinsic_pipeline as pipeline
+        from calibkit.calibrate.intrinsic import calibrate, distortion_plot_png
+
         _check_modes(display, images, sim, camera, views, samples)
         pixel_pitch = parse_pixel_pitch(pixel_pitch_text)
         page = None  # viser stops its server at exit, whichever way the command ends
@@ -237,6 +240,9 @@ def _sim_command(sim_rig, cameras, volume, size, seed, camera, views, fill, rend
     """--sim: one camera of the simulated rig (or all of them) calibrated from simulated
     monitor views. The estimate sees only the captured dots; the truth goes to
     NAME.truth.toml beside --rig and to the figures, for scoring."""
+    import numpy as np
+
+    from calibkit.calibrate.intrinsic import distortion_plot_png
     from calibkit.synthetic import intrinsic_sim
     from calibkit.synthetic.runs import truth_rig_path
 
