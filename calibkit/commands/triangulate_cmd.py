@@ -8,12 +8,7 @@ from typing import Annotated
 import typer
 
 from calibkit.clitools import Progress, print_table, write_json
-from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
-from calibkit.core.recording import load_observations
-from calibkit.synthetic.truthcheck import score_points, stands_for
-from calibkit.vision.correspondence import CorrespondenceConfig
-from calibkit.vision.reconstruct import reconstruct, write_points_csv
 
 
 def register(app: typer.Typer) -> None:
@@ -54,6 +49,12 @@ def register(app: typer.Typer) -> None:
 
         CSV columns: frame,x,y,z,reproj_px,ray_mm,n_cameras,cameras (and error_mm when the
         recording carries the simulator's truth)."""
+        from calibkit.core.camera import Rig
+        from calibkit.core.recording import load_observations
+        from calibkit.synthetic.truthcheck import score_points, stands_for
+        from calibkit.vision.correspondence import CorrespondenceConfig
+        from calibkit.vision.reconstruct import reconstruct, write_points_csv
+
         for name, value in (("--epipolar-px", epipolar_px), ("--max-reproj-px", max_reproj_px)):
             if value is not None and not value > 0:
                 raise UserError(f"{name} must be positive, got {value}")
