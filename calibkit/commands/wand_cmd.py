@@ -5,19 +5,15 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from calibkit.calibrate import wand_pipeline as pipeline
-from calibkit.calibrate.wand import WandSpec
-from calibkit.calibrate.wand_scale import lframe_scale
 from calibkit.clitools import Progress, parse_floats, parse_view, print_table, write_json
-from calibkit.commands import coverage_view
-from calibkit.core.camera import Rig
-from calibkit.core.easywand import read_easywand_profile
 from calibkit.core.errors import UserError
-from calibkit.synthetic.runs import truth_rig_path
+
+if TYPE_CHECKING:
+    from calibkit.calibrate.wand import WandSpec
 
 
 def _check_sources(source: Path | None, use_sim: bool, camera: list[str] | None,
@@ -36,6 +32,8 @@ def _check_sources(source: Path | None, use_sim: bool, camera: list[str] | None,
 
 def _wand_spec(spacing: str, wand_length: str | None) -> tuple[WandSpec, bool]:
     """The wand from --spacing and --wand-length, and whether its length is known."""
+    from calibkit.calibrate.wand import WandSpec
+
     spec = WandSpec(tuple(parse_floats(spacing, "--spacing")))
     if wand_length is None:
         return spec, True
@@ -148,6 +146,12 @@ def register(app: typer.Typer) -> None:
         seed: Annotated[int, typer.Option("--seed", help="Random seed.")] = 0,
     ) -> None:
         """Calibrate every camera at once from a wand waved through the volume."""
+        from calibkit.calibrate import wand_pipeline as pipeline
+        from calibkit.commands import coverage_view
+        from calibkit.core.camera import Rig
+        from calibkit.core.easywand import read_easywand_profile
+        from calibkit.synthetic.runs import truth_rig_path
+
         spec, length_known = _wand_spec(spacing, wand_length)
         if not 0 <= holdout < 0.9:
             raise UserError(f"--holdout must be in [0, 0.9), got {holdout}")
@@ -205,6 +209,8 @@ def register(app: typer.Typer) -> None:
                 floor_obs = pipeline.load_capture(floor_rec, intr)
 
                 def scale_from(rig):
+                    from calibkit.calibrate.wand_scale import lframe_scale
+
                     return lframe_scale(rig, floor_obs)
         views = None
         if refine_intrinsics is not False and monitor_views:
