@@ -119,7 +119,7 @@ def test_mask_command_then_detect_with_it(calibkit_cli, tmp_path):
 
 def test_sim_option_scores_against_truth(calibkit_cli, tmp_path, monkeypatch):
     # The command's --sim path with a stand-in scene (the simulator has its own tests).
-    import calibkit.commands.detect_cmd as cmd
+    import calibkit.synthetic.frames as frames_module
 
     class Scene(FrameSource):
         camera = "cam0"
@@ -130,7 +130,8 @@ def test_sim_option_scores_against_truth(calibkit_cli, tmp_path, monkeypatch):
                 img, self.truth_uv[i] = _scene(30 + i)
                 yield Frame("cam0", i, i * 10_000_000, img)
 
-    monkeypatch.setattr(cmd, "sim_source", lambda **kw: Scene())
+    # the command imports sim_source when it runs (issue 31): patch it at its source
+    monkeypatch.setattr(frames_module, "sim_source", lambda **kw: Scene())
     res = calibkit_cli("detect", "--sim", "--frames", "2", "--json", tmp_path / "s.json")
     assert res.code == 0, res.err
     truth = json.loads((tmp_path / "s.json").read_text())["truth"]

@@ -4,24 +4,25 @@ from __future__ import annotations
 
 import itertools
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
-import cv2
-import numpy as np
 import typer
 
-from calibkit.cameras import SPEC_HELP, Frame, FrameSource, open_camera
 from calibkit.clitools import Progress, print_table, write_json
 from calibkit.core.errors import UserError
 from calibkit.core.fileio import write_bytes_atomic
-from calibkit.synthetic.frames import sim_source
-from calibkit.synthetic.truthcheck import match_to_truth
-from calibkit.vision.detect import Blobs, DetectorConfig, detect
-from calibkit.vision.masks import build_mask, load_mask, save_mask
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from calibkit.cameras import Frame, FrameSource
+    from calibkit.vision.detect import Blobs
 
 
 def parse_threshold(text: str) -> float | str:
     """'auto' or a non-negative pixel value."""
+    import numpy as np
+
     t = text.strip().lower()
     if t == "auto":
         return "auto"
@@ -52,6 +53,9 @@ def annotate(image: np.ndarray, blobs: Blobs, mask: np.ndarray | None = None,
              threshold: float | None = None) -> np.ndarray:
     """A BGR picture for tuning: pixels above the threshold tinted red, masked pixels blue,
     each blob's box in green with a cross at its centroid and its index."""
+    import cv2
+    import numpy as np
+
     img = np.asarray(image)
     if img.dtype != np.uint8:
         img = cv2.convertScaleAbs(img, alpha=255.0 / max(float(img.max()), 1.0))
@@ -78,6 +82,8 @@ def annotate(image: np.ndarray, blobs: Blobs, mask: np.ndarray | None = None,
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:
+    import cv2
+
     ok, data = cv2.imencode(".png", image)
     if not ok:  # pragma: no cover
         raise RuntimeError("PNG encoding failed")
@@ -86,6 +92,9 @@ def _write_png(path: Path, image: np.ndarray) -> None:
 
 def _source(source: str | None, sim: bool, frames: int | None, markers: int, seed: int,
             camera: str) -> tuple[FrameSource, int | None]:
+    from calibkit.cameras import SPEC_HELP, open_camera
+    from calibkit.synthetic.frames import sim_source
+
     if sim:
         cam: int | str = int(camera) if camera.isdigit() else camera
         return sim_source(n_markers=markers, n_frames=frames or 1, camera=cam, seed=seed), None
@@ -131,6 +140,9 @@ def register(app: typer.Typer) -> None:
         camera: Annotated[str, typer.Option(help="--sim: camera index or name.")] = "0",
     ) -> None:
         """Find markers in images and print them; tune the options with --preview."""
+        from calibkit.vision.detect import DetectorConfig, detect
+        from calibkit.vision.masks import load_mask
+
         if frames is not None and frames < 1:
             raise UserError(f"--frames must be >= 1, got {frames}")
         config = DetectorConfig(threshold=parse_threshold(threshold), min_area=min_area,
@@ -173,6 +185,12 @@ def register(app: typer.Typer) -> None:
             "--json", help="Write the mask's figures as JSON.")] = None,
     ) -> None:
         """Build a mask of static reflections and lamps from frames with no markers."""
+        import cv2
+        import numpy as np
+
+        from calibkit.cameras import open_camera
+        from calibkit.vision.masks import build_mask, save_mask
+
         if frames < 1:
             raise UserError(f"--frames must be >= 1, got {frames}")
         level = parse_threshold(threshold)
@@ -195,6 +213,10 @@ def register(app: typer.Typer) -> None:
 def _truth_figures(results: list[tuple[Frame, Blobs]],
                    truth_uv: dict[int, np.ndarray] | None) -> dict | None:
     """Recall, false blobs and centroid error against a simulated source's true centres."""
+    import numpy as np
+
+    from calibkit.synthetic.truthcheck import match_to_truth
+
     if truth_uv is None or any(f.index not in truth_uv for f, _ in results):
         return None
     errors, n_true, n_found, n_false = [], 0, 0, 0
@@ -213,6 +235,8 @@ def _truth_figures(results: list[tuple[Frame, Blobs]],
 
 def _report(results: list[tuple[Frame, Blobs]], truth_uv: dict[int, np.ndarray] | None,
             json_path: Path | None) -> None:
+    import numpy as np
+
     truth = _truth_figures(results, truth_uv)
     if len(results) == 1:
         frame, blobs = results[0]
