@@ -5,17 +5,20 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated
 
-import numpy as np
 import typer
 
 from calibkit.clitools import load_rig_option, parse_floats, parse_size
-from calibkit.core.camera import WEBCAM_DIST, BASLER_658x492_DIST
 from calibkit.core.errors import UserError
-from calibkit.core.recording import save_observations, save_truth_csv, truth_path_for
-from calibkit.synthetic import sim
 
-DISTORTIONS = {"none": (0.0, 0.0, 0.0, 0.0, 0.0), "webcam": WEBCAM_DIST,
-               "basler": BASLER_658x492_DIST}
+
+def _distortions() -> dict[str, tuple[float, ...]]:
+    """--distortion's choices: lens profiles measured on real cameras (calibkit.core.camera,
+    imported here so that `calibkit sim --help` loads no numpy)."""
+    from calibkit.core.camera import WEBCAM_DIST, BASLER_658x492_DIST
+
+    return {"none": (0.0, 0.0, 0.0, 0.0, 0.0), "webcam": WEBCAM_DIST,
+            "basler": BASLER_658x492_DIST}
+
 
 sim_app = typer.Typer(help="Simulated rigs and captures with ground truth.",
                       no_args_is_help=True)
@@ -41,6 +44,8 @@ Jitter = Annotated[float, typer.Option(
 
 def _scene_rig(rig: Path | None, cameras: int, volume: float, out: Path, seed: int):
     """The rig a scene is seen by: the given one, or a new ring saved beside the output."""
+    from calibkit.synthetic import sim
+
     if rig is not None:
         return load_rig_option(rig)
     made = sim.make_rig(cameras, volume, seed=seed)
@@ -58,6 +63,11 @@ def _write(out: Path, rig, truth, noise, dropout, ghosts, fps, seed, unsync_ms=0
            jitter_ms=0.0) -> None:
     """Observe the scene and write it, with the truth inside a recording and, for scripts,
     always beside it as NAME.truth.csv."""
+    import numpy as np
+
+    from calibkit.core.recording import save_observations, save_truth_csv, truth_path_for
+    from calibkit.synthetic import sim
+
     if unsync_ms < 0 or jitter_ms < 0:
         raise UserError("--unsync-ms and --jitter-ms must not be negative")
     offsets = np.random.default_rng(seed + 7).uniform(0.0, unsync_ms * 1e6, len(rig))
@@ -82,10 +92,13 @@ def sim_rig(
     seed: Seed = 0,
 ) -> None:
     """Write a true rig: cameras on a ring around a capture volume."""
-    if distortion not in DISTORTIONS:
-        raise UserError(f"--distortion must be one of {', '.join(DISTORTIONS)}, got "
+    from calibkit.synthetic import sim
+
+    distortions = _distortions()
+    if distortion not in distortions:
+        raise UserError(f"--distortion must be one of {', '.join(distortions)}, got "
                         f"{distortion!r}")
-    rig = sim.make_rig(cameras, volume, parse_size(size), fov, DISTORTIONS[distortion], seed)
+    rig = sim.make_rig(cameras, volume, parse_size(size), fov, distortions[distortion], seed)
     rig.save(out)
     typer.echo(f"wrote {out}: {len(rig)} cameras around a {volume:g} m volume")
 
@@ -97,6 +110,8 @@ def sim_static(out: Out, rig: RigOpt = None, markers: Annotated[int, typer.Optio
         seed: Seed = 0, cameras: Cameras = 6, volume: Volume = 4.0, unsync_ms: Unsync = 0.0,
         jitter_ms: Jitter = 0.0) -> None:
     """Markers standing still in the volume."""
+    from calibkit.synthetic import sim
+
     true_rig = _scene_rig(rig, cameras, volume, out, seed)
     truth = sim.static_markers(markers, frames, _volume(true_rig), seed)
     _write(out, true_rig, truth, noise_px, dropout, ghosts, fps, seed, unsync_ms, jitter_ms)
@@ -110,6 +125,8 @@ def sim_wand(out: Out, rig: RigOpt = None, frames: Frames = 3000, fps: Fps = 100
              seed: Seed = 0, cameras: Cameras = 6, volume: Volume = 4.0,
              unsync_ms: Unsync = 0.0, jitter_ms: Jitter = 0.0) -> None:
     """A wand waved through the volume."""
+    from calibkit.synthetic import sim
+
     true_rig = _scene_rig(rig, cameras, volume, out, seed)
     truth = sim.wand_motion(frames, fps, _volume(true_rig),
                             parse_floats(spacing, "--spacing"), seed)
@@ -124,6 +141,8 @@ def sim_rigid(out: Out, rig: RigOpt = None, bodies: Annotated[int, typer.Option(
         seed: Seed = 0, cameras: Cameras = 6, volume: Volume = 4.0, unsync_ms: Unsync = 0.0,
         jitter_ms: Jitter = 0.0) -> None:
     """Rigid bodies moving through the volume."""
+    from calibkit.synthetic import sim
+
     true_rig = _scene_rig(rig, cameras, volume, out, seed)
     truth, _ = sim.rigid_body_motion(bodies, frames, fps, _volume(true_rig), markers, seed)
     _write(out, true_rig, truth, noise_px, dropout, ghosts, fps, seed, unsync_ms, jitter_ms)
