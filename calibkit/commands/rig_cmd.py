@@ -5,14 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated
 
-import numpy as np
 import typer
 
 from calibkit.clitools import print_table, write_json
-from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
-from calibkit.core.rigformats import READABLE, WRITABLE, read_rig_file, write_rig_file
-from calibkit.core.rigformats.anipose import DEFAULT_UNIT
 
 rig_app = typer.Typer(help="Show rig files; import and export other tools' calibrations.",
                       no_args_is_help=True)
@@ -34,6 +30,10 @@ def show(rig_path: Annotated[Path, typer.Argument(help="rig.toml or OpenCV YAML.
          json_path: Annotated[Path | None, typer.Option("--json", help="Write as JSON.")]
          = None) -> None:
     """Print each camera's size, intrinsics, distortion and centre."""
+    import numpy as np
+
+    from calibkit.core.camera import Rig
+
     rig = Rig.load(rig_path)
     rows = []
     for cam in rig:
@@ -52,6 +52,9 @@ def show(rig_path: Annotated[Path, typer.Argument(help="rig.toml or OpenCV YAML.
             "meta": {k: v for k, v in rig.meta.items() if not isinstance(v, np.ndarray)}})
 
 
+# anipose's own default unit (calibkit.core.rigformats.anipose.DEFAULT_UNIT, which
+# tests/test_cli_startup.py checks), spelled here so that `calibkit rig --help` loads no numpy.
+DEFAULT_UNIT = "mm"
 FORMAT_HELP = ("caliscope (camera_array.toml), pose2sim (Calib.toml), anipose "
                "(calibration.toml), qca (Qualisys QTM), opencv (FileStorage YAML)")
 UNIT_OPTION = typer.Option("--unit", help="Length unit of anipose files' translations, which "
@@ -67,6 +70,9 @@ def export(rig_path: Annotated[Path, typer.Argument(help="The rig.toml to export
            unit: Annotated[str, UNIT_OPTION] = DEFAULT_UNIT) -> None:
     """Write the rig for another tool: OpenCV FileStorage YAML, caliscope's
     camera_array.toml, Pose2Sim's or anipose's calibration TOML (docs/formats.md)."""
+    from calibkit.core.camera import Rig
+    from calibkit.core.rigformats import WRITABLE, write_rig_file
+
     if fmt is None:
         if out.suffix.lower() not in (".yaml", ".yml"):
             raise UserError(f"--out {out}: expected a .yaml or .yml file for OpenCV YAML, or "
@@ -93,6 +99,8 @@ def import_(in_path: Annotated[Path, typer.Argument(help="Calibration file to re
             unit: Annotated[str, UNIT_OPTION] = DEFAULT_UNIT) -> None:
     """Read another tool's calibration and write it as rig.toml (conventions converted:
     poses world-to-camera, metres, OpenCV distortion)."""
+    from calibkit.core.rigformats import READABLE, read_rig_file
+
     if fmt != "auto" and fmt not in READABLE:
         raise UserError(f"--format {fmt!r}: use auto or one of {', '.join(READABLE)}")
     _suffix(out, (".toml",), "--out")
