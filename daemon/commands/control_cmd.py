@@ -8,7 +8,6 @@ from typing import Annotated
 import typer
 
 from calibkit.clitools import write_json
-from daemon.console import print_table
 
 RuntimeDir = Annotated[Path | None, typer.Option(
     "--runtime-dir", help="Folder of the daemon's control socket (as given to start).")]
@@ -28,6 +27,8 @@ def register(app: typer.Typer) -> None:
     def status(runtime_dir: RuntimeDir = None,
                json_path: Annotated[Path | None, typer.Option("--json")] = None) -> None:
         """Rate per camera, dropped frames, latency, bodies tracked, outputs."""
+        from daemon.console import print_table
+
         st = request(runtime_dir, {"cmd": "status"})
         lat = st["latency"]
         typer.echo(f"frames {st['frames']}, {st['rate_hz']:.1f} fps, latency median "
