@@ -21,7 +21,6 @@ import time
 from pathlib import Path
 from typing import Annotated
 
-import numpy as np
 import typer
 
 from calibkit.core.errors import UserError
@@ -39,6 +38,8 @@ def _tracking(folder: Path) -> None:
 
 def _detection(folder: Path) -> None:
     """Blob detection on a live camera's image: grey and colour, every mode."""
+    import numpy as np
+
     from calibkit.vision.detect import DetectorConfig, detect
 
     rng = np.random.default_rng(0)
@@ -69,6 +70,8 @@ def _labelling(folder: Path) -> None:
 def _offline_tracking(folder: Path) -> None:
     """`mocapd track`: identities of anonymous 3D points and the rigid tracker over a take
     (steady runs fitted at once and frames through update()), as track_file runs it."""
+    import numpy as np
+
     from calibkit.synthetic import sim
     from daemon.markers.c3dio import Points
     from daemon.markers.offline_track import cloud_from_points
