@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
-import numpy as np
 import tomli_w
 import tomllib
 import typer
@@ -14,6 +13,9 @@ import typer
 from calibkit.clitools import parse_floats
 from calibkit.core.errors import UserError
 from calibkit.core.fileio import write_text_atomic
+
+if TYPE_CHECKING:
+    import numpy as np
 
 # daemon.config (the tracker, rigid bodies and their numba kernels) is imported where it
 # is used, deferred on purpose: every mocapd command imports this module to register its
@@ -34,6 +36,8 @@ def free_markers(markers: list[dict], near: np.ndarray | None,
                  radius: float) -> tuple[np.ndarray, np.ndarray]:
     """(track ids, positions) of the daemon's `markers` answer that belong to no body,
     within `radius` of `near` when given."""
+    import numpy as np
+
     free = [m for m in markers if not m["body"]]
     ids = np.array([m["id"] for m in free], dtype=np.int64)
     xyz = np.array([m["xyz"] for m in free], dtype=np.float64).reshape(-1, 3)
@@ -58,6 +62,8 @@ def capture_snapshots(ask, n_frames: int, near: np.ndarray | None, radius: float
 def append_body(config_path: Path, name: str, body_id: int, markers: np.ndarray) -> None:
     """Add a [[rigid_body]] table at the end of the file (its comments stay), after checking
     that the whole file still validates."""
+    import numpy as np
+
     from daemon.config import parse_config  # deferred: see above
 
     text = config_path.read_text(encoding="utf-8") if config_path.exists() else ""
@@ -91,6 +97,8 @@ def register(app: typer.Typer) -> None:
         """Define a rigid body from the free markers the daemon tracks over --frames frames
         (clustered: a marker is a cluster seen in most of them); the body's frame has its
         origin at their centroid and the world's axes."""
+        import numpy as np
+
         from daemon.config import load_config  # deferred: see above
         from daemon.control import request
         from daemon.rigid_define import body_from_snapshots
@@ -126,6 +134,8 @@ def register(app: typer.Typer) -> None:
     @rigid_app.command("list")
     def list_bodies(config: ConfigOpt) -> None:
         """The rigid bodies a configuration defines, with their closest distance gap."""
+        import numpy as np
+
         from daemon.config import load_config  # deferred: see above
         from daemon.console import print_table
 
