@@ -10,24 +10,78 @@ import math
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
 import typer
+from typer.core import TyperCommand, TyperGroup
 
-from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
 from calibkit.core.fileio import write_text_atomic
+
+if TYPE_CHECKING:
+    from calibkit.core.camera import Rig
+
+# numpy, and everything that imports it, is imported inside the functions that need it, on
+# purpose: this module is loaded by `calibkit --help` and `mocapd --help` (issue 31).
 
 EXIT_USER_ERROR = 2
 
 
+class LazyGroup(TyperGroup):
+    """The top-level command group, loading a command's module only when that command runs
+    or shows its own help. The commands' one-line summaries for the top-level help come from
+    a static table (tests/test_cli_startup.py checks it against the real commands), so
+    `calibkit --help` imports no command module, and `calibkit wand --help` only wand's."""
+
+    package = ""
+    table: dict[str, tuple[str, str]] = {}  # command name -> (module in package, short help)
+
+    def __init__(self, **attrs) -> None:
+        super().__init__(**attrs)
+        self._loaded: dict[str, object] = {}  # name -> the real click command
+        for name, (_module, help_text) in self.table.items():
+            self.commands.setdefault(name, TyperCommand(name=name, help=help_text))
+
+    def get_command(self, ctx, cmd_name: str):
+        return self._loaded.get(cmd_name) or super().get_command(ctx, cmd_name)
+
+    def resolve_command(self, ctx, args: list[str]):
+        if args and args[0] in self.table:
+            return args[0], self.load(args[0]), args[1:]
+        return super().resolve_command(ctx, args)
+
+    def load(self, cmd_name: str):
+        """The real command: its module imported and registered on an app of its own."""
+        if cmd_name not in self._loaded:
+            module_name = self.table[cmd_name][0]
+            module = importlib.import_module(f"{self.package}.{module_name}")
+            holder = typer.Typer(add_completion=False)
+            holder.callback()(_no_options)
+            module.register(holder)
+            commands = typer.main.get_group(holder).commands
+            for name, cmd in commands.items():
+                if self.table.get(name, ("",))[0] == module_name:
+                    self._loaded[name] = cmd
+            if cmd_name not in self._loaded:
+                raise RuntimeError(f"{self.package}.{module_name} registers no command "
+                                   f"{cmd_name!r}; fix the command table")
+        return self._loaded[cmd_name]
+
+
+def _no_options() -> None:
+    """A callback, so that a module registering a single command still makes a group."""
+
+
 def build_app(name: str, help_text: str, version: str, package: str,
-              modules: tuple[str, ...]) -> typer.Typer:
-    """A Typer app whose commands live in `package`, one module each with register(app),
-    registered in the order given (the order of --help). A module not written yet is
-    skipped; an import error inside a module is a bug and raises."""
+              commands: dict[str, tuple[str, str]]) -> typer.Typer:
+    """A Typer app whose commands live in `package`, listed in `commands` (name -> (module,
+    short help)) in the order of --help; each module has register(app) and is imported only
+    when one of its commands is used (issue 31: `--help` must not pay for numpy, OpenCV,
+    GTSAM...)."""
+    group_class = type(f"{name.title()}Commands", (LazyGroup,),
+                       {"package": package, "table": dict(commands)})
     app = typer.Typer(name=name, help=help_text, no_args_is_help=True, add_completion=False,
-                      pretty_exceptions_enable=False)
+                      pretty_exceptions_enable=False, cls=group_class)
 
     def show_version(value: bool) -> None:
         if value:
@@ -41,15 +95,16 @@ def build_app(name: str, help_text: str, version: str, package: str,
         pass
 
     _root.__doc__ = help_text
-    for module_name in modules:
-        try:
-            module = importlib.import_module(f"{package}.{module_name}")
-        except ModuleNotFoundError as exc:
-            if exc.name != f"{package}.{module_name}":
-                raise
-            continue
-        module.register(app)
     return app
+
+
+def eager_group(app: typer.Typer) -> TyperGroup:
+    """The app's group with every command loaded (for tests that compare against the
+    static table, and tools that list every command)."""
+    group = typer.main.get_command(app)
+    for cmd_name in list(group.table):
+        group.load(cmd_name)
+    return group
 
 
 def run_app(app: typer.Typer, prog_name: str) -> None:
@@ -69,6 +124,8 @@ def _jsonable(value):
         return {str(k): _jsonable(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [_jsonable(v) for v in value]
+    import numpy as np
+
     if isinstance(value, np.ndarray):
         return _jsonable(value.tolist())
     if isinstance(value, np.generic):
@@ -87,6 +144,8 @@ def write_json(path: str | Path, data) -> None:
 
 def print_table(rows: list[list], header: list[str], file=None) -> None:
     """A plain aligned text table: numbers right-aligned, text left-aligned."""
+    import numpy as np
+
     file = file or sys.stdout
     cells = [[format_cell(v) for v in row] for row in rows]
     widths = [max(len(h), *(len(r[i]) for r in cells)) if cells else len(h)
@@ -106,6 +165,8 @@ def print_table(rows: list[list], header: list[str], file=None) -> None:
 
 def format_cell(v) -> str:
     """A table cell: floats to a few significant digits, NaN and inf as '-'."""
+    import numpy as np
+
     if isinstance(v, (float, np.floating)):
         if not math.isfinite(v):
             return "-"
@@ -192,4 +253,6 @@ def parse_floats(text: str, option: str) -> list[float]:
 def load_rig_option(path: Path | None, option: str = "--rig") -> Rig:
     if path is None:
         raise UserError(f"{option} RIG.toml is required")
+    from calibkit.core.camera import Rig
+
     return Rig.load(path)
