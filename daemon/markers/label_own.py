@@ -22,11 +22,11 @@ def own_agrees(X: np.ndarray, lab: np.ndarray, cur: np.ndarray, own: tuple | Non
                 spread: np.ndarray, noise_m: float) -> bool:
     """Whether new labels `lab` of tracks X agree with the body's own distances `own`
     (from labelled start frames; `spread` the set's SD of each pair, how a body moves
-    it): a labelled track renamed must fit them about as well or better under its new
-    marker (OWN_WORSE: an extra marker on the head took LBHD's name and LBHD's track
-    RBHD's, which the set scored higher), and an unlabelled track given a marker must
-    sit where they put it (OWN_MISFIT). Pairs the start frames never saw cannot tell,
-    and leave it to the set."""
+    it): a labelled track whose marker fits them (OWN_MISFIT) and is renamed must fit
+    them about as well under its new marker (OWN_WORSE: an extra marker on the head took
+    LBHD's name and LBHD's track RBHD's, which the set scored higher), and an unlabelled
+    track given a marker must sit where they put it. A label that does not fit them
+    they do not vouch for, and pairs the start never saw cannot tell: the set decides."""
     if own is None:
         return True
     moved = np.nonzero((lab >= 0) & (lab != cur))[0]
@@ -36,7 +36,9 @@ def own_agrees(X: np.ndarray, lab: np.ndarray, cur: np.ndarray, own: tuple | Non
     new = own_misfit(D, lab, moved, own, spread, noise_m)
     was = own_misfit(D, cur, moved, own, spread, noise_m)
     held = np.isfinite(was)
-    bad = np.isfinite(new) & np.where(held, new > was + OWN_WORSE, new > OWN_MISFIT)
+    vouched = held & (was <= OWN_MISFIT)        # they vouch only for a label that fits
+    bad = np.isfinite(new) & np.where(held, vouched & (new > was + OWN_WORSE),
+                                      new > OWN_MISFIT)
     return not bad.any()
 
 
