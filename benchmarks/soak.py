@@ -166,6 +166,7 @@ class Soak:
         self.errors: list[str] = []  # what went wrong on our side (a request refused...)
         self.recordings: list[dict] = []
         self.recording = False
+        self.not_sending: list[str] = []  # outputs whose sent count stood still at the end
         self.stalled: list[socket.socket] = []
         self.log_path = self.dir / "mocapd.log"
 
@@ -263,8 +264,10 @@ class Soak:
             return "natnet + vrpn clients stall"
         if name == "fuzz":
             return self.fuzz(k)
-        if name == "drop":
-            return f"camera {self.drop[0]} dropped {DROP_FOR_S:.0f} s" if self.drop else "none"
+        if name == "drop":  # set in the configuration at the start: once a run
+            if self.drop is not None and k * self.minute_s < self.drop[1] < (k + 1) * self.minute_s:
+                return f"camera {self.drop[0]} dropped {DROP_FOR_S:.0f} s"
+            return "quiet (the sim drops a camera once a run)"
         raise ValueError(name)
 
     def reload(self) -> None:
@@ -415,6 +418,15 @@ class Soak:
                   f"{r['rss_mb'] or 0:8.1f} {r['open_files'] or 0:6d} {r['threads'] or 0:5d} "
                   f"{len(logged):5d}  {did}", flush=True)
         end_threads = proc_figures(pid)
+        # a dead worker shows as an output that stopped sending: two looks 5 s apart (a
+        # reload makes new outputs, whose counts start again)
+        first_look = {o.get("name"): o.get("sent") for o in (self.status() or {}).get(
+            "outputs", [])}
+        time.sleep(5.0)
+        last_look = {o.get("name"): o.get("sent") for o in (self.status() or {}).get(
+            "outputs", [])}
+        self.not_sending = sorted(k for k, v in last_look.items() if k in first_look
+                                  and v is not None and v <= first_look[k])
         code = self.stop()
         return self.summary(rows, first, end_threads, code)
 
@@ -428,11 +440,7 @@ class Soak:
             x = np.array([r["minute"] for r in late], float)
             y = np.array([r["rss_mb"] for r in late], float)
             slope = float(np.polyfit(x, y, 1)[0])
-        # a dead worker shows as an output that stopped sending: compare the last two minutes
-        stalled = []
-        if len(rows) >= 2:
-            a, b = rows[-2]["output_sent"], rows[-1]["output_sent"]
-            stalled = sorted(k for k in b if k in a and b[k] is not None and b[k] <= a[k])
+        stalled = self.not_sending
         return {
             "minutes": len(rows), "quiet_rate_fps": quiet,
             "rate_vs_quiet_pct": [float(v) for v in rel],
@@ -480,7 +488,7 @@ def print_summary(s: dict) -> None:
     for e in s["soak_errors"]:
         print(f"soak error: {e}")
     print(f"threads at the start {s['threads_start']}, at the end {s['threads_end']}; "
-          f"outputs that sent nothing in the last minute: "
+          f"outputs that sent nothing in 5 s at the end: "
           f"{s['outputs_not_sending_at_end'] or 'none'}")
     print(f"mocapd exit code {s['exit_code']}; load average {s['load']}")
 
