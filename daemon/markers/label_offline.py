@@ -11,8 +11,9 @@ import numpy as np
 from calibkit.core.blas import one_blas_thread
 from daemon.markers.c3dio import Points, Take
 from daemon.markers.label import Labeller
+from daemon.markers.label_own import start_distances
 from daemon.markers.label_start import window_start
-from daemon.markers.label_verify import Verification, carry_back, own_distances, verify_labels
+from daemon.markers.label_verify import Verification, carry_back, verify_labels
 from daemon.markers.markerset import MarkerSet
 
 KERNELS_FROM = 8000      # frames from which loading the compiled kernels pays off
@@ -57,7 +58,7 @@ def _label_take(points, ms, rate_hz, start_labels, start_frames, progress, optio
         use = min(start_frames, s.n_frames)
         sx = s.xyz_m[:use]
         lab.start_from_labelled_frames(sx)
-        own = own_distances(sx)
+        own = start_distances(sx, ms, lab.noise_m)
         fidx = np.arange(use) + s.first_frame - first
         keep = (fidx >= 0) & (fidx < n_frames)
         xyz[fidx[keep]] = sx[keep]
