@@ -11,10 +11,11 @@ import numpy as np
 from calibkit.core.blas import one_blas_thread
 from daemon.markers.c3dio import Points, Take
 from daemon.markers.label import Labeller
-from daemon.markers.label_own import start_distances
+from daemon.markers.label_assign import pair_stats
 from daemon.markers.label_start import window_start
-from daemon.markers.label_verify import Verification, carry_back, verify_labels
+from daemon.markers.label_verify import MARGIN, Verification, carry_back, improve, verify_labels
 from daemon.markers.markerset import MarkerSet
+from daemon.markers.markerset_fit import check_fit
 
 KERNELS_FROM = 8000      # frames from which loading the compiled kernels pays off
 
@@ -137,3 +138,28 @@ def merged_points(labels_per_frame: list[np.ndarray]) -> int:
     """Points labelled as a marker another point of their frame already is (duplicates
     taken as one)."""
     return int(sum(int((m >= 0).sum()) - len(np.unique(m[m >= 0])) for m in labels_per_frame))
+
+
+def start_distances(xyz: np.ndarray, ms, noise_m: float = 0.003,
+                    trust: float = 3.0) -> tuple[np.ndarray, np.ndarray] | None:
+    """This body's distances (mean, SD (n, n)) from labelled start frames (f, n, 3), for
+    `own_agrees`, or None where the start is not to be trusted. A labelled start can
+    itself be wrong (a leg's labels shifted by one marker, a pelvis mirrored): where the
+    set's local search (verification's, daemon/markers/label_verify.py) relabels the
+    start frames themselves, they vouch for nothing; and a marker more than `trust`
+    allowances off the set there (markerset_fit's misfit; a body re-proportioned by
+    15 % sits within 1-3) is not vouched for: the set decides about it."""
+    X = np.ascontiguousarray(xyz.transpose(1, 0, 2))
+    seen = np.isfinite(X).all(2).any(1)
+    lab = np.where(seen, np.arange(ms.n), -1)
+    got, gain = improve(np.where(seen[:, None, None], X, np.nan)[seen], ms, lab[seen],
+                        noise_m)
+    if gain >= MARGIN and not np.array_equal(got, lab[seen]):
+        return None
+    M, S = pair_stats(X)
+    fit = check_fit(ms, xyz, noise_m=noise_m)
+    off = np.array([fit.misfit.get(name, 0.0) > trust for name in ms.labels])
+    M = M.copy()
+    M[off] = np.nan
+    M[:, off] = np.nan
+    return M, S

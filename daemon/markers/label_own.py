@@ -70,31 +70,3 @@ def own_misfit(D: np.ndarray, lab: np.ndarray, tracks: np.ndarray, own: tuple,
             if np.isfinite(pick).any() else np.full(len(t), np.nan)
     out[ok_t] = med
     return out
-
-
-def start_distances(xyz: np.ndarray, ms, noise_m: float = 0.003,
-                    trust: float = 3.0) -> tuple[np.ndarray, np.ndarray] | None:
-    """This body's distances (mean, SD (n, n)) from labelled start frames (f, n, 3), for
-    `own_agrees`, or None where the start is not to be trusted. A labelled start can
-    itself be wrong (a leg's labels shifted by one marker, a pelvis mirrored): where the
-    set's local search (verification's, daemon/markers/label_verify.py) relabels the
-    start frames themselves, they vouch for nothing; and a marker more than `trust`
-    allowances off the set there (markerset_fit's misfit; a body re-proportioned by
-    15 % sits within 1-3) is not vouched for: the set decides about it."""
-    from daemon.markers.label_verify import MARGIN, improve
-    from daemon.markers.markerset_fit import check_fit
-
-    X = np.ascontiguousarray(xyz.transpose(1, 0, 2))
-    seen = np.isfinite(X).all(2).any(1)
-    lab = np.where(seen, np.arange(ms.n), -1)
-    got, gain = improve(np.where(seen[:, None, None], X, np.nan)[seen], ms, lab[seen],
-                        noise_m)
-    if gain >= MARGIN and not np.array_equal(got, lab[seen]):
-        return None
-    M, S = pair_stats(X)
-    fit = check_fit(ms, xyz, noise_m=noise_m)
-    off = np.array([fit.misfit.get(name, 0.0) > trust for name in ms.labels])
-    M = M.copy()
-    M[off] = np.nan
-    M[:, off] = np.nan
-    return M, S
