@@ -14,10 +14,8 @@ The target (issue 30): SIGTERM to exit <= 1 s, p99 of 20 stops.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -27,23 +25,16 @@ from pathlib import Path
 import numpy as np
 
 from calibkit.clitools import print_table, write_json
+from calibkit.core.errors import UserError
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 
 
 def _control(rt: Path, message: dict) -> dict:
-    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
-        s.settimeout(10)
-        s.connect(str(rt / "mocapd.sock"))
-        s.sendall(json.dumps(message).encode() + b"\n")
-        data = b""
-        while not data.endswith(b"\n"):
-            chunk = s.recv(65536)
-            if not chunk:
-                break
-            data += chunk
-    return json.loads(data)
+    from daemon.control import request
+
+    return request(rt, message, timeout_s=10.0)
 
 
 def one_stop(folder: Path, k: int) -> tuple[float, bool]:
@@ -58,7 +49,7 @@ def one_stop(folder: Path, k: int) -> tuple[float, bool]:
             try:
                 if _control(rt, {"cmd": "status"}).get("frames", 0) > 0:
                     break
-            except OSError:
+            except UserError:  # not up yet
                 pass
             if time.monotonic() > deadline or proc.poll() is not None:
                 raise RuntimeError("the daemon did not start")
