@@ -225,6 +225,16 @@ def checks(rig: Rig, points_xyz: np.ndarray, behind_share: float) -> dict:
     }
 
 
+def _capped(value: float, grades, below: str, worst: str, order: list[str]):
+    """(the grade `value` allows under `grades` ((grade, limit), best first; `below` past
+    the last limit), the better grade it missed) when that is worse than `worst`, else
+    None: one cap of the grade."""
+    allowed = next((g for g, limit in grades if value <= limit), below)
+    if order.index(allowed) <= order.index(worst):
+        return None
+    return allowed, order[order.index(allowed) - 1]
+
+
 def grade(held: dict, found: dict, wand_length_m: float, syst: dict | None = None,
           intrinsics: list[dict] | None = None, basis: str = "held-out",
           position_ppm: tuple[str, float] | None = None) -> tuple[str, str]:
@@ -248,10 +258,9 @@ def grade(held: dict, found: dict, wand_length_m: float, syst: dict | None = Non
         pct = (syst or {}).get(f"{key}_pct", float("nan"))
         if not np.isfinite(pct):
             continue
-        allowed = next((g for g, limit in SYSTEMATIC_GRADES if pct <= limit), "poor")
-        if order.index(allowed) > order.index(worst):
-            worst = allowed
-            missed = order[order.index(allowed) - 1]
+        capped = _capped(pct, SYSTEMATIC_GRADES, "poor", worst, order)
+        if capped:
+            worst, missed = capped
             why = (f"the wand's length varies {what} by {syst[key + '_mm']:.2f} mm "
                    f"({pct:.3f} % of its length, above the {dict(SYSTEMATIC_GRADES)[missed]} "
                    f"% '{missed}' allows): the reconstructed space is warped, most often by "
@@ -261,22 +270,20 @@ def grade(held: dict, found: dict, wand_length_m: float, syst: dict | None = Non
     if moved:
         far = max(moved, key=lambda r: r["largest_change_sigmas"])
         sig = far["largest_change_sigmas"]
-        allowed = next((g for g, limit in INTRINSIC_SIGMA_GRADES if sig <= limit), "usable")
-        if order.index(allowed) > order.index(worst):
-            worst = allowed
+        capped = _capped(sig, INTRINSIC_SIGMA_GRADES, "usable", worst, order)
+        if capped:
+            worst, missed = capped
             why = (f"the wand moved camera {far['name']}'s {far['largest_change_parameter']} "
                    f"{sig:.1f} prior sigmas from the intrinsics file (more than the "
-                   f"{dict(INTRINSIC_SIGMA_GRADES)[order[order.index(allowed) - 1]]:g} "
-                   f"'{order[order.index(allowed) - 1]}' allows): the file's intrinsics or "
-                   "their uncertainties are wrong, and what the wand made of them is judged "
-                   "by this capture alone; recalibrate the intrinsics (calibkit intrinsic) "
-                   "or solve with the monitor's views")
+                   f"{dict(INTRINSIC_SIGMA_GRADES)[missed]:g} '{missed}' allows): the file's "
+                   "intrinsics or their uncertainties are wrong, and what the wand made of "
+                   "them is judged by this capture alone; recalibrate the intrinsics "
+                   "(calibkit intrinsic) or solve with the monitor's views")
     if position_ppm is not None and np.isfinite(position_ppm[1]):
         cam, ppm = position_ppm
-        allowed = next((g for g, limit in POSITION_PPM_GRADES if ppm <= limit), "usable")
-        if order.index(allowed) > order.index(worst):
-            worst = allowed
-            missed = order[order.index(allowed) - 1]
+        capped = _capped(ppm, POSITION_PPM_GRADES, "usable", worst, order)
+        if capped:
+            worst, missed = capped
             why = (f"the capture determines camera {cam}'s position only to {ppm:.0f} ppm of "
                    f"its distance from the reference camera (the solve's own standard "
                    f"deviation; '{missed}' allows {dict(POSITION_PPM_GRADES)[missed]:g} ppm):"
