@@ -120,6 +120,22 @@ class OffscreenDisplay:
         self.fbo = self.ctx.simple_framebuffer(self.size, components=1, dtype="f4")
         self.fbo.use()
         self.renderer = _Renderer(self.ctx, self.size)
+        self.refresh_hz = 60.0
+        self.shown = np.zeros((self.size[1], self.size[0]), np.float32)  # what is on the glass
+        self._watchers: list = []
+
+    def watch(self, callback) -> None:
+        """Call `callback(frame)` with every frame `show` puts on the glass: a simulated
+        camera watching this monitor gets exactly the picture a window would draw."""
+        self._watchers.append(callback)
+
+    def show(self, dots: Dots) -> None:
+        """Draw `dots` as `WindowDisplay.show` does (the same renderer), off-screen: the
+        frame stays in `shown` and goes to every watcher, so a capture can be handed this
+        display in place of a window (`calibkit intrinsic --display --sim`)."""
+        self.shown = self.render(dots)
+        for callback in self._watchers:
+            callback(self.shown)
 
     def render(self, dots: Dots) -> np.ndarray:
         """The frame (h, w) float32 in 0..1, row 0 at the top."""

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import sys
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -23,9 +26,13 @@ def _say(text: str) -> None:
 def _check_modes(display: bool, images: Path | None, sim: bool, camera: str, views: int,
                  samples: int) -> None:
     modes = [name for name, on in (("--display", display), ("--images", images is not None),
-                                   ("--sim", sim)) if on]
+                                   ("--sim", sim and not display)) if on]
     if len(modes) != 1:
-        raise UserError("choose one of --display, --images DIR --board SPEC, or --sim")
+        raise UserError("choose one of --display (a monitor and a camera; with --sim the "
+                        "simulated ones), --images DIR --board SPEC, or --sim")
+    if images is not None and sim:
+        raise UserError("--images reads real photos of a board: drop --sim, or use --sim "
+                        "(or --display --sim) without --images")
     if camera == "all" and not sim:
         raise UserError("--camera all calibrates every camera of a simulated rig: with "
                         "--sim only; name the camera (e.g. --camera cam0)")
@@ -48,11 +55,24 @@ def _board_views(images: Path, board: str | None
     return found, size
 
 
-def _monitor_views(device: str, camera: str, monitor: int, pixel_pitch: float | None,
-                   n_views: int, step: float, shifts: int, radius: float, raster: bool,
-                   samples: int, page=None) -> tuple[list[PlaneView], tuple[int, int], float]:
-    """A live camera watching dots on a monitor: the views, the image size, the pitch."""
-    from calibkit.calibrate import intrinsic_pipeline as pipeline
+@dataclass(eq=False)
+class _Bench:
+    """What the monitor path needs from hardware: the screen and its pitch, a window that
+    shows dots, a camera, and the user tilting the monitor between views. A real monitor
+    and camera here; calibkit.synthetic.monitor_bench.SimBench for `--display --sim`."""
+
+    screen: object
+    pitch_mm: float
+    window: object
+    source: object
+
+    def tilt(self, view: int, n_views: int) -> None:
+        input(f"view {view + 1}/{n_views}: hold the monitor in view, tilted, then press "
+              "Enter ")
+
+
+@contextmanager
+def _live_bench(device: str, camera: str, monitor: int, pixel_pitch: float | None):
     from calibkit.cameras import open_camera
     from projector.display import WindowDisplay
     from projector.screens import pick_screen, require_display
@@ -60,29 +80,39 @@ def _monitor_views(device: str, camera: str, monitor: int, pixel_pitch: float | 
     require_display()  # before anything else: the commonest mistake (ssh, CI)
     with open_camera(device, name=camera) as source:
         screen, pitch = pick_screen(monitor, pixel_pitch)
-        schedule = pipeline.make_schedule((screen.width_px, screen.height_px), step, shifts,
-                                          radius, raster)
-        first = next(iter(source), None)
-        if first is None:
-            raise UserError(f"camera {device} gives no frames")
-        size = (first.image.shape[1], first.image.shape[0])
-
-        def next_view(v: int, done: list) -> None:
-            if page is not None:  # the views so far, and where to hold the monitor next
-                page.show(camera, size, done, n_views)
-            input(f"view {v + 1}/{n_views}: hold the monitor in view, tilted, then press "
-                  "Enter ")
-
         window = WindowDisplay(monitor)
         try:
-            views = pipeline.capture_views(pipeline.LiveMonitor(window, source), schedule,
-                                           n_views, pitch, next_view, size, samples,
-                                           Progress, _say)
+            yield _Bench(screen, pitch, window, source)
         finally:
             window.close()
+
+
+def _monitor_views(bench, camera: str, n_views: int, step: float, shifts: int,
+                   radius: float, raster: bool, samples: int, page=None, progress=Progress
+                   ) -> tuple[list[PlaneView], tuple[int, int], float]:
+    """A camera watching dots on a monitor: the views, the image size, the pitch. `bench`
+    is the hardware (a real monitor and camera, or the simulated ones: the same path)."""
+    from calibkit.calibrate import intrinsic_pipeline as pipeline
+
+    screen = bench.screen
+    schedule = pipeline.make_schedule((screen.width_px, screen.height_px), step, shifts,
+                                      radius, raster)
+    first = next(iter(bench.source), None)
+    if first is None:
+        raise UserError(f"camera {camera} gives no frames")
+    size = (first.image.shape[1], first.image.shape[0])
+
+    def next_view(v: int, done: list) -> None:
+        if page is not None:  # the views so far, and where to hold the monitor next
+            page.show(camera, size, done, n_views)
+        bench.tilt(v, n_views)
+
+    views = pipeline.capture_views(pipeline.LiveMonitor(bench.window, bench.source),
+                                   schedule, n_views, bench.pitch_mm, next_view, size,
+                                   samples, progress, _say)
     if page is not None:
         page.show(camera, size, views, n_views)
-    return views, size, pitch
+    return views, size, bench.pitch_mm
 
 
 def _report(result: IntrinsicResult) -> None:
@@ -103,7 +133,9 @@ def register(app: typer.Typer) -> None:
     @app.command("intrinsic")
     def intrinsic_command(
         display: Annotated[bool, typer.Option(
-            "--display", help="Show dots on a monitor and watch them with a live camera.")]
+            "--display", help="Show dots on a monitor and watch them with a live camera; "
+                              "with --sim, the same display code draws the monitor a "
+                              "simulated camera watches (headless OpenGL through EGL).")]
         = False,
         images: Annotated[Path | None, typer.Option(
             help="A folder of images of a printed board (with --board).")] = None,
@@ -112,16 +144,20 @@ def register(app: typer.Typer) -> None:
                  "[:DICT] or circles:COLSxROWS:SPACING_MM[:asym].")] = None,
         sim: Annotated[bool, typer.Option(
             "--sim", help="A camera of a simulated rig (--sim-rig) watching a simulated "
-                          "monitor; the true rig goes to NAME.truth.toml beside --rig.")] = False,
+                          "monitor; the true rig goes to NAME.truth.toml beside --rig. "
+                          "Rendered, it takes about 15 s of CPU per camera at the "
+                          "defaults (640x480, 6 views), longer on a busy machine; a "
+                          "progress line on stderr shows the time left.")] = False,
         views: Annotated[int, typer.Option(help="Views to take (monitor and --sim).")] = 6,
         camera: Annotated[str, typer.Option(
             help="The camera's name in the rig file; --sim: a camera of the simulated rig, "
                  "or 'all' for every one.")] = "cam0",
         device: Annotated[str, typer.Option(
             help="--display: the camera: a device number, basler:SERIAL or "
-                 "genicam:SERIAL.")] = "0",
+                 "genicam:SERIAL (with --sim: the simulated --camera).")] = "0",
         monitor: Annotated[int, typer.Option(
-            help="--display: monitor index (see `calibkit displays`).")] = 0,
+            help="--display: monitor index (see `calibkit displays`, or `calibkit "
+                 "displays --sim` for the simulated one).")] = 0,
         pixel_pitch_text: Annotated[str | None, typer.Option(
             "--pixel-pitch", help="Monitor pixel pitch: mm per pixel, or WIDTH_MM/WIDTH_PX "
                                   "(overrides the reported one).")]
@@ -159,8 +195,11 @@ def register(app: typer.Typer) -> None:
             help="--sim without --sim-rig: metres across the simulated volume.")] = 4.0,
         render: Annotated[bool, typer.Option(
             "--render/--no-render", help="--sim: render every camera frame and capture it "
-                                         "(slow), or report each dot's imaged centre with "
-                                         "--noise-px noise (fast, for whole rigs).")] = True,
+                                         "(slow: about 15 s of CPU per camera at the "
+                                         "defaults, progress with the time left on "
+                                         "stderr), or report each dot's imaged centre "
+                                         "with --noise-px noise (fast: under a second per "
+                                         "camera, for whole rigs).")] = True,
         noise_px: Annotated[float, typer.Option(
             "--noise-px", help="--sim --no-render: centroid noise of a captured dot per axis, "
                                "px (0.035 leaves the rendered capture's 0.05 px "
@@ -174,7 +213,13 @@ def register(app: typer.Typer) -> None:
             help="--sim: how much of the image the monitor spans (above 1 it overflows "
                  "the image).")] = 0.8,
     ) -> None:
-        """Calibrate one camera's intrinsics (focal lengths, principal point, distortion)."""
+        """Calibrate one camera's intrinsics (focal lengths, principal point, distortion).
+
+        Reads a live camera watching a monitor (--display), a folder of photos of a printed
+        board (--images), or a simulated camera (--sim; --display --sim draws its monitor
+        with the real display code). A rendered simulated camera takes about 15 s of CPU
+        (6 views); the progress line says how long is left.
+        """
         import numpy as np
 
         from calibkit.calibrate import intrinsic_pipeline as pipeline
@@ -190,10 +235,13 @@ def register(app: typer.Typer) -> None:
             page = IntrinsicView(*parse_view(view))
             print(f"views at {page.url}")
         if sim:
+            if display and not render:
+                raise UserError("--display --sim renders the monitor for the camera; "
+                                "--no-render is for --sim alone")
             _sim_command(sim_rig, cameras, volume, size, seed, camera, views, fill, render,
                          noise_px, latency_ms, noise, pixel_pitch, step, shifts, radius,
                          raster, samples, estimate_skew, fix_k3, rig, json_path, plot, report,
-                         page)
+                         page, monitor if display else None)
             if page is not None:
                 page.close()
             return
@@ -203,9 +251,9 @@ def register(app: typer.Typer) -> None:
             if page is not None:
                 page.show(camera, img_size, target_views, len(target_views))
         else:
-            target_views, img_size, pitch = _monitor_views(
-                device, camera, monitor, pixel_pitch, views, step, shifts, radius, raster,
-                samples, page)
+            with _live_bench(device, camera, monitor, pixel_pitch) as bench:
+                target_views, img_size, pitch = _monitor_views(
+                    bench, camera, views, step, shifts, radius, raster, samples, page)
             dot_radius_m = radius * pitch / 1000.0
         result = calibrate(target_views, img_size, camera, fix_skew=not estimate_skew,
                            fix_k3=fix_k3, dot_radius_m=dot_radius_m)
@@ -233,29 +281,108 @@ def _write_report(path: Path, cameras: list) -> None:
     print(f"report written to {path}")
 
 
+class _RunProgress:
+    """One progress line for a whole rendered run (every camera's every view) on stderr:
+    patterns shown of all, the time elapsed and the time left. The capture asks it for one
+    sink per view (as it would ask calibkit.clitools.Progress); a view's summary goes out as
+    its own line when it ends."""
+
+    def __init__(self, total: int, every_s: float = 2.0, stream=None) -> None:
+        self.line = Progress("rendering", total, every_s=every_s, stream=stream)
+        self.base = 0
+        self.camera = ""
+
+    def __call__(self, label: str, total: int) -> _ViewProgress:
+        return _ViewProgress(self, f"{self.camera} {label}".strip(), total)
+
+    def show(self, done: int, label: str) -> None:
+        self.line.update(done, self.left(done) + f" ({label})")
+
+    def left(self, done: int) -> str:
+        elapsed = time.monotonic() - self.line.start
+        if done <= 0 or not self.line.total:
+            return "elapsed"
+        return f"elapsed, about {elapsed * (self.line.total - done) / done:.0f} s left"
+
+    def finish(self) -> None:
+        self.line.finish("elapsed")
+
+
+@dataclass(eq=False)
+class _ViewProgress:
+    run: _RunProgress
+    label: str
+    total: int
+
+    def update(self, done: int) -> None:
+        self.run.show(self.run.base + done, self.label)
+
+    def finish(self, text: str = "") -> None:
+        self.run.base += self.total
+        _say(f"{self.label}: {text}")
+        self.run.show(self.run.base, self.label)
+
+
+def _display_sim_runs(run, n_views: int, fill: float, monitor: int,
+                      pixel_pitch: float | None, step: float, shifts: int, radius: float,
+                      raster: bool, samples: int, fix_skew: bool, fix_k3: bool,
+                      rig_path: Path | None, progress: _RunProgress):
+    """--display --sim: each camera through the monitor path a real monitor takes (the same
+    schedule, display code, capture and guidance), with the window drawn off-screen onto a
+    simulated monitor and the camera simulated (calibkit.synthetic.monitor_bench). The
+    estimate gets only the frames; the true camera travels beside it, for scoring."""
+    from calibkit.calibrate.intrinsic import calibrate
+    from calibkit.calibrate.intrinsic_pipeline import write_rig
+    from calibkit.synthetic import intrinsic_sim
+    from calibkit.synthetic.monitor_bench import open_bench
+
+    for name in run.names:
+        progress.camera = name
+        truth = run.hardware[name]
+        with open_bench(truth, n_views, fill, intrinsic_sim.camera_config(run, name),
+                        monitor, pixel_pitch) as bench:
+            found, size, pitch = _monitor_views(bench, name, n_views, step, shifts, radius,
+                                                raster, samples, None, progress)
+        result = calibrate(found, size, name, fix_skew=fix_skew, fix_k3=fix_k3,
+                           dot_radius_m=radius * pitch / 1000.0)
+        if rig_path is not None:
+            write_rig(rig_path, result.camera, result)
+        yield intrinsic_sim.CameraRun(name, result, truth, found)
+
+
 def _sim_command(sim_rig, cameras, volume, size, seed, camera, views, fill, render, noise_px,
                  latency_ms, noise, pixel_pitch, step, shifts, radius, raster, samples,
                  estimate_skew, fix_k3, rig, json_path, plot, report=None,
-                 page=None) -> None:
+                 page=None, monitor: int | None = None) -> None:
     """--sim: one camera of the simulated rig (or all of them) calibrated from simulated
-    monitor views. The estimate sees only the captured dots; the truth goes to
-    NAME.truth.toml beside --rig and to the figures, for scoring."""
+    monitor views; `monitor` set (--display --sim): through the real monitor path. The
+    estimate sees only the captured dots; the truth goes to NAME.truth.toml beside --rig
+    and to the figures, for scoring."""
     import numpy as np
 
     from calibkit.calibrate.intrinsic import distortion_plot_png
     from calibkit.synthetic import intrinsic_sim
     from calibkit.synthetic.runs import truth_rig_path
 
+    display = monitor is not None
+    # --display --sim: the simulated monitor is the hardware; --pixel-pitch overrides what
+    # it reports, as on a real monitor, rather than changing the monitor
     run = intrinsic_sim.setup(sim_rig, cameras, volume, parse_size(size) if size else None,
-                              seed, camera, fill, noise_px, latency_ms, noise, pixel_pitch,
-                              step, shifts, radius, raster)
+                              seed, camera, fill, noise_px, latency_ms, noise,
+                              None if display else pixel_pitch, step, shifts, radius, raster)
     if plot is not None and len(run.names) > 1:
         raise UserError("--plot draws one camera's distortion: give --camera NAME with it")
+    rendering = _RunProgress(len(run.names) * views * len(run.schedule.frames))
+    if display:
+        runs = _display_sim_runs(run, views, fill, monitor, pixel_pitch, step, shifts, radius,
+                                 raster, samples, not estimate_skew, fix_k3, rig, rendering)
+    else:
+        runs = intrinsic_sim.calibrate_cameras(run, views, fill, render, noise_px, samples,
+                                               not estimate_skew, fix_k3, radius, rig,
+                                               rendering, _say)
     done = []
-    progress = Progress("cameras", len(run.names), enabled=len(run.names) > 1)
-    for k, cam in enumerate(intrinsic_sim.calibrate_cameras(
-            run, views, fill, render, noise_px, samples, not estimate_skew, fix_k3, radius,
-            rig, Progress, _say)):
+    progress = Progress("cameras", len(run.names), enabled=len(run.names) > 1 and not render)
+    for k, cam in enumerate(runs):
         done.append(cam)
         if page is not None:  # a simulated camera's views come all at once
             page.show(cam.name, cam.result.camera.size, cam.views, views)
@@ -268,6 +395,8 @@ def _sim_command(sim_rig, cameras, volume, size, seed, camera, views, fill, rend
         progress.update(k + 1, f"{cam.name}: {cam.result.points} dots, rms "
                                f"{cam.result.rms_px:.3f} px")
     progress.finish()
+    if render:
+        rendering.finish()
     if len(run.names) > 1:
         _sim_summary(done)
     if rig is not None:
@@ -278,7 +407,10 @@ def _sim_command(sim_rig, cameras, volume, size, seed, camera, views, fill, rend
         uv = np.concatenate([v.uv for v in done[0].views])
         write_bytes_atomic(plot, distortion_plot_png(done[0].result, uv))
     if json_path is not None:
-        write_json(json_path, intrinsic_sim.figures(done, render, noise_px))
+        figures = intrinsic_sim.figures(done, render, noise_px)
+        # which capture made the views: the monitor path of --display, or the simulator's
+        figures["capture"] = "display" if display else "simulator"
+        write_json(json_path, figures)
     if report is not None:
         _write_report(report, [(r.name, r.result, list(r.views)) for r in done])
 

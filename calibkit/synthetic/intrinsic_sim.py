@@ -98,6 +98,13 @@ def sim_views(truth: Camera, n_views: int, cfg: MonitorSimConfig, schedule: Sche
                 for v, view in enumerate(simulator.views)]
 
 
+def camera_config(run: MonitorSimRun, name: str) -> MonitorSimConfig:
+    """The monitor as camera `name` sees it: each camera is held in front of it its own
+    way (its own seed)."""
+    return dataclasses.replace(run.config, seed=run.config.seed
+                               + 1000 * run.hardware.index(name))
+
+
 def calibrate_cameras(run: MonitorSimRun, n_views: int, fill: float, render: bool,
                       noise_px: float, samples: int, fix_skew: bool, fix_k3: bool,
                       radius: float, rig_path: Path | None, progress, say
@@ -106,8 +113,7 @@ def calibrate_cameras(run: MonitorSimRun, n_views: int, fill: float, render: boo
     written to `rig_path` as soon as it is done (an interruption keeps those done)."""
     for name in run.names:
         truth = run.hardware[name]
-        cfg = dataclasses.replace(run.config, seed=run.config.seed
-                                  + 1000 * run.hardware.index(name))
+        cfg = camera_config(run, name)
         views = sim_views(truth, n_views, cfg, run.schedule, fill, render, noise_px, samples,
                           progress, say)
         result = calibrate(views, truth.size, name, fix_skew=fix_skew, fix_k3=fix_k3,

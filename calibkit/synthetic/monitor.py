@@ -51,9 +51,13 @@ class MonitorSimConfig:
 
 @dataclass
 class _Shown:
+    """A picture on the glass from t_s on: dots this simulator renders itself, or a frame
+    a display already drew (`show_image`)."""
+
     t_s: float
-    dots: Dots
+    dots: Dots | None
     key: int
+    image: np.ndarray | None = None
 
 
 @dataclass
@@ -66,19 +70,30 @@ class MonitorSim:
     config: MonitorSimConfig = field(default_factory=MonitorSimConfig)
 
     def __post_init__(self) -> None:
-        self.display = OffscreenDisplay(self.config.screen_px)
+        self._display: OffscreenDisplay | None = None
         self.rng = np.random.default_rng(self.config.seed)
         self.t_s = 0.0
         self.view_index = 0
-        self.history: list[_Shown] = [_Shown(-1e9, Dots.make(np.zeros((0, 2))), -1)]
+        sw, sh = self.config.screen_px
+        self.history: list[_Shown] = [_Shown(-1e9, None, -1, np.zeros((sh, sw), np.float32))]
         self._maps: tuple[np.ndarray, ...] | None = None
         self._ray_cache: np.ndarray | None = None
         self._warped: dict[int, np.ndarray] = {}
         self._keys = 0
         self.frames_grabbed = 0
 
+    @property
+    def display(self) -> OffscreenDisplay:
+        """The renderer for `show(dots)`, made on first use: a simulator fed frames that a
+        display drew (`show_image`) needs no context of its own."""
+        if self._display is None:
+            self._display = OffscreenDisplay(self.config.screen_px)
+        return self._display
+
     def close(self) -> None:
-        self.display.close()
+        if self._display is not None:
+            self._display.close()
+            self._display = None
 
     def __enter__(self) -> MonitorSim:
         return self
@@ -98,6 +113,20 @@ class MonitorSim:
         """Request a pattern now; it appears after the display latency."""
         self._keys += 1
         self.history.append(_Shown(self.t_s + self.config.latency_s, dots, self._keys))
+        self.history = self.history[-4:]
+
+    def show_image(self, screen_image: np.ndarray) -> None:
+        """A frame a display drew (float 0..1, the screen's size) is requested now; it is on
+        the glass after the latency. This is how the monitor of `calibkit intrinsic
+        --display --sim` gets its picture: from the display code itself
+        (projector.display.OffscreenDisplay.watch)."""
+        sw, sh = self.config.screen_px
+        if screen_image.shape != (sh, sw):
+            raise ValueError(f"a {screen_image.shape[1]}x{screen_image.shape[0]} frame on a "
+                             f"{sw}x{sh} monitor")
+        self._keys += 1
+        self.history.append(_Shown(self.t_s + self.config.latency_s, None, self._keys,
+                                   screen_image))
         self.history = self.history[-4:]
 
     # ---- the camera -------------------------------------------------------------------------
@@ -176,7 +205,8 @@ class MonitorSim:
     def _warped_for(self, shown: _Shown) -> np.ndarray:
         img = self._warped.get(shown.key)
         if img is None:
-            img = self.warp(self.display.render(shown.dots))
+            screen = shown.image if shown.image is not None else self.display.render(shown.dots)
+            img = self.warp(screen)
             if len(self._warped) > 6:
                 self._warped.pop(next(iter(self._warped)))
             self._warped[shown.key] = img
