@@ -91,13 +91,14 @@ def _write_png(path: Path, image: np.ndarray) -> None:
 
 
 def _source(source: str | None, sim: bool, frames: int | None, markers: int, seed: int,
-            camera: str) -> tuple[FrameSource, int | None]:
+            camera: str, reflections: int = 0) -> tuple[FrameSource, int | None]:
     from calibkit.cameras import SPEC_HELP, open_camera
     from calibkit.synthetic.frames import sim_source
 
     if sim:
         cam: int | str = int(camera) if camera.isdigit() else camera
-        return sim_source(n_markers=markers, n_frames=frames or 1, camera=cam, seed=seed), None
+        return sim_source(n_markers=markers, n_frames=frames or 1, camera=cam, seed=seed,
+                          reflections=reflections), None
     if source is None:
         raise UserError(f"give a SOURCE or --sim: {SPEC_HELP}")
     src = open_camera(source)
@@ -138,6 +139,9 @@ def register(app: typer.Typer) -> None:
         markers: Annotated[int, typer.Option(help="--sim: number of markers.")] = 40,
         seed: Annotated[int, typer.Option(help="--sim: random seed.")] = 0,
         camera: Annotated[str, typer.Option(help="--sim: camera index or name.")] = "0",
+        reflections: Annotated[int, typer.Option(
+            help="--sim: static reflections the camera also sees (the ones `calibkit mask "
+                 "--sim` masks for the same --camera and --seed).")] = 0,
     ) -> None:
         """Find markers in images and print them; tune the options with --preview."""
         from calibkit.vision.detect import DetectorConfig, detect
@@ -150,7 +154,7 @@ def register(app: typer.Typer) -> None:
                                 mode="multi" if multi else "threshold",
                                 hsv_ranges=tuple(parse_hsv(h) for h in hsv or ()))
         ignore = load_mask(mask) if mask is not None else None
-        src, limit = _source(source, sim, frames, markers, seed, camera)
+        src, limit = _source(source, sim, frames, markers, seed, camera, reflections)
         results: list[tuple[Frame, Blobs]] = []
         progress = Progress("detect", limit)
         with src:
@@ -173,29 +177,44 @@ def register(app: typer.Typer) -> None:
 
     @app.command("mask")
     def mask_command(
-        source: Annotated[str, typer.Argument(
+        source: Annotated[str | None, typer.Argument(
             help="Frames with no markers in view from a camera: an image, a folder, a video, "
-                 "a camera device number, basler:SERIAL or genicam:SERIAL.")],
-        out: Annotated[Path, typer.Option(help="The mask PNG to write.")],
+                 "a camera device number, basler:SERIAL or genicam:SERIAL.")] = None,
+        out: Annotated[Path | None, typer.Option(help="The mask PNG to write.")] = None,
         frames: Annotated[int, typer.Option(help="Use at most this many frames.")] = 30,
         dilate: Annotated[int, typer.Option(help="Grow masked areas by this many pixels.")]
         = 4,
         threshold: Annotated[str, typer.Option(help="'auto' or a pixel value.")] = "auto",
         json_path: Annotated[Path | None, typer.Option(
             "--json", help="Write the mask's figures as JSON.")] = None,
+        sim: Annotated[bool, typer.Option(
+            "--sim", help="Frames of a simulated camera with its markers taken away and "
+                          "--reflections static reflections left; the mask is scored "
+                          "against where the reflections truly are and where the markers "
+                          "of `calibkit detect --sim` image.")] = False,
+        reflections: Annotated[int, typer.Option(
+            help="--sim: static reflections the camera sees (glints to lamps).")] = 8,
+        markers: Annotated[int, typer.Option(
+            help="--sim: markers whose images the mask must leave alone (scoring only: "
+                 "the frames have none).")] = 40,
+        seed: Annotated[int, typer.Option(help="--sim: random seed.")] = 0,
+        camera: Annotated[str, typer.Option(help="--sim: camera index or name.")] = "0",
     ) -> None:
         """Build a mask of static reflections and lamps from frames with no markers."""
         import cv2
         import numpy as np
 
-        from calibkit.cameras import open_camera
         from calibkit.vision.masks import build_mask, save_mask
 
+        if out is None:
+            raise UserError("--out MASK.png is required: where to write the mask")
         if frames < 1:
             raise UserError(f"--frames must be >= 1, got {frames}")
         level = parse_threshold(threshold)
-        with open_camera(source) as src:
+        with _mask_source(source, sim, frames, reflections, seed, camera) as src:
             images = [f.image for f in itertools.islice(src, frames)]
+        if not images:
+            raise UserError(f"{source} gave no frames")
         result = build_mask(images, threshold=level, dilate_px=dilate)
         save_mask(out, result)
         fraction = float(result.mean())
@@ -203,11 +222,47 @@ def register(app: typer.Typer) -> None:
         print(f"mask {out}: {result.shape[1]}x{result.shape[0]}, {int(result.sum())} pixels "
               f"({100 * fraction:.2f}%) in {n_regions} areas masked, from {len(images)} "
               f"frames")
+        data = {"mask": str(out), "width": result.shape[1], "height": result.shape[0],
+                "frames": len(images), "masked_pixels": int(result.sum()),
+                "masked_fraction": fraction, "areas": n_regions}
+        if sim:
+            data["truth"] = _mask_truth(result, reflections, markers, seed, camera)
         if json_path is not None:
-            write_json(json_path, {"mask": str(out), "width": result.shape[1],
-                                   "height": result.shape[0], "frames": len(images),
-                                   "masked_pixels": int(result.sum()),
-                                   "masked_fraction": fraction, "areas": n_regions})
+            write_json(json_path, data)
+
+
+def _mask_source(source: str | None, sim: bool, frames: int, reflections: int, seed: int,
+                 camera: str) -> FrameSource:
+    from calibkit.cameras import SPEC_HELP, open_camera
+    from calibkit.synthetic.frames import empty_volume
+
+    if sim:
+        if source is not None:
+            raise UserError(f"give a SOURCE or --sim, not both (got {source!r} and --sim)")
+        return empty_volume(frames, int(camera) if camera.isdigit() else camera, seed,
+                            reflections)
+    if source is None:
+        raise UserError(f"give a SOURCE or --sim: {SPEC_HELP}")
+    return open_camera(source)
+
+
+def _mask_truth(mask: np.ndarray, reflections: int, markers: int, seed: int,
+                camera: str) -> dict:
+    """--sim: the mask against where the reflections are and where the markers image."""
+    from calibkit.synthetic.frames import sim_camera, sim_source
+    from calibkit.synthetic.reflections import make_reflections, marker_discs, score_mask
+
+    cam_id: int | str = int(camera) if camera.isdigit() else camera
+    cam = sim_camera(cam_id, seed)
+    scene = sim_source(n_markers=markers, camera=cam_id, seed=seed)
+    uv, radius = marker_discs(cam, scene.xyz[0])
+    truth = score_mask(mask, make_reflections(cam, reflections, seed), uv, radius)
+    print(f"against the simulator's truth: {truth['reflections_covered']}/"
+          f"{truth['reflections']} reflections wholly masked "
+          f"({100 * truth['reflection_pixels_covered']:.1f}% of their pixels); "
+          f"{truth['markers_touched']}/{truth['markers']} markers' images touched by the "
+          f"mask, {truth['markers_hidden']} hidden")
+    return truth
 
 
 def _truth_figures(results: list[tuple[Frame, Blobs]],

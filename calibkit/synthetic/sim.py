@@ -334,7 +334,8 @@ def render_frame(camera: Camera, xyz: np.ndarray, marker_radius_m: float = MARKE
     """An 8-bit image of markers as `camera` sees them: (image, true centres (N, 2), visible).
 
     A marker's spot shrinks with distance (radius = marker radius * focal / depth) and dims
-    with it; `stray` (S, 3) rows of (u, v, radius_px) add static reflections such as lamps.
+    with it; `stray` (S, 3) rows of (u, v, radius_px) add static reflections such as lamps
+    (S, 4 with each one's own brightness in DN: calibkit.synthetic.reflections).
     Motion blur: with `xyz_end` (the positions when the exposure ends) each spot is smeared
     along its path during the exposure, and its true centre is the path's mean, which is
     what an ideal centroid of the smear measures. Occlusion: a marker whose centre is
@@ -368,10 +369,12 @@ def render_frame(camera: Camera, xyz: np.ndarray, marker_radius_m: float = MARKE
     draw_r = np.tile(radius[visible], k)
     draw_peak = np.tile(brightness[visible], k) / k
     if stray is not None and len(stray):
-        stray = np.asarray(stray, dtype=np.float64).reshape(-1, 3)
+        stray = np.asarray(stray, dtype=np.float64)
+        stray = stray.reshape(-1, stray.shape[-1] if stray.ndim == 2 else 3)
         draw_uv = np.concatenate([draw_uv, stray[:, :2]])
         draw_r = np.concatenate([draw_r, stray[:, 2]])
-        draw_peak = np.concatenate([draw_peak, np.full(len(stray), peak)])
+        draw_peak = np.concatenate([draw_peak, stray[:, 3] if stray.shape[1] > 3
+                                    else np.full(len(stray), peak)])
     image = render_spots(camera.size, draw_uv, draw_r, draw_peak, background=background,
                          noise_sigma=noise_sigma, blur_px=blur_px, rng=seed)
     return image, uv, visible
