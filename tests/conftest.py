@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,6 +38,32 @@ def _daemon_kernels_compiled(request):
         subprocess.run([sys.executable, "-m", "daemon.cli", "build-kernels", "--quiet"],
                        cwd=ROOT, capture_output=True, timeout=900, check=True,
                        env=dict(os.environ, PYTHONPATH=str(ROOT)))
+
+
+@pytest.fixture(autouse=True)
+def _ctrl_c_stops_the_run(monkeypatch):
+    """Ctrl-C stops the whole run, also while a test runs `mocapd start` in-process: the
+    daemon takes SIGINT for itself (a clean stop of its run), which would end that one test
+    and let pytest go on to the next. Every SIGINT handler installed during a test is wrapped
+    so that it also notes the signal, and the test's teardown turns a noted one into the
+    KeyboardInterrupt pytest stops on."""
+    noted = []
+    install = signal.signal
+
+    def noting(sig, handler):
+        if (sig == signal.SIGINT and callable(handler)
+                and threading.current_thread() is threading.main_thread()):
+            inner = handler
+
+            def handler(signum, frame):
+                noted.append(signum)
+                inner(signum, frame)
+        return install(sig, handler)
+
+    monkeypatch.setattr(signal, "signal", noting)
+    yield
+    if noted:
+        raise KeyboardInterrupt
 
 
 @pytest.fixture(autouse=True)
