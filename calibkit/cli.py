@@ -39,8 +39,9 @@ COMMANDS = {
     "rig": ("rig_cmd", "Show rig files; import and export other tools' calibrations."),
 }
 
-app = build_app("calibkit", "Calibrate a rig of motion-capture cameras (add --sim to any "
-                "command to use the built-in simulated rig).", __version__,
+app = build_app("calibkit", "Calibrate a rig of motion-capture cameras. Add --sim to any "
+                "command that reads cameras, a monitor or a capture to use the built-in "
+                "simulated rig; the others say in their help what they read.", __version__,
                 "calibkit.commands", COMMANDS)
 
 

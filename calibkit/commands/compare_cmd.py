@@ -29,7 +29,10 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Per camera: position (mm), orientation (deg), focal length (%) and principal point
         (px) differences; the RMS 3D difference of a grid of points filling the volume; how
-        much longer B measures lengths than A (the alignment's scale); and a verdict."""
+        much longer B measures lengths than A (the alignment's scale); and a verdict.
+
+        Reads two rig files. To score a simulated calibration, compare the true rig a --sim
+        run writes beside its result (NAME.truth.toml) with the result itself."""
         from calibkit.calibrate.compare import GROSS_MM, compare_rigs
         from calibkit.core.camera import Rig
 

@@ -53,7 +53,10 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Convert observations between our recording format and the plain CSV
         (frame,camera,t_ns,u,v,area,peak), or read a DLTdv/easyWand xypts file into either
-        (docs/easywand.md); ground truth travels along."""
+        (docs/easywand.md); ground truth travels along.
+
+        Reads a capture file (a recording, a plain CSV or an xypts file); `calibkit sim
+        static`, `sim wand` or `sim rigid` write simulated ones."""
         from calibkit.core import easywand
         from calibkit.core.camera import Rig
         from calibkit.core.recording import load_observations, save_observations, truth_path_for

@@ -90,7 +90,9 @@ def register(app: typer.Typer) -> None:
         """The whole calibration chain on a simulated rig, as a user runs it: intrinsics
         from a monitor, poses from a projector, then a wand; check the result against the
         simulator's truth, reconstruct a capture with it, then track rigid bodies with
-        mocapd and score the poses."""
+        mocapd and score the poses.
+
+        Reads nothing: every step runs on the simulator (each is a --sim command)."""
         if cameras < 3 or wand_frames < 200 or track_frames < 10:
             raise UserError("the demo needs --cameras >= 3, --wand-frames >= 200 and "
                             "--track-frames >= 10")

@@ -19,11 +19,23 @@ def register(app: typer.Typer) -> None:
                                   "pixel, or WIDTH_MM/WIDTH_PX.")] = None,
         json_path: Annotated[Path | None, typer.Option(
             "--json", help="Write the list as JSON.")] = None,
+        sim: Annotated[bool, typer.Option(
+            "--sim", help="The simulated computer's monitor, the one `calibkit intrinsic "
+                          "--display --sim` draws on.")] = False,
     ) -> None:
         """List monitors: index, resolution, physical size and pixel pitch (the scale of
-        `calibkit intrinsic --display`)."""
+        `calibkit intrinsic --display`).
+
+        Reads the display server this computer runs (glfw, else xrandr), or with --sim the
+        simulated one."""
         pixel_pitch = parse_pixel_pitch(pixel_pitch_text)
-        screens = list_screens()
+        if sim:
+            from calibkit.synthetic.monitor import MonitorSimConfig
+            from calibkit.synthetic.monitor_bench import sim_screens
+
+            screens = sim_screens(MonitorSimConfig())
+        else:
+            screens = list_screens()
         rows, data = [], []
         for s in screens:
             pitch = pixel_pitch if pixel_pitch is not None else s.pixel_pitch_mm

@@ -29,7 +29,9 @@ def _suffix(path: Path, allowed: tuple[str, ...], option: str) -> None:
 def show(rig_path: Annotated[Path, typer.Argument(help="rig.toml or OpenCV YAML.")],
          json_path: Annotated[Path | None, typer.Option("--json", help="Write as JSON.")]
          = None) -> None:
-    """Print each camera's size, intrinsics, distortion and centre."""
+    """Print each camera's size, intrinsics, distortion and centre.
+
+    Reads a rig file; `calibkit sim rig` writes a simulated one."""
     import numpy as np
 
     from calibkit.core.camera import Rig
@@ -69,7 +71,9 @@ def export(rig_path: Annotated[Path, typer.Argument(help="The rig.toml to export
                "a .yaml/.yml --out.")] = None,
            unit: Annotated[str, UNIT_OPTION] = DEFAULT_UNIT) -> None:
     """Write the rig for another tool: OpenCV FileStorage YAML, caliscope's
-    camera_array.toml, Pose2Sim's or anipose's calibration TOML (docs/formats.md)."""
+    camera_array.toml, Pose2Sim's or anipose's calibration TOML (docs/formats.md).
+
+    Reads a rig file; `calibkit sim rig` writes a simulated one."""
     from calibkit.core.camera import Rig
     from calibkit.core.rigformats import WRITABLE, write_rig_file
 
@@ -98,7 +102,10 @@ def import_(in_path: Annotated[Path, typer.Argument(help="Calibration file to re
                 "or qca.")] = "auto",
             unit: Annotated[str, UNIT_OPTION] = DEFAULT_UNIT) -> None:
     """Read another tool's calibration and write it as rig.toml (conventions converted:
-    poses world-to-camera, metres, OpenCV distortion)."""
+    poses world-to-camera, metres, OpenCV distortion).
+
+    Reads another tool's calibration file (a simulated rig exported with `calibkit rig
+    export` makes one)."""
     from calibkit.core.rigformats import READABLE, read_rig_file
 
     if fmt != "auto" and fmt not in READABLE:

@@ -91,7 +91,9 @@ def sim_rig(
         "--distortion", help="Lens: none, webcam or basler.")] = "webcam",
     seed: Seed = 0,
 ) -> None:
-    """Write a true rig: cameras on a ring around a capture volume."""
+    """Write a true rig: cameras on a ring around a capture volume.
+
+    Reads nothing but its options: it is the simulator."""
     from calibkit.synthetic import sim
 
     distortions = _distortions()
@@ -109,7 +111,9 @@ def sim_static(out: Out, rig: RigOpt = None, markers: Annotated[int, typer.Optio
         noise_px: Noise = 0.2, dropout: Dropout = 0.0, ghosts: Ghosts = 0.0,
         seed: Seed = 0, cameras: Cameras = 6, volume: Volume = 4.0, unsync_ms: Unsync = 0.0,
         jitter_ms: Jitter = 0.0) -> None:
-    """Markers standing still in the volume."""
+    """Markers standing still in the volume.
+
+    Reads nothing but its options and a true rig (--rig): it is the simulator."""
     from calibkit.synthetic import sim
 
     true_rig = _scene_rig(rig, cameras, volume, out, seed)
@@ -124,7 +128,9 @@ def sim_wand(out: Out, rig: RigOpt = None, frames: Frames = 3000, fps: Fps = 100
              noise_px: Noise = 0.1, dropout: Dropout = 0.0, ghosts: Ghosts = 0.0,
              seed: Seed = 0, cameras: Cameras = 6, volume: Volume = 4.0,
              unsync_ms: Unsync = 0.0, jitter_ms: Jitter = 0.0) -> None:
-    """A wand waved through the volume."""
+    """A wand waved through the volume.
+
+    Reads nothing but its options and a true rig (--rig): it is the simulator."""
     from calibkit.synthetic import sim
 
     true_rig = _scene_rig(rig, cameras, volume, out, seed)
@@ -140,7 +146,9 @@ def sim_rigid(out: Out, rig: RigOpt = None, bodies: Annotated[int, typer.Option(
         fps: Fps = 100.0, noise_px: Noise = 0.2, dropout: Dropout = 0.0, ghosts: Ghosts = 0.0,
         seed: Seed = 0, cameras: Cameras = 6, volume: Volume = 4.0, unsync_ms: Unsync = 0.0,
         jitter_ms: Jitter = 0.0) -> None:
-    """Rigid bodies moving through the volume."""
+    """Rigid bodies moving through the volume.
+
+    Reads nothing but its options and a true rig (--rig): it is the simulator."""
     from calibkit.synthetic import sim
 
     true_rig = _scene_rig(rig, cameras, volume, out, seed)

@@ -14,9 +14,12 @@ from calibkit.core.errors import UserError
 def register(app: typer.Typer) -> None:
     @app.command("triangulate")
     def triangulate(
-        rig_path: Annotated[Path, typer.Option("--rig", help="The calibrated rig.")],
-        src: Annotated[Path, typer.Option("--from", help="Recording (.mcrec) or plain CSV.")],
         out: Annotated[Path, typer.Option("--out", help="Points CSV to write.")],
+        rig_path: Annotated[Path | None, typer.Option(
+            "--rig", help="The calibrated rig (--sim: optional; without it the simulated "
+                          "cameras' true poses and lenses, a perfect calibration).")] = None,
+        src: Annotated[Path | None, typer.Option(
+            "--from", help="Recording (.mcrec), plain CSV or DLTdv xypts file.")] = None,
         json_path: Annotated[Path | None, typer.Option("--json", help="Write the figures.")]
         = None,
         epipolar_px: Annotated[float | None, typer.Option(
@@ -40,12 +43,34 @@ def register(app: typer.Typer) -> None:
         fixed_gates: Annotated[bool, typer.Option(
             "--fixed-gates", help="Gates of fixed size (the defaults or the values given), "
                                   "whatever the rig's residual.")] = False,
+        sim: Annotated[bool, typer.Option(
+            "--sim", help="Instead of --from: rigid bodies moving through a simulated rig "
+                          "(--sim-rig, else a ring of --cameras around --volume), seen with "
+                          "--noise-px noise and --ghosts stray blobs; points scored against "
+                          "the simulator's truth.")] = False,
+        sim_rig: Annotated[Path | None, typer.Option(
+            "--sim-rig", help="--sim: the simulated hardware, a true rig (calibkit sim "
+                              "rig).")] = None,
+        cameras: Annotated[int, typer.Option(help="--sim without --sim-rig: cameras.")] = 6,
+        volume: Annotated[float, typer.Option(
+            help="--sim without --sim-rig: metres across the volume.")] = 4.0,
+        frames: Annotated[int, typer.Option(help="--sim: frames to simulate.")] = 200,
+        bodies: Annotated[int, typer.Option(help="--sim: rigid bodies (4 markers each).")]
+        = 3,
+        noise_px: Annotated[float, typer.Option(
+            "--noise-px", help="--sim: centroid noise sigma, px.")] = 0.2,
+        ghosts: Annotated[float, typer.Option(
+            help="--sim: stray blobs per camera per frame.")] = 0.5,
+        seed: Annotated[int, typer.Option(help="--sim: random seed.")] = 0,
     ) -> None:
         """Match unlabelled blobs across cameras and triangulate them, frame by frame.
 
         The gates follow the rig's reprojection residual (max(default, k x residual), see
         docs/triangulation.md): the figure the rig file's [quality] records, or, for a rig
         file without one, a residual measured on the first frames' confident matches.
+
+        Reads a rig file (--rig) and a capture of unlabelled blobs (--from: a recording, a
+        plain CSV, a DLTdv xypts file), or, with --sim, a simulated capture instead.
 
         CSV columns: frame,x,y,z,reproj_px,ray_mm,n_cameras,cameras (and error_mm when the
         recording carries the simulator's truth)."""
@@ -62,10 +87,17 @@ def register(app: typer.Typer) -> None:
             raise UserError(f"--min-cameras must be at least 2, got {min_cameras}")
         if out.suffix.lower() != ".csv":
             raise UserError(f"--out {out}: points are written as CSV; give a .csv path")
-        if out.resolve() == src.resolve():
-            raise UserError(f"--out {out} is the input file; give another path")
-        rig = Rig.load(rig_path)
-        obs, truth = load_observations(src, rig)
+        if sim:
+            rig, obs, truth = _sim_capture(src, rig_path, sim_rig, cameras, volume, frames,
+                                           bodies, noise_px, ghosts, seed)
+        else:
+            if rig_path is None or src is None:
+                raise UserError("give --rig RIG.toml and --from CAPTURE (a recording, CSV or "
+                                "xypts file), or --sim for a simulated capture")
+            if out.resolve() == src.resolve():
+                raise UserError(f"--out {out} is the input file; give another path")
+            rig = Rig.load(rig_path)
+            obs, truth = load_observations(src, rig)
         if len(obs) == 0:
             raise UserError(f"{src}: holds no blobs")
         from calibkit.core.pairing import pair_frames
@@ -85,7 +117,7 @@ def register(app: typer.Typer) -> None:
             run = reconstruct(rig, obs, base, residual_px, estimate_residual, fixed,
                               progress.update, say=lambda line: typer.echo(line, err=True))
         except UserError as exc:
-            raise UserError(f"{rig_path}: {exc}" if str(exc).startswith("quality.")
+            raise UserError(f"{rig_path or 'the rig'}: {exc}" if str(exc).startswith("quality.")
                             else str(exc)) from None
         points, cfg, residual, figures = run.points, run.config, run.residual, run.figures
         progress.finish(f"{len(points.frame)} points")
@@ -117,3 +149,31 @@ def register(app: typer.Typer) -> None:
                      ["ghost points (fraction)", t["ghost_fraction"]]]
         print_table(rows, ["what", "value"])
         typer.echo(f"wrote {out}")
+
+
+def _sim_capture(src: Path | None, rig_path: Path | None, sim_rig: Path | None, cameras: int,
+                 volume: float, frames: int, bodies: int, noise_px: float, ghosts: float,
+                 seed: int):
+    """--sim: (the rig to triangulate with, the blobs the simulated cameras report, the
+    truth for scoring). The rig is --rig (an estimate, checked to be of the same simulated
+    cameras) or the hardware itself, said so."""
+    from calibkit.core.camera import Rig
+    from calibkit.synthetic import sim
+    from calibkit.synthetic.runs import check_estimate, sim_hardware
+
+    if src is not None:
+        raise UserError("give --from CAPTURE or --sim, not both")
+    if noise_px < 0 or ghosts < 0:
+        raise UserError("--noise-px and --ghosts must not be negative")
+    hardware = sim_hardware(sim_rig, cameras, volume, seed)
+    truth, _ = sim.rigid_body_motion(bodies, frames, 100.0,
+                                     float(hardware.meta.get("volume_m", volume)), 4, seed)
+    obs = sim.observe(hardware, truth, noise_px=noise_px, ghosts_per_camera=ghosts,
+                      fps=100.0, seed=seed)
+    if rig_path is None:
+        typer.echo("no --rig: triangulating with the simulated cameras' true poses and "
+                   "lenses (a perfect calibration)", err=True)
+        return hardware, obs, truth
+    rig = Rig.load(rig_path)
+    check_estimate(rig, hardware, rig_path, "--rig")
+    return rig, obs, truth
