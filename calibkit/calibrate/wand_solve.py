@@ -18,6 +18,7 @@ from calibkit.calibrate import (
     intrinsic_prior,
     wand_intrinsics,
     wand_report,
+    wand_shape,
     wand_summary,
 )
 from calibkit.calibrate.extrinsic_solve import join_bundle_data
@@ -178,6 +179,7 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
         if refine_intrinsics is None else []
     refine = np.full(len(prior), refine_intrinsics is not False)
     decided: dict[int, dict] = {}
+    if_refined = None  # every camera refined, where the default kept some: for the report
     if not candidates:
         result, wand = solve(bool(refine.any()), sigmas)
     else:
@@ -192,6 +194,7 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
         decided = {row["camera"]: {**row, "if_refined": {k: v for k, v in
                                                          changes[row["camera"]].items()
                                                          if k != "name"}} for row in rows}
+        if_refined = None if refine.all() else refined[0]
         if refine.all():
             result, wand = refined
         elif refine.any():
@@ -230,6 +233,10 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
         warnings.append(f"no uncertainty: the marginals failed ({str(exc).splitlines()[0]})")
         cov = None
     found = wand_report.checks(rig, solved["xyz"], solved["behind_share"])
+    shape, shape_warnings = wand_shape.section(result, unit_m, if_refined)
+    warnings.extend(shape_warnings)
+    for k, row in decided.items():  # what this capture cannot rule out in a kept camera
+        row["cannot_rule_out"] = shape.get("cannot_rule_out", {}).get(prior[k].name)
     moved_rows = [dict(m, name=prior[k].name) for k, m in enumerate(intrinsics_moved)
                   if refine[k] and m]
     determined = _position_ppm(rig, cov)
@@ -249,6 +256,7 @@ def calibrate(obs: Observations, intrinsics: Rig, spacing_m, initial: Rig | None
                                  warnings, never + missing, wand, intr, world is not None,
                                  held_reason)
     report["systematic"] = syst
+    report["shape_uncertainty"] = shape
     report["position_ppm"] = {"camera": determined[0], "ppm": determined[1]} \
         if determined else {"camera": None, "ppm": float("nan"),
                             "reason": "no uncertainty (the marginals failed)"}
