@@ -1,5 +1,5 @@
 """How well `mocapd evaluate` recovers a robot log's clock and frame
-(daemon.markers.trajectory_eval).
+(daemon.analysis.trajectory_eval).
 
 Scene (daemon.synthetic.trajectory.flight): a drone flies 60 s through a 4 m room; motion
 capture logs it at 120 Hz, the robot at 50 Hz (uneven) on its own clock (offset 0.237 s,
@@ -20,7 +20,7 @@ import time
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from daemon.markers.trajectory_eval import coarse_offset, evaluate
+from daemon.analysis.trajectory_eval import coarse_offset, evaluate
 from daemon.synthetic.trajectory import flight
 
 

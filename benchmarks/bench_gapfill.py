@@ -24,8 +24,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from calibkit.clitools import print_table  # noqa: E402
-from daemon.markers.c3dio import Take, read_c3d  # noqa: E402
-from daemon.markers.gapfill import fill  # noqa: E402
+from daemon.analysis.gapfill import fill  # noqa: E402
+from daemon.formats.c3dio import Take, read_c3d  # noqa: E402
 
 DATA = ROOT / "fixtures" / "cmu_c3d"
 METHODS = ("linear", "cubic", "newton", "pca", "rigid", "auto")

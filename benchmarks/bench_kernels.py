@@ -28,7 +28,7 @@ import tomli_w
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_track import RATE, scene  # noqa: E402
 
-from daemon.markers.c3dio import write_points_csv  # noqa: E402
+from daemon.formats.c3dio import write_points_csv  # noqa: E402
 
 NOTICE = "compiling the "
 

@@ -18,7 +18,7 @@ per take (RNG seeds 0..N-1): median, worst and how many fall below 97 %, since f
 say little about the worst. fps_cpu in the tables is the whole labelling (label_take,
 the start from the set alone included), per CPU second.
 
-Speed: Labeller.update alone, compiled kernels (daemon/markers/label_kernels.py) against their
+Speed: Labeller.update alone, compiled kernels (daemon/labelling/kernels.py) against their
 numpy twins (Labeller(compiled=False)) in the same process.
 """
 
@@ -36,11 +36,11 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from calibkit.clitools import print_table  # noqa: E402
-from daemon.markers.c3dio import read_c3d  # noqa: E402
-from daemon.markers.label import Labeller  # noqa: E402
-from daemon.markers.label_offline import label_take  # noqa: E402
-from daemon.markers.label_single import initial_labels  # noqa: E402
-from daemon.markers.markerset import MarkerSet, learn  # noqa: E402
+from daemon.formats.c3dio import read_c3d  # noqa: E402
+from daemon.labelling.labeller import Labeller  # noqa: E402
+from daemon.labelling.markerset import MarkerSet, learn  # noqa: E402
+from daemon.labelling.offline import label_take  # noqa: E402
+from daemon.labelling.single import initial_labels  # noqa: E402
 from daemon.synthetic.labelling import hide_spans, points_with_ghosts, score  # noqa: E402
 
 DATA = ROOT / "fixtures" / "cmu_c3d"
@@ -100,7 +100,7 @@ def main() -> None:
     ap.add_argument("--start-frames", type=int, default=10)
     args = ap.parse_args()
     warnings.simplefilter("ignore")
-    shipped = MarkerSet.load(ROOT / "daemon" / "markers" / "sets" / "cmu41.toml")
+    shipped = MarkerSet.load(ROOT / "daemon" / "labelling" / "sets" / "cmu41.toml")
     takes = {n: read_c3d(DATA / f"{n}.c3d").select(shipped.labels) for n in ("85_02", "01_01")}
     if args.speed_only:
         return speed_table(takes, shipped, args.repeats)

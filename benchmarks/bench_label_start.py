@@ -30,9 +30,9 @@ sys.path.insert(0, str(ROOT / "tests"))
 from label_people import BODIES, Body, walk  # noqa: E402
 
 from calibkit.clitools import print_table  # noqa: E402
-from daemon.markers.c3dio import Take, read_c3d  # noqa: E402
-from daemon.markers.label_offline import label_take  # noqa: E402
-from daemon.markers.markerset import learn, open_set  # noqa: E402
+from daemon.formats.c3dio import Take, read_c3d  # noqa: E402
+from daemon.labelling.markerset import learn, open_set  # noqa: E402
+from daemon.labelling.offline import label_take  # noqa: E402
 from daemon.synthetic.labelling import hide_spans, points_with_ghosts, score  # noqa: E402
 
 DATA = ROOT / "fixtures" / "cmu_c3d"

@@ -31,9 +31,9 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from calibkit.clitools import print_table  # noqa: E402
-from daemon.markers.c3dio import read_c3d  # noqa: E402
-from daemon.markers.label_offline import label_take  # noqa: E402
-from daemon.markers.markerset import MarkerSet  # noqa: E402
+from daemon.formats.c3dio import read_c3d  # noqa: E402
+from daemon.labelling.markerset import MarkerSet  # noqa: E402
+from daemon.labelling.offline import label_take  # noqa: E402
 from daemon.synthetic.labelling import hide_spans, points_with_ghosts  # noqa: E402
 from daemon.synthetic.subjects import markers_of, random_subject, reproportion  # noqa: E402
 
@@ -80,7 +80,7 @@ def main() -> None:
     ap.add_argument("--starts", default="0,10", help="labelled start frames to run")
     args = ap.parse_args()
     warnings.simplefilter("ignore")
-    ms = MarkerSet.load(ROOT / "daemon" / "markers" / "sets" / "cmu41.toml")
+    ms = MarkerSet.load(ROOT / "daemon" / "labelling" / "sets" / "cmu41.toml")
     rows = []
     for name in args.takes.split(","):
         take = read_c3d(DATA / f"{name}.c3d").select(ms.labels)

@@ -29,13 +29,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from daemon.markers.c3dio import Points, read_c3d  # noqa: E402
-from daemon.markers.markerset import open_set  # noqa: E402
+from daemon.formats.c3dio import Points, read_c3d  # noqa: E402
+from daemon.labelling.markerset import open_set  # noqa: E402
 
 try:
-    from daemon.markers.label_offline import label_take  # noqa: E402
+    from daemon.labelling.offline import label_take  # noqa: E402
 except ImportError:                      # a version before the labeller was split
-    from daemon.markers.label import label_take  # noqa: E402
+    from daemon.labelling.labeller import label_take  # noqa: E402
 
 DATA = ROOT / "fixtures" / "cmu_c3d"
 
@@ -80,7 +80,7 @@ def command_table(cmu, repeats: int, subjects: list[int] | None = None) -> None:
     import tempfile
 
     from calibkit.clitools import print_table
-    from daemon.markers.c3dio import write_points_csv
+    from daemon.formats.c3dio import write_points_csv
 
     rows = []
     env = dict(os.environ, PYTHONPATH=str(ROOT))

@@ -44,8 +44,8 @@ from pathlib import Path
 import numpy as np
 
 from calibkit.clitools import print_table, write_json
+from daemon.process.realtime import raise_priority, restore_normal
 from daemon.publish.packet import decode
-from daemon.realtime import raise_priority, restore_normal
 
 ROOT = Path(__file__).resolve().parents[1]
 FPS, N_CAMERAS, N_BODIES, PER_BODY, NOISE_PX = 240.0, 8, 10, 5, 0.2

@@ -30,8 +30,8 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from daemon.config import parse_config  # noqa: E402
-from daemon.service import Daemon  # noqa: E402
+from daemon.config.mocapd import parse_config  # noqa: E402
+from daemon.service.daemon import Daemon  # noqa: E402
 
 SIM = {"cameras": 6, "bodies": 1, "markers_per_body": 4, "fps": 120.0, "noise_px": 0.2,
        "seed": 7, "person": True, "realtime": False}

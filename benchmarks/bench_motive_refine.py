@@ -30,10 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
-from daemon.markers.offline_track import rotation_difference_deg
-from daemon.markers.track_file import bodies_from_motive, load_markers, track_file
-from daemon.rigid import RigidConfig
+from daemon.analysis.offline_track import rotation_difference_deg
+from daemon.analysis.track_file import bodies_from_motive, load_markers, track_file
 from daemon.synthetic.motive_export import write_motive_1_0
+from daemon.tracking.rigid import RigidConfig
 
 
 def run(path: Path, refine: str) -> dict:
@@ -91,8 +91,8 @@ def speed(minutes: float, repeats: int) -> None:
     """The refinement's cost beside the tracking's, on bench_track.py's scene."""
     from bench_track import scene
 
-    from daemon.markers.body_refine import refine_bodies
-    from daemon.markers.offline_track import cloud_from_points, track_cloud
+    from daemon.analysis.body_refine import refine_bodies
+    from daemon.analysis.offline_track import cloud_from_points, track_cloud
 
     pts, _, defs = scene(minutes)
     cloud = cloud_from_points(pts, 120.0)

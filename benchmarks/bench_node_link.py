@@ -49,7 +49,7 @@ def node_publishers(port: int, k: int, names: list[str]):
     sets them up (its switch interval, real-time scheduling, Zenoh settings)."""
     from daemon.nodes.node import CapturePublisher, NodeTime
     from daemon.nodes.session import ZenohSettings
-    from daemon.realtime import raise_priority
+    from daemon.process.realtime import raise_priority
 
     sys.setswitchinterval(1e-4)
     raise_priority(10)  # before the session: its threads inherit it
@@ -60,7 +60,7 @@ def node_publishers(port: int, k: int, names: list[str]):
 
 def publisher(port: int, k: int, seconds: float, together: bool) -> None:
     """One publishing process: CAMERAS cameras' blobs through the node's own publisher."""
-    from daemon.sources import CameraSample, fine_timer_slack
+    from daemon.capture.sources import CameraSample, fine_timer_slack
 
     session, pubs = node_publishers(port, k, [f"p{k}c{i}" for i in range(CAMERAS)])
     fine_timer_slack()
@@ -91,7 +91,7 @@ def sim_publisher(port: int, k: int, seconds: float) -> None:
     """One publishing process: the simulated cameras a node serves, without the node."""
     from dataclasses import replace
 
-    from daemon.config import SimConfig
+    from daemon.config.mocapd import SimConfig
     from daemon.nodes.settings import NodeConfig
     from daemon.synthetic.node_sim import SimNodeCapture, sim_sources
 
@@ -184,7 +184,7 @@ def main() -> None:
         return sim_publisher(args.port, args.sim_publisher, args.seconds)
 
     from calibkit.clitools import print_table
-    from daemon.realtime import raise_priority, restore_normal
+    from daemon.process.realtime import raise_priority, restore_normal
 
     sys.setswitchinterval(1e-4)  # as the daemon's hub
     print(f"subscriber: {raise_priority(10)}", file=sys.stderr)

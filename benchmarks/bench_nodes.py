@@ -80,7 +80,7 @@ def node(name, rig, endpoint, cameras, clock, n_cameras=32, seconds=120, publish
 
 
 def status(runtime):
-    from daemon.control import request
+    from daemon.service.control import request
 
     try:
         return request(runtime, {"cmd": "status"}, timeout_s=2.0)

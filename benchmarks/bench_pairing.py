@@ -41,15 +41,15 @@ from pathlib import Path
 
 import numpy as np
 
-import daemon.clocks as clocks
+import daemon.capture.clocks as clocks
 from calibkit.calibrate.compare import compare_rigs
 from calibkit.calibrate.wand_solve import calibrate
 from calibkit.clitools import print_table, write_json
 from calibkit.core.errors import UserError
 from calibkit.core.pairing import pair_frames
 from calibkit.synthetic import camclocks, sim
-from daemon.config import SimConfig
-from daemon.multiplexer import Multiplexer
+from daemon.capture.multiplexer import Multiplexer
+from daemon.config.mocapd import SimConfig
 from daemon.synthetic.scene import SimScene
 from daemon.synthetic.virtual import START_NS, capture, frame_sets, spread_ns
 
@@ -139,7 +139,7 @@ def wand_table(frames: int, seeds: int) -> tuple[list, dict]:
 
 def fast_sets_cost(n_sets: int, repeats: int = 5) -> dict:
     """ms per set: trigger-indexed sets (the old fast path) against the multiplexer's."""
-    from daemon.multiplexer import FrameSet
+    from daemon.capture.multiplexer import FrameSet
 
     cfg = SimConfig(realtime=False)
     old, new = [], []

@@ -33,12 +33,12 @@ import numpy as np
 
 from calibkit.clitools import print_table, write_json
 from calibkit.synthetic import sim
-from daemon.pipeline import FrameResult
+from daemon.capture.pipeline import FrameResult
 from daemon.publish import natnet, vrpn
 from daemon.publish.packet import decode
 from daemon.publish.udp import UdpPublisher, result_packet
-from daemon.rigid import BodyDef, BodyPoses, quaternion_xyzw
-from daemon.tracker import TrackFrame
+from daemon.tracking.rigid import BodyDef, BodyPoses, quaternion_xyzw
+from daemon.tracking.tracker import TrackFrame
 
 N_BODIES, K, N_LOOSE = 10, 5, 20
 

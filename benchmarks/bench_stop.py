@@ -32,7 +32,7 @@ ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 
 
 def _control(rt: Path, message: dict) -> dict:
-    from daemon.control import request
+    from daemon.service.control import request
 
     return request(rt, message, timeout_s=10.0)
 

@@ -1,11 +1,11 @@
-"""Speed of `mocapd track` (daemon.markers.offline_track) on a long take of anonymous 3D markers.
+"""Speed of `mocapd track` (daemon.analysis.offline_track) on a long take of anonymous 3D markers.
 
 Scene (calibkit.synthetic.sim.rigid_body_motion): 10 rigid bodies of 4 or 5 markers moving
 through a 4 m room for --minutes at 120 Hz; 0.5 mm noise per axis, 5 % of marker-frames
 hidden in spans of 0.1-1 s, 2 stray points a frame, points shuffled within each frame.
 Rows, each timed as wall clock and as this process's CPU time (the machine may be shared:
 CPU time is what the work costs), median and worst over --repeats:
-  - identities: daemon.markers.point_tracks.associate alone;
+  - identities: daemon.analysis.point_tracks.associate alone;
   - track: identities + the rigid tracker, steady runs fitted at once (what the command
     runs);
   - baseline, per frame: identities + RigidTracker.update() on every frame, the live
@@ -19,7 +19,7 @@ With --big-csv PATH (a file from benchmarks/gen_points_csv.py, its bodies beside
 measures instead, each in a child process of its own, wall time, CPU time and peak RSS
 (the child's own, from os.wait4) of: reading the points CSV whole (c3dio.read_points_csv,
 the reader `mocapd track` used before; the baseline), reading it streamed
-(daemon/markers/points_csv.py), and the whole `mocapd track` command.
+(daemon/formats/points_csv.py), and the whole `mocapd track` command.
 
     python benchmarks/bench_track.py [--minutes 10] [--repeats 3] [--baseline-frames 6000]
     python benchmarks/gen_points_csv.py --mb 1000 --out /tmp/points_1g.csv
@@ -40,16 +40,16 @@ import numpy as np
 import tomli_w
 
 from calibkit.synthetic import sim
-from daemon.markers.c3dio import Points, Take, write_points_csv
-from daemon.markers.offline_track import (
+from daemon.analysis.offline_track import (
     MarkerCloud,
     cloud_from_points,
     rotation_difference_deg,
     track_cloud,
 )
-from daemon.markers.point_tracks import associate
-from daemon.rigid import BodyDef, quaternion_xyzw
+from daemon.analysis.point_tracks import associate
+from daemon.formats.c3dio import Points, Take, write_points_csv
 from daemon.synthetic.labelling import hide_spans
+from daemon.tracking.rigid import BodyDef, quaternion_xyzw
 
 RATE = 120.0
 
@@ -147,9 +147,9 @@ def main() -> None:
           f"gross {gross}")
 
 
-READ_WHOLE = ("from daemon.markers.c3dio import read_points_csv as r; "
+READ_WHOLE = ("from daemon.formats.c3dio import read_points_csv as r; "
               "p = r({path!r}); print(len(p.frame))")
-READ_STREAMED = ("from daemon.markers.points_csv import read_points_csv as r; "
+READ_STREAMED = ("from daemon.formats.points_csv import read_points_csv as r; "
                  "p, b = r({path!r}); print(len(p.frame))")
 
 

@@ -54,15 +54,15 @@ from calibkit.clitools import Progress, print_table, write_json
 from calibkit.core.camera import Rig
 from calibkit.synthetic import sim
 from calibkit.vision.correspondence import match_frame
-from daemon.config import SimConfig
-from daemon.pipeline import FrameSet, Pipeline
-from daemon.rigid import BodyDef, RigidConfig
-from daemon.rigid_define import body_from_snapshots
-from daemon.sources import CameraSample
+from daemon.capture.pipeline import FrameSet, Pipeline
+from daemon.capture.sources import CameraSample
+from daemon.config.mocapd import SimConfig
 from daemon.synthetic import virtual
 from daemon.synthetic.evaluator import Evaluator
 from daemon.synthetic.scene import SimScene
-from daemon.tracker import TrackerConfig
+from daemon.tracking.rigid import BodyDef, RigidConfig
+from daemon.tracking.rigid_define import body_from_snapshots
+from daemon.tracking.tracker import TrackerConfig
 
 FPS = 240.0
 N_CAMERAS, N_BODIES, PER_BODY = 8, 10, 5
@@ -139,7 +139,7 @@ def learn_body(true_rig, rig, layout, name, body_id, seed, n_frames=LEARN_FRAMES
     """A body defined as `mocapd rigid-body add --from-live` does: the object held still,
     alone, at its reference orientation in the middle of the volume, its markers seen by
     the true cameras (merged blobs, dropouts, strays), tracked with the calibrated rig for
-    n_frames and clustered (daemon.rigid_define). Only the blobs reach the daemon."""
+    n_frames and clustered (daemon.tracking.rigid_define). Only the blobs reach the daemon."""
     from calibkit.core.observations import Truth
 
     xyz = layout + [0.0, 0.0, 0.25 * VOLUME_M]
@@ -192,8 +192,8 @@ def time_pipeline(rig, bodies, sets, repeats):
 
 def time_with_areas(rig, bodies, sets, repeats):
     """As Pipeline.process does, with the blobs' areas handed to the tracker."""
-    from daemon.rigid import RigidTracker
-    from daemon.tracker import Tracker
+    from daemon.tracking.rigid import RigidTracker
+    from daemon.tracking.tracker import Tracker
 
     runs = []
     for _ in range(repeats):

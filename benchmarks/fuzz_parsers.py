@@ -79,7 +79,7 @@ def _junk(rng, good: list[bytes], max_size: int = 200) -> bytes:
 
 def natnet():
     from daemon.publish import natnet as nn
-    from daemon.rigid import BodyDef
+    from daemon.tracking.rigid import BodyDef
 
     pub = nn.NatNetPublisher([BodyDef("b", 1, np.eye(3) * 0.05, np.zeros(3))], command_port=0)
     words = [b"Bitstream,4.1", b"FrameRate", b"SubscribeToData,RigidBody,b",
@@ -179,14 +179,14 @@ def csv_obs():
 
 
 def c3d():
-    from daemon.markers.c3dio import read_c3d
+    from daemon.formats.c3dio import read_c3d
 
     data = (ROOT / "fixtures" / "cmu_c3d" / "85_02.c3d").read_bytes()[:6000]
     return _file_parser(".c3d", b"", [data], read_c3d)
 
 
 def config():
-    from daemon.config import parse_config
+    from daemon.config.mocapd import parse_config
 
     keys = ["fps", "mode", "interface", "command_port", "rate_hz", "record_from", "address",
             "device", "name", "id", "markers", "cameras", "threshold", "listen", "up_axis"]

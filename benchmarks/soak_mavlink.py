@@ -29,7 +29,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
 
 from calibkit.clitools import write_json
-from daemon.console import print_table
+from daemon.service.console import print_table
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -128,7 +128,7 @@ def udp_receive_buffer_drops() -> int:
 def daemon_side(runtime: Path) -> dict:
     """What the daemon says it did: sets it skipped to stay live when it fell behind (their
     frame numbers never go out), frames its NatNet output sent and pushed out of its queue."""
-    from daemon.control import request
+    from daemon.service.control import request
 
     st = request(runtime, {"cmd": "status"})
     natnet = next((o for o in st["outputs"] if "natnet" in o["name"].lower()), {})
@@ -249,7 +249,7 @@ def main(argv=None) -> int:
     if not os.environ.get("SOAK_NATNET_NETNS"):
         return in_namespace(argv)
     from calibkit.clitools import write_json
-    from daemon.console import print_table
+    from daemon.service.console import print_table
 
     fig = run(args)
     print(f"natnetsdk sample, {args.mode}, {args.seconds:g} s against mocapd start --sim "

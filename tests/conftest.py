@@ -69,7 +69,7 @@ def _ctrl_c_stops_the_run(monkeypatch):
 @pytest.fixture(autouse=True)
 def _mocapd_logger_restored():
     """An in-process `mocapd start` points the "mocapd" logger at that test's captured
-    stderr and stops it propagating (daemon.logs.setup_logging): put it back after each
+    stderr and stops it propagating (daemon.process.logs.setup_logging): put it back after each
     test, so later tests' caplog sees the daemon's records and nothing writes to a closed
     capture."""
     import logging

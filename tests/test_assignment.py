@@ -32,7 +32,7 @@ def test_the_solver_gives_scipy_optimizes_answers():
 
 def test_labelling_does_not_load_scipy_optimize():
     """0.38 s of CPU on every `mocapd label`: the package stays unloaded."""
-    code = ("import sys, daemon.markers.label_offline, daemon.synthetic.evaluator; "
+    code = ("import sys, daemon.labelling.offline, daemon.synthetic.evaluator; "
             "print('scipy.optimize' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
                          text=True, timeout=120, env=dict(os.environ, PYTHONPATH=str(ROOT)))

@@ -1,4 +1,4 @@
-"""Definitions fitted to a take's markers (daemon.markers.body_refine), against the simulator's
+"""Definitions fitted to a take's markers (daemon.analysis.body_refine), against the simulator's
 true templates: learned where a marker is off, left alone where the definition is right,
 nothing learned from markers that are not the body's, and the closest fit of a body that
 is not found."""
@@ -10,13 +10,13 @@ from dataclasses import replace
 import numpy as np
 from test_track import RATE, body_defs, capture
 
-from daemon.markers.body_refine import (
+from daemon.analysis.body_refine import (
     closest_fit,
     definition_fits,
     learn_geometry,
     refine_bodies,
 )
-from daemon.markers.offline_track import cloud_from_points
+from daemon.analysis.offline_track import cloud_from_points
 from daemon.synthetic.motive_export import displaced
 
 

@@ -20,7 +20,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SYNTHETIC = ("calibkit.synthetic", "daemon.synthetic")
 # the edges that wire a run together; everything else under calibkit/ and daemon/ estimates
 EDGES = ("calibkit/synthetic/", "daemon/synthetic/", "calibkit/commands/", "daemon/commands/",
-         "calibkit/cli.py", "daemon/cli.py", "daemon/service.py")
+         "calibkit/cli.py", "daemon/cli.py", "daemon/service/daemon.py")
 
 
 def _module(path: Path) -> str:
@@ -63,7 +63,8 @@ def test_the_estimating_modules_are_many():
     names = {_module(f) for f in _estimating_files()}
     assert {"calibkit.vision.detect", "calibkit.calibrate.wand_solve",
             "calibkit.vision.correspondence",
-            "daemon.tracker", "daemon.markers.label", "daemon.pipeline"} <= names
+            "daemon.tracking.tracker", "daemon.labelling.labeller",
+            "daemon.capture.pipeline"} <= names
     assert not any(n.startswith(SYNTHETIC) for n in names)
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from calibkit.core.errors import UserError
-from daemon.markers.c3dio import (
+from daemon.formats.c3dio import (
     Points,
     Take,
     euler_zxy_matrix,

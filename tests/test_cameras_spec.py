@@ -143,8 +143,8 @@ def test_daemon_camera_fps_reaches_the_device(capture, tmp_path, caplog, monkeyp
     """`[[camera]] fps` goes from the configuration through the daemon's capture source to
     the device; the device's refusal is logged by the daemon. Without it, nothing is set."""
     from calibkit.synthetic import sim
-    from daemon.config import parse_config
-    from daemon.service import Daemon
+    from daemon.config.mocapd import parse_config
+    from daemon.service.daemon import Daemon
 
     sim.make_rig(2, 4.0, seed=1).save(tmp_path / "rig.toml")
     cfg = parse_config({"rig": "rig.toml", "camera": [
@@ -152,7 +152,7 @@ def test_daemon_camera_fps_reaches_the_device(capture, tmp_path, caplog, monkeyp
         {"name": "cam1", "source": "1"}]}, base=tmp_path)
     assert [c.fps for c in cfg.cameras] == [90.0, None]
     cams = Daemon(cfg)._cameras(cfg)
-    # the daemon's logger does not propagate once set up (daemon.logs): listen on it alone
+    # the daemon's logger does not propagate once set up (daemon.process.logs): listen on it alone
     daemon_log = logging.getLogger("mocapd")
     monkeypatch.setattr(daemon_log, "handlers", [caplog.handler])
     monkeypatch.setattr(daemon_log, "propagate", False)
@@ -167,13 +167,13 @@ def test_daemon_camera_fps_reaches_the_device(capture, tmp_path, caplog, monkeyp
 
 
 def test_capture_sources_share_one_shape(tmp_path):
-    """The daemon's capture threads read every kind the same way (daemon.sources.BlobSource):
-    live cameras, recordings and the simulator."""
+    """The daemon's capture threads read every kind the same way
+    (daemon.capture.sources.BlobSource): live cameras, recordings and the simulator."""
     from calibkit.core.observations import Observations
     from calibkit.core.recording import save_observations
     from calibkit.synthetic import sim
-    from daemon.config import SimConfig
-    from daemon.sources import BlobSource, DetectCamera, ReplayCamera, ReplayScene
+    from daemon.capture.sources import BlobSource, DetectCamera, ReplayCamera, ReplayScene
+    from daemon.config.mocapd import SimConfig
     from daemon.synthetic.scene import SimCamera, SimScene
 
     rig = sim.make_rig(2, 4.0, seed=1)

@@ -1,4 +1,4 @@
-"""The control socket (daemon/control.py): idle or hostile clients hold up nobody, malformed
+"""The control socket (daemon/service/control.py): idle or hostile clients hold up nobody, malformed
 requests get an error answer and one log line a minute, never a traceback."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from calibkit.core.errors import UserError
-from daemon.control import ControlServer, request
+from daemon.service.control import ControlServer, request
 
 
 def _handler(req: dict) -> dict:

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from daemon.config import SimConfig
+from daemon.config.mocapd import SimConfig
 from daemon.publish import packet
 from daemon.synthetic.scene import SimScene
 
@@ -270,7 +270,7 @@ def test_fast_sim_run_writes_pose_errors(tmp_path, mocapd_cli):
     live = fig["bodies_defined_live"]
     assert [b["markers"] for b in live["bodies"]] == [4, 4, 4]
     assert "defined live at the start" in r.out
-    from daemon.config import load_config
+    from daemon.config.mocapd import load_config
     from daemon.synthetic.evaluator import match_bodies
     from daemon.synthetic.scene import SimScene
 
@@ -428,8 +428,8 @@ def test_late_opener_and_a_reconnecting_camera_live(tmp_path):
     clock epoch): no frame set mixes instants (the simulator's truth), and the late opener
     and the reconnected camera are tracked with within 0.5 s of delivering frames (about
     0.1 s and 0.22 s here: the clock's settling, and the 0.2 s between reopening tries)."""
-    from daemon.config import Config
-    from daemon.service import Daemon
+    from daemon.config.mocapd import Config
+    from daemon.service.daemon import Daemon
 
     sim = SimConfig(cameras=5, bodies=2, fps=100.0, seed=11, open_spread_s=2.0,
                     clock_drift_ppm=50.0, drop_camera="cam1", drop_from_s=2.0, drop_for_s=0.3)

@@ -9,9 +9,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from daemon.config import load_config
-from daemon.pipeline import Multiplexer
-from daemon.sources import CameraSample
+from daemon.capture.pipeline import Multiplexer
+from daemon.capture.sources import CameraSample
+from daemon.config.mocapd import load_config
 
 
 def _sample(cam, index, t_ns, uv):
@@ -70,7 +70,7 @@ def test_greedy_extrapolates_other_cameras_to_the_newest_time():
 def test_blob_velocity_halves_the_noise_with_three_samples_and_skips_unmatched_blobs():
     """Two blobs at constant velocity with 0.2 px noise: the velocity from three samples
     scatters about half as much as from two; a blob appearing from nowhere gets none."""
-    from daemon.pipeline import blob_velocity
+    from daemon.capture.pipeline import blob_velocity
 
     rng = np.random.default_rng(0)
     v = np.array([[300.0, -150.0], [-80.0, 40.0]]) * 1e-9  # px per ns
@@ -95,7 +95,7 @@ def test_updates_closer_than_a_frame_move_the_velocity_less():
     by the frame period, its velocity stays near zero; weighed as whole frames it is thrown
     around by noise / 1 ms."""
     from calibkit.synthetic import sim
-    from daemon.tracker import Tracker
+    from daemon.tracking.tracker import Tracker
 
     rig = sim.make_rig(6, 4.0, seed=3)
     truth = sim.static_markers(1, 200, 4.0, seed=1)
@@ -117,7 +117,7 @@ def test_updates_closer_than_a_frame_move_the_velocity_less():
 def test_rigid_body_from_live_markers(tmp_path, mocapd_cli):
     """A daemon sees one unknown body; `rigid-body add --from-live` defines it, the daemon
     reloads and tracks it."""
-    from daemon.service import Daemon
+    from daemon.service.daemon import Daemon
 
     cfg_path = tmp_path / "mocapd.toml"
     cfg_path.write_text("# my rig\n[sim]\ncameras = 6\nbodies = 1\nfps = 100.0\n"
@@ -174,10 +174,10 @@ def test_idle_hooks_run_off_the_frame_path_in_order_and_never_pile_up(monkeypatc
     frame loop has time (run_idle), never inside process(); a loop that never idles runs
     them once their queue is full, so it stays bounded."""
     from calibkit.synthetic import sim
-    from daemon import pipeline as pl
-    from daemon.multiplexer import FrameSet
-    from daemon.rigid import RigidConfig
-    from daemon.tracker import TrackerConfig
+    from daemon.capture import pipeline as pl
+    from daemon.capture.multiplexer import FrameSet
+    from daemon.tracking.rigid import RigidConfig
+    from daemon.tracking.tracker import TrackerConfig
 
     rig = sim.make_rig(3, 4.0, seed=1)
     seen, during = [], []

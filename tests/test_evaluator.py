@@ -8,12 +8,12 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from daemon.config import SimConfig
-from daemon.pipeline import FrameResult
-from daemon.rigid import BodyPoses
+from daemon.capture.pipeline import FrameResult
+from daemon.config.mocapd import SimConfig
 from daemon.synthetic.evaluator import Evaluator
 from daemon.synthetic.scene import SimScene
-from daemon.tracker import TrackFrame
+from daemon.tracking.rigid import BodyPoses
+from daemon.tracking.tracker import TrackFrame
 
 FPS = 100.0
 PERIOD = round(1e9 / FPS)
@@ -101,7 +101,7 @@ def test_defined_bodies_are_matched_to_the_scenes_by_shape():
     which is which from their shapes alone and scores each pose in the scene body's frame,
     so a pose that is right for the defined body scores (near) zero, and a decoy shape is
     matched to nothing."""
-    from daemon.rigid import BodyDef
+    from daemon.tracking.rigid import BodyDef
 
     scene = _scene()
     rng = np.random.default_rng(3)

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from daemon.config import Config, SimConfig
-from daemon.service import Daemon
+from daemon.config.mocapd import Config, SimConfig
+from daemon.service.daemon import Daemon
 from daemon.synthetic.scene import SimScene
 from daemon.synthetic.virtual import START_NS, frame_sets, spread_ns
 
@@ -69,7 +69,7 @@ def test_a_replayed_recording_of_each_cameras_own_frames_is_paired_first(tmp_pat
     replayed to the daemon: its sets are instants, never counter n of every camera."""
     from calibkit.core.recording import save_observations
     from calibkit.synthetic import camclocks, sim
-    from daemon.sources import ReplayScene
+    from daemon.capture.sources import ReplayScene
 
     rig = sim.make_rig(4, 4.0, seed=3)
     truth, _ = sim.rigid_body_motion(2, 600, FPS, 4.0, seed=3)

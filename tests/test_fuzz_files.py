@@ -193,7 +193,7 @@ C3D = (ROOT / "fixtures" / "cmu_c3d" / "85_02.c3d").read_bytes()
 def test_a_damaged_c3d_gives_a_take_or_one_user_error(tmp_path, cut, changes):
     """The CMU take cut short (the c3d package then stops inside a frame) and with bytes of
     its header and parameters changed."""
-    from daemon.markers.c3dio import read_c3d
+    from daemon.formats.c3dio import read_c3d
 
     data = bytearray(C3D[:cut])
     for at, value in changes:
@@ -212,7 +212,7 @@ def test_a_damaged_c3d_gives_a_take_or_one_user_error(tmp_path, cut, changes):
 def test_a_c3d_header_claiming_billions_of_frames_is_refused_before_allocating(tmp_path):
     """65535 frames of 41 points in the header's last-frame word (words 4 and 5 are the
     first and last frame), 810 in the file: refused before 65535 x 41 x 3 floats."""
-    from daemon.markers.c3dio import read_c3d
+    from daemon.formats.c3dio import read_c3d
 
     data = bytearray(C3D)
     assert int.from_bytes(data[6:8], "little") == 1 and data[8:10] == (810).to_bytes(2, "little")
@@ -243,7 +243,7 @@ CONFIG_TABLES = ["pipeline", "tracker", "rigid", "sim", "natnet", "vrpn", "udp",
     st.lists(st.dictionaries(st.sampled_from(CONFIG_KEYS), CONFIG_VALUES, max_size=4),
              max_size=2)), max_size=3))
 def test_any_configuration_values_give_a_config_or_one_user_error(data):
-    from daemon.config import parse_config
+    from daemon.config.mocapd import parse_config
 
     try:
         cfg = parse_config(data)
@@ -254,7 +254,7 @@ def test_any_configuration_values_give_a_config_or_one_user_error(data):
 
 
 def test_nan_in_a_configuration_is_refused():
-    from daemon.config import parse_config
+    from daemon.config.mocapd import parse_config
 
     for table, key in (("pipeline", "fps"), ("natnet", "rate_hz"), ("natnet", "record_max_s")):
         with pytest.raises(UserError, match=f"{table}.{key}: expected a number, got nan"):

@@ -196,7 +196,7 @@ def test_junk_on_a_live_command_port_logs_one_line_per_kind_and_frames_keep_comi
 def test_record_from_and_the_budget_in_the_configuration():
     import pytest
 
-    from daemon.config import parse_config
+    from daemon.config.mocapd import parse_config
 
     n = parse_config({"natnet": {}}).natnet
     assert n.record_from == ("127.0.0.1",) and n.record_max_s == 3600 and n.record_max_mb == 2000

@@ -7,8 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.markers.c3dio import Take, read_c3d, read_take, write_take
-from daemon.markers.gapfill import (
+from daemon.analysis.gapfill import (
     Gap,
     _newton,
     fill,
@@ -17,6 +16,7 @@ from daemon.markers.gapfill import (
     fill_rigid,
     find_gaps,
 )
+from daemon.formats.c3dio import Take, read_c3d, read_take, write_take
 
 DATA = Path(__file__).resolve().parent.parent / "fixtures" / "cmu_c3d"
 

@@ -242,9 +242,9 @@ def test_bad_residuals_are_one_line_and_exit_2(tmp_path, calibkit_cli) -> None:
 
 
 def test_the_daemon_tracker_gates_follow_the_rig_unless_set(tmp_path) -> None:
-    from daemon.config import load_config
-    from daemon.service import Daemon
-    from daemon.tracker import TrackerConfig
+    from daemon.config.mocapd import load_config
+    from daemon.service.daemon import Daemon
+    from daemon.tracking.tracker import TrackerConfig
 
     Rig(sim.make_rig(4, 4.0, seed=1).cameras, {"reprojection_rms_px": 1.5}).save(
         tmp_path / "rig.toml")

@@ -49,8 +49,8 @@ def inputs(tmp_path_factory) -> Path:
     import cv2
 
     from calibkit.synthetic import person, sim
-    from daemon.markers.c3dio import Points, Take, write_points_csv
-    from daemon.markers.markerset import SHIPPED, MarkerSet
+    from daemon.formats.c3dio import Points, Take, write_points_csv
+    from daemon.labelling.markerset import SHIPPED, MarkerSet
 
     d = tmp_path_factory.mktemp("kernels-inputs")
     truth, bodies = sim.rigid_body_motion(3, 300, fps=100.0, markers_per_body=[4, 4, 5],
@@ -131,9 +131,9 @@ def test_build_kernels_caches_every_kernel_of_the_code_base(built_cache):
     assert proc.returncode == 0, proc.stderr[-2000:]
     found = json.loads(proc.stdout.strip().splitlines()[-1])
     assert {n.rsplit(".", 1)[0] for n in found} >= {
-        "daemon.markers.point_tracks", "daemon.rigid_kernel", "daemon.tracker_kernel",
-        "daemon.markers.label_kernels", "calibkit.vision.detect_kernels",
-        "calibkit.core.geometry_kernels"}
+        "daemon.analysis.point_tracks", "daemon.tracking.rigid_kernel",
+        "daemon.tracking.tracker_kernel", "daemon.labelling.kernels",
+        "calibkit.vision.detect_kernels", "calibkit.core.geometry_kernels"}
     missing = [n for n, (cached, inline) in found.items() if not cached and not inline]
     assert missing == []
 
@@ -155,8 +155,8 @@ def test_a_cold_cache_compiles_and_says_so(inputs, tmp_path):
     report, err = _probe(tmp_path / "cold", tmp_path / "probe.json", "mocapd", "track",
                          inputs / "rigid.csv", "--bodies", inputs / "bodies.toml", "--rate",
                          "100", "--out", tmp_path / "poses.csv")
-    assert "daemon.markers.point_tracks._associate" in report["compiled"]
-    assert report["kernels"]["daemon.markers.point_tracks._associate"]["compiled"] == 1
+    assert "daemon.analysis.point_tracks._associate" in report["compiled"]
+    assert report["kernels"]["daemon.analysis.point_tracks._associate"]["compiled"] == 1
     notices = [ln for ln in err.splitlines() if ln.startswith(NOTICE)]
-    assert any("daemon.markers.point_tracks" in ln for ln in notices)
+    assert any("daemon.analysis.point_tracks" in ln for ln in notices)
     assert len(notices) == len(set(notices)) and all("build-kernels" in ln for ln in notices)

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.markers.c3dio import (
+from daemon.formats.c3dio import (
     Points,
     Take,
     read_c3d,
@@ -16,10 +16,10 @@ from daemon.markers.c3dio import (
     write_points_csv,
     write_take,
 )
-from daemon.markers.label import Labeller
-from daemon.markers.label_offline import label_take
-from daemon.markers.label_single import chirality_votes, initial_labels
-from daemon.markers.markerset import MarkerSet, learn
+from daemon.labelling.labeller import Labeller
+from daemon.labelling.markerset import MarkerSet, learn
+from daemon.labelling.offline import label_take
+from daemon.labelling.single import chirality_votes, initial_labels
 from daemon.synthetic.labelling import hide_spans, points_with_ghosts, score
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -29,7 +29,7 @@ FRAMES = 360          # 3 s of each take keeps the tests fast
 
 @pytest.fixture(scope="module")
 def cmu41():
-    return MarkerSet.load(ROOT / "daemon" / "markers" / "sets" / "cmu41.toml")
+    return MarkerSet.load(ROOT / "daemon" / "labelling" / "sets" / "cmu41.toml")
 
 
 def _excerpt(name, labels, start=0):
@@ -136,7 +136,7 @@ def test_cli_label_csv(tmp_path, mocapd_cli, walk, cmu41):
     short = Take(walk.labels, walk.xyz_m[:120], walk.rate_hz, 0)
     write_points_csv(tmp_path / "pts.csv", Points.from_take(short, seed=6))
     r = mocapd_cli("label", tmp_path / "pts.csv", "--markerset",
-                   ROOT / "daemon" / "markers" / "sets" / "cmu41.toml", "--out",
+                   ROOT / "daemon" / "labelling" / "sets" / "cmu41.toml", "--out",
                    tmp_path / "lab.csv", "--json", tmp_path / "lab.json", "--rate", "120")
     assert r.code == 0, r.err
     back = read_labelled_csv(tmp_path / "lab.csv")
@@ -146,8 +146,8 @@ def test_cli_label_csv(tmp_path, mocapd_cli, walk, cmu41):
                    "--out", tmp_path / "x.csv")
     assert r.code == 2 and "does not exist" in r.err
     r = mocapd_cli("label", tmp_path / "pts.csv", "--markerset",
-                   ROOT / "daemon" / "markers" / "sets" / "cmu41.toml", "--out", tmp_path / "x.csv",
-                   "--start-frames", "5")
+                   ROOT / "daemon" / "labelling" / "sets" / "cmu41.toml", "--out",
+                   tmp_path / "x.csv", "--start-frames", "5")
     assert r.code == 2 and "--start-labels" in r.err
 
 
@@ -184,8 +184,8 @@ def test_rigid_fit_tells_a_module_from_its_mirror_image(cmu41, acro):
     """The left foot's tetrahedron (ankle, heel, 5th metatarsal, toe): the labels of the
     two forefoot markers swapped keep the heel and ankle distances nearly (equal on this
     subject) but turn the tetrahedron inside out; the proper rigid fit sees it."""
-    from daemon.markers.label_modules import rigid_modules
-    from daemon.markers.label_modules import rigid_residuals as _rigid_residuals
+    from daemon.labelling.modules import rigid_modules
+    from daemon.labelling.modules import rigid_residuals as _rigid_residuals
     foot = next(m for m in rigid_modules(cmu41) if cmu41.labels.index("LTOE") in m)
     assert sorted(cmu41.labels[i] for i in foot) == ["LANK", "LHEE", "LMT5", "LTOE"]
     x = acro.xyz_m[:, foot]
@@ -277,9 +277,9 @@ def test_module_order_from_the_marker_sets_shape(cmu41, acro):
     """A foot's labels turned around its tetrahedron are put back by the marker set's
     shape of the foot (with its handedness); the flat pelvis with left and right swapped
     is left alone: turned over, its swapped labels fit as well (a mirror twin)."""
-    from daemon.markers.label_modules import better_order as _better_order
-    from daemon.markers.label_modules import module_template as _module_template
-    from daemon.markers.label_modules import rigid_modules
+    from daemon.labelling.modules import better_order as _better_order
+    from daemon.labelling.modules import module_template as _module_template
+    from daemon.labelling.modules import rigid_modules
     frame = acro.xyz_m[0]
     for names, order, expect in ((["LANK", "LHEE", "LMT5", "LTOE"], [2, 3, 1, 0], True),
                                  (["LFWT", "RFWT", "LBWT", "RBWT"], [1, 0, 3, 2], False)):
@@ -331,12 +331,12 @@ def test_skipped_frames_are_predicted_over(cmu41, acro):
 
 
 def test_kernels_match_their_numpy_twins(cmu41, acro):
-    """Each compiled kernel (daemon/markers/label_kernels.py) against the numpy code it replaces,
+    """Each compiled kernel (daemon/labelling/kernels.py) against the numpy code it replaces,
     on a labeller's state in the middle of an occluded take with ghosts."""
-    from daemon.markers import label_kernels as kern
-    from daemon.markers.label_modules import rigid_residuals as _rigid_residuals
-    from daemon.markers.label_reid import module_candidates_numpy
-    from daemon.markers.label_repair import swap_scores_numpy
+    from daemon.labelling import kernels as kern
+    from daemon.labelling.modules import rigid_residuals as _rigid_residuals
+    from daemon.labelling.reid import module_candidates_numpy
+    from daemon.labelling.repair import swap_scores_numpy
     hidden = hide_spans(acro, 0.2, seed=11)
     pts, _ = points_with_ghosts(hidden, 3, seed=11)
     _, per = pts.split()

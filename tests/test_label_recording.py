@@ -9,7 +9,7 @@ import pytest
 from calibkit.core.recording import save_observations
 from calibkit.synthetic import person as sim_person
 from calibkit.synthetic import sim
-from daemon.markers.c3dio import Take, read_take, write_take
+from daemon.formats.c3dio import Take, read_take, write_take
 
 RATE = 120.0
 
@@ -31,7 +31,7 @@ def person_recording(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def person_set(person_recording):
-    from daemon.markers.markerset import learn
+    from daemon.labelling.markerset import learn
 
     d, _, _ = person_recording
     learn([read_take(d / "other.csv")], name="walker").save(d / "set.toml")

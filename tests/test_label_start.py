@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from label_people import BODIES, walk
 
-from daemon.markers.c3dio import Take, read_c3d
-from daemon.markers.label_assign import mirror_map
-from daemon.markers.label_offline import label_take
-from daemon.markers.label_start import link_window, window_start
-from daemon.markers.markerset import MarkerSet, learn
+from daemon.formats.c3dio import Take, read_c3d
+from daemon.labelling.assign import mirror_map
+from daemon.labelling.markerset import MarkerSet, learn
+from daemon.labelling.offline import label_take
+from daemon.labelling.start import link_window, window_start
 from daemon.synthetic.labelling import hide_spans, points_with_ghosts, score
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -23,7 +23,7 @@ DATA = ROOT / "fixtures" / "cmu_c3d"
 
 @pytest.fixture(scope="module")
 def cmu41():
-    return MarkerSet.load(ROOT / "daemon" / "markers" / "sets" / "cmu41.toml")
+    return MarkerSet.load(ROOT / "daemon" / "labelling" / "sets" / "cmu41.toml")
 
 
 def _person(name: str, labels: list[str], frames: int = 240) -> Take:

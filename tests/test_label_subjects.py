@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.markers.c3dio import read_c3d
-from daemon.markers.label_offline import label_take
-from daemon.markers.markerset import MarkerSet
+from daemon.formats.c3dio import read_c3d
+from daemon.labelling.markerset import MarkerSet
+from daemon.labelling.offline import label_take
 from daemon.synthetic.labelling import hide_spans, points_with_ghosts
 from daemon.synthetic.subjects import (
     SEGMENTS,
@@ -27,7 +27,7 @@ DATA = ROOT / "fixtures" / "cmu_c3d"
 
 @pytest.fixture(scope="module")
 def cmu41():
-    return MarkerSet.load(ROOT / "daemon" / "markers" / "sets" / "cmu41.toml")
+    return MarkerSet.load(ROOT / "daemon" / "labelling" / "sets" / "cmu41.toml")
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""Verification of a take's labels against the marker set (daemon/markers/label_verify.py):
+"""Verification of a take's labels against the marker set (daemon/labelling/verify.py):
 points tracking left unlabelled are brought in, and a relabelling reaches back to the
 windows that could not tell."""
 
@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.markers.c3dio import read_c3d
-from daemon.markers.label_offline import label_take
-from daemon.markers.label_verify import relabel_window
-from daemon.markers.markerset import MarkerSet
+from daemon.formats.c3dio import read_c3d
+from daemon.labelling.markerset import MarkerSet
+from daemon.labelling.offline import label_take
+from daemon.labelling.verify import relabel_window
 from daemon.synthetic.labelling import hide_spans, points_with_ghosts, score
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -21,7 +21,7 @@ DATA = ROOT / "fixtures" / "cmu_c3d"
 
 @pytest.fixture(scope="module")
 def cmu41():
-    return MarkerSet.load(ROOT / "daemon" / "markers" / "sets" / "cmu41.toml")
+    return MarkerSet.load(ROOT / "daemon" / "labelling" / "sets" / "cmu41.toml")
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""Live labelling in the daemon: the stage (daemon/live_label.py) against the simulated
+"""Live labelling in the daemon: the stage (daemon/labelling/live.py) against the simulated
 person's truth, the `markerset` configuration key, and `mocapd start --sim` with the person
 publishing named markers over UDP and NatNet, with reloads that remove and add the set."""
 
@@ -16,18 +16,18 @@ import numpy as np
 import pytest
 
 from calibkit.synthetic import person as sim_person
-from daemon.config import SimConfig, parse_config
-from daemon.live_label import LiveLabeller, load, resolve, shipped_sets
-from daemon.markers.c3dio import read_c3d
-from daemon.markers.markerset import MarkerSet, open_set
+from daemon.config.mocapd import SimConfig, parse_config
+from daemon.formats.c3dio import read_c3d
+from daemon.labelling.live import LiveLabeller, load, resolve, shipped_sets
+from daemon.labelling.markerset import MarkerSet, open_set
 from daemon.publish import natnet as nn
 from daemon.publish import packet
 from daemon.synthetic.labelling import hide_spans
 from daemon.synthetic.scene import SimScene
-from daemon.tracker import TrackFrame
+from daemon.tracking.tracker import TrackFrame
 
 ROOT = Path(__file__).resolve().parents[1]
-SET = ROOT / "daemon" / "markers" / "sets" / "sim_person.toml"
+SET = ROOT / "daemon" / "labelling" / "sets" / "sim_person.toml"
 NOISE_M = 0.0005  # what the stage tests add to the true marker positions
 
 
@@ -220,7 +220,7 @@ def test_the_shipped_person_set_is_what_sim_person_set_learns():
 
 def test_markerset_key_shipped_name_or_path_relative_to_the_file(tmp_path):
     assert parse_config({"markerset": "cmu41"}, tmp_path / "m.toml", tmp_path).markerset == \
-        ROOT / "daemon" / "markers" / "sets" / "cmu41.toml"
+        ROOT / "daemon" / "labelling" / "sets" / "cmu41.toml"
     (tmp_path / "sets").mkdir()
     (tmp_path / "sets" / "mine.toml").write_bytes(SET.read_bytes())
     cfg = parse_config({"markerset": "sets/mine.toml"}, tmp_path / "m.toml", tmp_path)

@@ -9,8 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from daemon.console import Progress, print_table
-from daemon.logs import setup_logging, writes_to_journal
+from daemon.process.logs import setup_logging, writes_to_journal
+from daemon.service.console import Progress, print_table
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from calibkit.core.errors import UserError
-from daemon.markers.c3dio import read_c3d
-from daemon.markers.markerset import MarkerSet, learn, signed_volume
+from daemon.formats.c3dio import read_c3d
+from daemon.labelling.markerset import MarkerSet, learn, signed_volume
 
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT / "fixtures" / "cmu_c3d"
@@ -84,7 +84,7 @@ def test_toml_round_trip(tmp_path, ms_85):
 
 
 def test_shipped_cmu41_loads_and_covers_both_subjects():
-    ms = MarkerSet.load(ROOT / "daemon" / "markers" / "sets" / "cmu41.toml")
+    ms = MarkerSet.load(ROOT / "daemon" / "labelling" / "sets" / "cmu41.toml")
     assert ms.n == 41 and ms.name == "cmu41"
     # learned from two subjects: between-take spread is known and non-zero somewhere
     assert ms.subject_sd_m.max() > 0.005
@@ -122,7 +122,7 @@ def test_cli_learn(tmp_path, mocapd_cli):
 
 @pytest.fixture(scope="module")
 def cmu41():
-    from daemon.markers.markerset import open_set
+    from daemon.labelling.markerset import open_set
     return open_set("cmu41")
 
 
@@ -131,7 +131,7 @@ def test_fit_check_judges_a_set_on_a_take(cmu41, takes):
     fits as well at scale 1.2; a thigh marker stuck 8 cm higher and a wrist marker 6 cm
     along the forearm are named and spoil the verdict; a marker the take
     never shows is listed."""
-    from daemon.markers.markerset_fit import check_fit
+    from daemon.labelling.markerset_fit import check_fit
     x = takes[1].select(cmu41.labels).xyz_m[:600]
     fit = check_fit(cmu41, x)
     assert fit.verdict.startswith("good fit") and abs(fit.scale - 1) < 0.05
@@ -159,7 +159,7 @@ def test_cli_markerset_check(tmp_path, mocapd_cli, takes, cmu41):
     is not a take is one line and exit 2."""
     import json
 
-    from daemon.markers.c3dio import Points, Take, write_points_csv, write_take
+    from daemon.formats.c3dio import Points, Take, write_points_csv, write_take
     t = takes[1].select(cmu41.labels)
     short = Take(t.labels, t.xyz_m[:240], t.rate_hz, 0)
     write_take(tmp_path / "t.c3d", short)

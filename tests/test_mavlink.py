@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
-from daemon.config import MavlinkOut, SerialOut, parse_config
+from daemon.config.mocapd import MavlinkOut, SerialOut, parse_config
 from daemon.publish.line import fit_mavlink, fit_serial, serial_frame_bytes
 from daemon.publish.mavlink import MavlinkPublisher
-from daemon.rigid import BodyPoses, matrix_from_quaternion
+from daemon.tracking.rigid import BodyPoses, matrix_from_quaternion
 
 ROOT = Path(__file__).resolve().parents[1]
 ORIGIN = (47.3977, 8.5456, 488.0)

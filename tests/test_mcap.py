@@ -12,9 +12,9 @@ from mcap.reader import make_reader
 from test_track import RATE, capture, write_config
 
 from calibkit.core.errors import UserError
-from daemon.markers.c3dio import read_points_csv, write_points_csv
-from daemon.markers.offline_track import cloud_from_points
-from daemon.markers.trajectory_io import read_poses_csv
+from daemon.analysis.offline_track import cloud_from_points
+from daemon.formats.c3dio import read_points_csv, write_points_csv
+from daemon.formats.trajectory_io import read_poses_csv
 from daemon.publish.mcap_poses import McapPoseWriter
 
 

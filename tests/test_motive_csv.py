@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from calibkit.core.errors import UserError
-from daemon.markers.motive_csv import read_motive_csv, write_motive_csv
-from daemon.rigid import matrix_from_quaternion
+from daemon.formats.motive_csv import read_motive_csv, write_motive_csv
+from daemon.tracking.rigid import matrix_from_quaternion
 
 DATA = Path(__file__).resolve().parent.parent / "fixtures" / "optitrack_rigidbody_csv"
 MODERN = DATA / "sample_optitrack_take.csv"
@@ -339,7 +339,7 @@ def test_table_layouts_written_by_hand_read_as_written(tmp_path, version, rotati
 def test_written_table_records_its_up_axis_and_reads_back(tmp_path):
     """A take turned to z-up and written says so (Up Axis,Z); read back it is z-up, and
     turned back to y-up it is the take as read."""
-    from daemon.markers.motive_take import from_z_up, to_z_up
+    from daemon.formats.motive_take import from_z_up, to_z_up
 
     path = tmp_path / "v1.1.csv"
     write_rows_layout(path, "1.1")

@@ -1,6 +1,6 @@
-"""Frames paired by capture time (daemon.multiplexer, daemon.clocks), on the simulator's
-cameras run in virtual time (daemon.synthetic.virtual): cameras that open up to 2 s apart,
-a camera that reconnects with a new counter and clock epoch, clocks drifting by 50 ppm for
+"""Frames paired by capture time (daemon.capture.multiplexer, daemon.capture.clocks), on the
+simulator's cameras run in virtual time (daemon.synthetic.virtual): cameras that open up to 2 s
+apart, a camera that reconnects with a new counter and clock epoch, clocks drifting by 50 ppm for
 two minutes. Every set is checked against the simulator's truth: the instants its cameras
 really took their frames (the scene's ledger, found from each sample's own frame id and
 timestamp). benchmarks/bench_pairing.py runs the same scenes with pairing by counter."""
@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from daemon.clocks import SETTLE_NS, CameraClock
-from daemon.config import SimConfig
+from daemon.capture.clocks import SETTLE_NS, CameraClock
+from daemon.config.mocapd import SimConfig
 from daemon.synthetic import virtual
 from daemon.synthetic.scene import SimScene
 from daemon.synthetic.virtual import START_NS, capture

@@ -20,13 +20,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from calibkit.synthetic import sim
-from daemon.config import SimConfig
-from daemon.pipeline import FrameResult
+from daemon.capture.pipeline import FrameResult
+from daemon.config.mocapd import SimConfig
 from daemon.publish import natnet as nn
 from daemon.publish import packet
-from daemon.rigid import BodyDef, BodyPoses, matrix_from_quaternion, quaternion_xyzw
 from daemon.synthetic.scene import SimScene
-from daemon.tracker import TrackFrame
+from daemon.tracking.rigid import BodyDef, BodyPoses, matrix_from_quaternion, quaternion_xyzw
+from daemon.tracking.tracker import TrackFrame
 
 ROOT = Path(__file__).resolve().parents[1]
 FPS = 100.0
@@ -523,7 +523,7 @@ def test_mocapd_serves_natnet_poses_matching_the_simulator(tmp_path, natnet_list
 
 
 def test_a_reloaded_server_takes_over_the_port_and_the_clients(natnet_listener):
-    """A reload starts the new publisher while the old one runs (daemon.pipeline applies
+    """A reload starts the new publisher while the old one runs (daemon.capture.pipeline applies
     new publishers before stopping the old): the new one takes over the command socket and
     the subscribed clients at once, and the old one's stop closes none of it."""
     scene = Scene(n_bodies=1)
@@ -564,8 +564,8 @@ def test_a_port_held_elsewhere_is_retried():
 
 def test_configuration_tables_and_their_errors():
     from calibkit.core.errors import UserError
-    from daemon.config import parse_config
-    from daemon.outputs import make_publishers
+    from daemon.config.mocapd import parse_config
+    from daemon.service.outputs import make_publishers
 
     cfg = parse_config({"natnet": {"interface": "127.0.0.1", "up_axis": "y",
                                    "multicast": False, "command_port": 1600,
@@ -594,7 +594,7 @@ def test_configuration_tables_and_their_errors():
 
 def test_flags_add_to_the_configuration():
     from daemon.commands.start_cmd import command_line_additions
-    from daemon.config import parse_config
+    from daemon.config.mocapd import parse_config
 
     extend = command_line_additions([], [], [], None, None, natnet="127.0.0.1:2000",
                                     natnet_up=None, vrpn=["4000", "127.0.0.1:4001"])
@@ -685,7 +685,7 @@ def test_a_reload_keeps_unicast_clients_that_send_no_keep_alives():
 def _labelled_frame(scene, i, names, index):
     """Frame i with the loose markers named by a marker set: loose marker j is marker
     index[j] of the set."""
-    from daemon.live_label import LabelledMarkers
+    from daemon.labelling.live import LabelledMarkers
 
     r = scene.frame(i)
     tr = r.tracks

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from calibkit.core.errors import UserError
-from daemon.config import parse_config
+from daemon.config.mocapd import parse_config
 from daemon.nodes import wire
 from daemon.nodes.clock import NodeClock
 from daemon.nodes.settings import parse_camera_list, parse_node_config
@@ -98,7 +98,7 @@ class _Session:
 
 
 def _sample(camera, index, arrival):
-    from daemon.sources import CameraSample
+    from daemon.capture.sources import CameraSample
 
     uv = np.full((2, 2), float(camera))
     return CameraSample(camera, index, arrival, arrival, uv, np.ones(2), np.ones(2), -1, -1)
@@ -175,7 +175,7 @@ def test_a_simulated_node_serves_its_cameras_from_one_thread_on_time():
     """SimNodeCapture: every camera's frames, trigger after trigger, none before it is
     due (taken + the camera's transfer delay) and late by little; a camera that
     disconnects (simulated) is reopened, its frames counting from 0 again."""
-    from daemon.config import SimConfig
+    from daemon.config.mocapd import SimConfig
     from daemon.synthetic.node_sim import SimNodeCapture
     from daemon.synthetic.scene import SimCamera, SimScene
 
@@ -326,7 +326,7 @@ class DaemonThread:
     """A daemon with [sim] and its cameras served by nodes, run on a thread of the test."""
 
     def __init__(self, tmp_path, port, rig, seconds, n_cameras=8, extra=None):
-        from daemon.service import Daemon
+        from daemon.service.daemon import Daemon
 
         data = {"runtime_dir": str(tmp_path / "run"),
                 "sim": {"cameras": n_cameras},

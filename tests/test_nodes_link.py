@@ -180,7 +180,7 @@ def test_node_in_a_network_namespace_over_a_delayed_link(namespaces, tmp_path):
     node's namespace): the daemon tracks the node's cameras and, once the estimate's
     window is full, its status reports the node's clock within 50 us of the truth
     (median; all within 100 us) and its drift within 3 ppm (median; all within 10)."""
-    from daemon.control import request
+    from daemon.service.control import request
 
     a, b = namespaces["daemon"], namespaces["node"]
     port = 17000 + os.getpid() % 1000
@@ -242,7 +242,7 @@ def test_a_node_without_the_credentials_is_refused_across_namespaces(namespaces,
     """The daemon listens on the namespaces' network with a users file: the node that
     presents a listed user's password serves its cameras; one without credentials, and one
     with a wrong password, are refused at Zenoh's handshake and their cameras never come."""
-    from daemon.control import request
+    from daemon.service.control import request
 
     a, b = namespaces["daemon"], namespaces["node"]
     port = 18000 + os.getpid() % 1000

@@ -1,8 +1,8 @@
-"""Points CSV reading (daemon/markers/points_csv.py) and what track and label say about it.
+"""Points CSV reading (daemon/formats/points_csv.py) and what track and label say about it.
 
 Bad rows are written by hand at known lines, so the counts, kinds and first line asserted
 are read off the file; the streamed read is compared with the whole-file read of
-daemon.markers.c3dio on simulated points, split into blocks that cut lines in two.
+daemon.formats.c3dio on simulated points, split into blocks that cut lines in two.
 """
 
 from __future__ import annotations
@@ -15,10 +15,10 @@ import tomli_w
 
 from calibkit.core.errors import UserError
 from calibkit.synthetic import sim
-from daemon.markers import points_csv
-from daemon.markers.c3dio import Points, read_points_csv, write_points_csv
-from daemon.markers.points_csv import points_header
-from daemon.markers.points_csv import read_points_csv as stream_points
+from daemon.formats import points_csv
+from daemon.formats.c3dio import Points, read_points_csv, write_points_csv
+from daemon.formats.points_csv import points_header
+from daemon.formats.points_csv import read_points_csv as stream_points
 
 BAD = """# rate_hz=100
 # made by hand: lines 5-10 and 12 are bad, line 11 is blank
@@ -163,8 +163,8 @@ def test_track_asks_for_the_rate_before_reading(take_with_bad_rows, mocapd_cli, 
 
 def test_label_warns_about_bad_rows_and_strict_refuses(tmp_path, mocapd_cli):
     from calibkit.synthetic import person
-    from daemon.markers.c3dio import Take, read_labelled_csv
-    from daemon.markers.markerset import SHIPPED, MarkerSet
+    from daemon.formats.c3dio import Take, read_labelled_csv
+    from daemon.labelling.markerset import SHIPPED, MarkerSet
 
     ms = MarkerSet.load(SHIPPED / "sim_person.toml")
     walk = person.walk(120, 100.0, seed=5)

@@ -158,7 +158,7 @@ def test_mavlink_messages_decode_with_pymavlink(message):
 
 class _Result:
     def __init__(self, i, bodies):
-        from daemon.rigid import BodyPoses, matrix_from_quaternion
+        from daemon.tracking.rigid import BodyPoses, matrix_from_quaternion
 
         self.frame, self.t_ns, self.arrival_ns = i, time.monotonic_ns(), time.monotonic_ns()
         q = bodies["quaternion"]

@@ -1,5 +1,5 @@
-"""Real-time scheduling of the live daemon (daemon/realtime.py) and the latency stage figures
-that showed why it is needed."""
+"""Real-time scheduling of the live daemon (daemon/process/realtime.py) and the latency stage
+figures that showed why it is needed."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import threading
 
 import pytest
 
-from daemon.config import load_config
-from daemon.realtime import current_policy, raise_priority, restore_normal
+from daemon.config.mocapd import load_config
+from daemon.process.realtime import current_policy, raise_priority, restore_normal
 
 may_be_realtime = pytest.mark.skipif(
     os.geteuid() != 0, reason="real-time scheduling needs root or CAP_SYS_NICE; the "
@@ -66,7 +66,7 @@ def test_priority_zero_leaves_scheduling_alone():
 def test_the_configuration_key_and_the_flag(tmp_path, start_refused):
     """Real-time scheduling only where it is asked for: a file's priority or --realtime
     (which the system unit passes); a run in a terminal or --sim stays normal."""
-    from daemon.start import REALTIME_DEFAULT, StartOverrides
+    from daemon.service.start import REALTIME_DEFAULT, StartOverrides
 
     good = tmp_path / "good.toml"
     good.write_text("[pipeline]\nrealtime_priority = 20\n")
@@ -107,7 +107,7 @@ def test_a_notify_socket_nobody_reads_never_blocks_the_frame_loop(tmp_path, monk
     import socket
     import time
 
-    from daemon.notify import sd_notify
+    from daemon.process.notify import sd_notify
 
     path = tmp_path / "notify"
     rx = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
@@ -125,12 +125,12 @@ def test_a_notify_socket_nobody_reads_never_blocks_the_frame_loop(tmp_path, monk
 
 def test_a_live_run_keeps_its_start_up_out_of_the_collector_and_gives_it_back(tmp_path):
     """While a live daemon tracks, what it built to start (scene, rig, trackers, modules)
-    is frozen out of the cycle collector's full passes (daemon/heap.py), and an
+    is frozen out of the cycle collector's full passes (daemon/process/heap.py), and an
     in-process run gives it back when it ends."""
     import gc
 
-    from daemon.config import parse_config
-    from daemon.service import Daemon
+    from daemon.config.mocapd import parse_config
+    from daemon.service.daemon import Daemon
 
     assert gc.get_freeze_count() == 0
     frozen = []

@@ -77,8 +77,8 @@ def test_the_free_space_floor_stops_a_recording_before_the_disk_is_full(tmp_path
 
 
 def test_a_recording_is_never_written_over_an_existing_file(tmp_path):
-    from daemon.config import parse_config
-    from daemon.service import Daemon
+    from daemon.config.mocapd import parse_config
+    from daemon.service.daemon import Daemon
 
     d = Daemon(parse_config({"runtime_dir": str(tmp_path / "rt"), "sim": {"cameras": 3}}))
     d.setup(10)

@@ -11,8 +11,8 @@ from dataclasses import replace
 
 import pytest
 
-from daemon.config import load_config
-from daemon.service import Daemon
+from daemon.config.mocapd import load_config
+from daemon.service.daemon import Daemon
 
 SIM = "[sim]\ncameras = 4\nbodies = 2\nfps = 100.0\nseed = 5\n"
 

@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from calibkit.synthetic import sim
-from daemon.rigid import (
+from daemon.tracking.rigid import (
     BodyDef,
     RigidConfig,
     RigidTracker,
@@ -17,7 +17,7 @@ from daemon.rigid import (
     matrix_from_quaternion,
     quaternion_xyzw,
 )
-from daemon.tracker import Tracker, TrackFrame
+from daemon.tracking.tracker import Tracker, TrackFrame
 
 FPS = 240.0
 
@@ -142,8 +142,8 @@ def test_bodies_posed_within_the_noise(tracked):
 def test_refinement_on_pixels_agrees_with_the_truth():
     """refine_poses from a perturbed pose converges to the true one on noise-free blobs."""
     from calibkit.core.geometry import RigArrays
-    from daemon.rigid import refine_poses
-    from daemon.tracker import AllCameras
+    from daemon.tracking.rigid import refine_poses
+    from daemon.tracking.tracker import AllCameras
 
     rig = sim.make_rig(6, 4.0, seed=2)
     cams = AllCameras(RigArrays.from_rig(rig))
@@ -230,7 +230,7 @@ def test_new_definitions_between_frames_never_mix_with_the_old_fit(keep):
 
 
 def test_compiled_fit_matches_numpy_with_releases():
-    """The compiled body fit (daemon.rigid_kernel) against the numpy path: weights from
+    """The compiled body fit (daemon.tracking.rigid_kernel) against the numpy path: weights from
     the tracks' sigma, a marker knocked 3 cm off (released), a body with nothing seen."""
     truth, bodies = sim.rigid_body_motion(4, 30, FPS, 4.0, 5, seed=7)
     defs = [BodyDef(b.name, b.id, b.markers_body, np.zeros(3)) for b in bodies]
@@ -288,7 +288,7 @@ def test_a_body_is_defined_from_frames_of_tracked_points(moving):
     """Still, or turning slowly while it is captured: the markers come back at their
     places (centred) to within the noise averaged over the frames (0.5 mm per frame, 30
     frames: ~0.1 mm; allow 0.5 mm); the ghost and the re-created track add nothing."""
-    from daemon.rigid_define import body_from_snapshots
+    from daemon.tracking.rigid_define import body_from_snapshots
 
     rng = np.random.default_rng(3)
     markers = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.07, 0.01],
@@ -312,7 +312,7 @@ def test_a_body_is_defined_from_frames_of_tracked_points(moving):
 
 def test_a_body_that_does_not_hold_still_is_refused():
     from calibkit.core.errors import UserError
-    from daemon.rigid_define import body_from_snapshots
+    from daemon.tracking.rigid_define import body_from_snapshots
 
     rng = np.random.default_rng(4)
     markers = np.array([[0.0, 0, 0], [0.1, 0, 0], [0, 0.08, 0], [0.05, 0.05, 0.05]])

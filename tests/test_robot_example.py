@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from calibkit.core.errors import UserError
-from daemon.config import SimConfig, SimRobot, parse_config
+from daemon.config.mocapd import SimConfig, SimRobot, parse_config
 from daemon.synthetic.robot import COMMAND_TIMEOUT_S, Dynamics, parse_command, read_truth
 from daemon.synthetic.scene import SimScene
 

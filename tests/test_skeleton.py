@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 
 from calibkit.synthetic import person as sim_person
-from daemon.markers.c3dio import Take, euler_zxy_matrix, read_bvh, write_take
-from daemon.markers.skeleton import (
+from daemon.analysis.skeleton import (
     CMU41_MODEL,
     Skeleton,
     fit_skeleton,
@@ -15,6 +14,7 @@ from daemon.markers.skeleton import (
     sphere_fit,
     sphere_fit_closed_form,
 )
+from daemon.formats.c3dio import Take, euler_zxy_matrix, read_bvh, write_take
 
 NOISE_M = 0.001       # 1 mm marker noise, about a good optical system's
 
@@ -68,7 +68,7 @@ def test_bone_lengths_match_the_body(person):
 def test_bvh_forward_kinematics_reproduces_joint_centres(tmp_path, person):
     _, walk, skel = person
     take = Take(walk.labels, walk.markers_m, walk.rate_hz)
-    from daemon.markers.skeleton import export_bvh
+    from daemon.analysis.skeleton import export_bvh
     export_bvh(tmp_path / "walk.bvh", skel, take)
     names, parents, offsets, motion = read_bvh(tmp_path / "walk.bvh")
     assert sorted(names) == sorted(j.name for j in skel.joints)

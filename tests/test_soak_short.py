@@ -13,10 +13,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from daemon import pipeline
-from daemon.config import load_config
-from daemon.pipeline import Stats, latency_figures, latency_stage_figures
-from daemon.service import Daemon
+from daemon.capture import pipeline
+from daemon.capture.pipeline import Stats, latency_figures, latency_stage_figures
+from daemon.config.mocapd import load_config
+from daemon.service.daemon import Daemon
 
 
 def _result(k: int, latency_ns: int, seen: int) -> SimpleNamespace:

@@ -10,24 +10,24 @@ import pytest
 import tomli_w
 
 from calibkit.synthetic import sim
-from daemon.markers.c3dio import Points, Take, read_points_csv, write_points_csv
-from daemon.markers.motive_csv import read_motive_csv, to_z_up
-from daemon.markers.offline_track import (
+from daemon.analysis.offline_track import (
     cloud_from_points,
     rotation_difference_deg,
     track_cloud,
 )
-from daemon.markers.point_tracks import PointTrackConfig, associate
-from daemon.markers.trajectory_io import read_poses_csv, read_trajectory
-from daemon.rigid import (
+from daemon.analysis.point_tracks import PointTrackConfig, associate
+from daemon.formats.c3dio import Points, Take, read_points_csv, write_points_csv
+from daemon.formats.motive_csv import read_motive_csv, to_z_up
+from daemon.formats.trajectory_io import read_poses_csv, read_trajectory
+from daemon.synthetic.labelling import hide_spans
+from daemon.synthetic.motive_export import displaced, write_motive_1_0
+from daemon.tracking.rigid import (
     BodyDef,
     RigidConfig,
     RigidTracker,
     matrix_from_quaternion,
     quaternion_xyzw,
 )
-from daemon.synthetic.labelling import hide_spans
-from daemon.synthetic.motive_export import displaced, write_motive_1_0
 
 DATA = Path(__file__).resolve().parent.parent / "fixtures" / "optitrack_rigidbody_csv"
 RATE = 120.0

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from calibkit.synthetic import sim
-from daemon.tracker import Tracker, TrackerConfig
+from daemon.tracking.tracker import Tracker, TrackerConfig
 
 FPS = 240.0
 
@@ -214,10 +214,10 @@ def test_the_daemon_tracks_with_a_calibrated_rig_and_bodies_defined_live():
     from pathlib import Path
 
     from calibkit.core.camera import Rig
-    from daemon.pipeline import FrameSet, Pipeline
-    from daemon.rigid import RigidConfig
+    from daemon.capture.pipeline import FrameSet, Pipeline
     from daemon.synthetic.evaluator import Evaluator
     from daemon.synthetic.scene import SimScene
+    from daemon.tracking.rigid import RigidConfig
 
     root = Path(__file__).resolve().parents[1]
     spec = importlib.util.spec_from_file_location("bench_tracking",
@@ -255,7 +255,7 @@ def _crossing_scene(monkeypatch, miss_m, heading_deg, seed, n=240, speed_mps=1.7
     markers stay clear. Blobs as the benchmark's cameras give them (merged where the
     markers' images overlap, 5 % dropouts, 2 strays per camera per frame)."""
     from calibkit.synthetic.sim import SimBody
-    from daemon.config import SimConfig
+    from daemon.config.mocapd import SimConfig
     from daemon.synthetic.scene import SimScene
 
     _, shapes = sim.rigid_body_motion(2, 2, FPS, 4.0, 5, seed=seed)
@@ -286,9 +286,9 @@ def _crossing_scene(monkeypatch, miss_m, heading_deg, seed, n=240, speed_mps=1.7
 def _defined_live(scene) -> list:
     """The scene's bodies as a user defines them (`rigid-body add --from-live`): each held
     still and alone, tracked, its markers clustered; never the simulator's definitions."""
-    from daemon.pipeline import Pipeline
-    from daemon.rigid import BodyDef, RigidConfig
-    from daemon.rigid_define import learn_body
+    from daemon.capture.pipeline import Pipeline
+    from daemon.tracking.rigid import BodyDef, RigidConfig
+    from daemon.tracking.rigid_define import learn_body
 
     defs = []
     for k in range(len(scene.bodies_truth)):
@@ -309,9 +309,9 @@ def test_markers_of_two_bodies_crossing_closer_than_the_gate_keep_their_identiti
     Scored against the simulator's truth: no track takes the other marker's blobs (no
     track swap), no body holds the other's marker (no body swap), no pose off by more than
     2 cm / 5 degrees, and both bodies posed throughout (not bought by dropping the tracks)."""
-    from daemon.pipeline import FrameSet, Pipeline
-    from daemon.rigid import RigidConfig
+    from daemon.capture.pipeline import FrameSet, Pipeline
     from daemon.synthetic.evaluator import Evaluator
+    from daemon.tracking.rigid import RigidConfig
 
     scene, gap = _crossing_scene(monkeypatch, miss_m, heading_deg, seed)
     assert gap[0] < miss_m + 0.002 and gap[1] > 0.015  # one close pair, the rest apart

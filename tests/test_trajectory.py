@@ -9,8 +9,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from calibkit.core.errors import UserError
-from daemon.markers.trajectory_eval import evaluate, figures, umeyama
-from daemon.markers.trajectory_io import Trajectory, read_trajectory, write_tum
+from daemon.analysis.trajectory_eval import evaluate, figures, umeyama
+from daemon.formats.trajectory_io import Trajectory, read_trajectory, write_tum
 from daemon.synthetic.trajectory import flight
 
 

@@ -8,7 +8,7 @@ import pytest
 
 from calibkit.clitools import parse_view
 from calibkit.core.errors import UserError
-from daemon.config import load_config
+from daemon.config.mocapd import load_config
 from daemon.view import bodies, draw
 
 

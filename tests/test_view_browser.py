@@ -37,9 +37,9 @@ def _free_port() -> int:
 @pytest.fixture(scope="module")
 def live(tmp_path_factory):
     """A simulated daemon with the view on, its configuration file, and a browser on it."""
-    from daemon.config import load_config
-    from daemon.control import request
-    from daemon.service import Daemon
+    from daemon.config.mocapd import load_config
+    from daemon.service.control import request
+    from daemon.service.daemon import Daemon
     from daemon.view.link import ViewLink
 
     tmp = tmp_path_factory.mktemp("view")

@@ -60,10 +60,10 @@ def _free_port() -> int:
 @pytest.fixture(scope="module")
 def live(tmp_path_factory):
     from calibkit.synthetic import sim
-    from daemon import sources
-    from daemon.config import load_config
-    from daemon.control import request
-    from daemon.service import Daemon
+    from daemon.capture import sources
+    from daemon.config.mocapd import load_config
+    from daemon.service.control import request
+    from daemon.service.daemon import Daemon
     from daemon.view.link import ViewLink
 
     tmp = tmp_path_factory.mktemp("detect")

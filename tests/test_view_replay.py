@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from browser import CHROMIUM, Browser
 
-from daemon.markers.c3dio import read_c3d
+from daemon.formats.c3dio import read_c3d
 from daemon.view.replay import load_replay
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 from test_natnet import Feeder, Scene, finish, run_motioncapture  # shared scene and client
 
-from daemon.config import SimConfig
+from daemon.config.mocapd import SimConfig
 from daemon.publish import packet, vrpn
-from daemon.rigid import BodyDef
 from daemon.synthetic.scene import SimScene
+from daemon.tracking.rigid import BodyDef
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -11,7 +11,7 @@ import pytest
 from test_nodes import free_port
 
 from calibkit.core.errors import UserError
-from daemon.config import load_config
+from daemon.config.mocapd import load_config
 from daemon.nodes.session import ZenohSettings
 from daemon.nodes.settings import load_node_config
 

@@ -14,10 +14,10 @@ RuntimeDir = Annotated[Path | None, typer.Option(
 
 
 def request(runtime_dir: Path | None, message: dict) -> dict:
-    """daemon.control.request, imported when a command asks the daemon: it loads the
+    """daemon.service.control.request, imported when a command asks the daemon: it loads the
     daemon's configuration (the tracker and its numba kernels, 0.2-0.3 s of CPU), which
     registering these commands for every mocapd command must not."""
-    from daemon.control import request as ask  # deferred on purpose: see above
+    from daemon.service.control import request as ask  # deferred on purpose: see above
 
     return ask(runtime_dir, message)
 
@@ -27,7 +27,7 @@ def register(app: typer.Typer) -> None:
     def status(runtime_dir: RuntimeDir = None,
                json_path: Annotated[Path | None, typer.Option("--json")] = None) -> None:
         """Rate per camera, dropped frames, latency, bodies tracked, outputs."""
-        from daemon.console import print_table
+        from daemon.service.console import print_table
 
         st = request(runtime_dir, {"cmd": "status"})
         lat = st["latency"]

@@ -63,9 +63,9 @@ def register(app: typer.Typer) -> None:
         absolute and relative pose errors."""
         # imported here: scipy.signal and the plotting cost every other mocapd command a
         # second and more at its start
-        from daemon.markers import trajectory_report as report
-        from daemon.markers.trajectory_eval import evaluate, figures
-        from daemon.markers.trajectory_io import read_trajectory
+        from daemon.analysis import trajectory_report as report
+        from daemon.analysis.trajectory_eval import evaluate, figures
+        from daemon.formats.trajectory_io import read_trajectory
 
         if delta <= 0 or max_offset <= 0 or gross_mm <= 0:
             raise UserError("--delta, --max-offset and --gross-mm must be positive")

@@ -29,8 +29,8 @@ from calibkit.core.errors import UserError
 def _tracking(folder: Path) -> None:
     """The tracker, the epipolar correspondence, rigid bodies defined live and posed: a
     second of a small simulated rig, as fast as it goes."""
-    from daemon.config import Config, SimConfig
-    from daemon.service import Daemon
+    from daemon.config.mocapd import Config, SimConfig
+    from daemon.service.daemon import Daemon
 
     sim = SimConfig(cameras=4, bodies=2, fps=60.0, seed=1, realtime=False)
     Daemon(Config(sim=sim, fps=sim.fps, runtime_dir=folder / "rt")).run(frames=40)
@@ -58,9 +58,9 @@ def _detection(folder: Path) -> None:
 
 def _labelling(folder: Path) -> None:
     """Live marker-set labelling: the simulated person in its shipped marker set."""
-    from daemon.config import Config, SimConfig
-    from daemon.markers.markerset import SHIPPED
-    from daemon.service import Daemon
+    from daemon.config.mocapd import Config, SimConfig
+    from daemon.labelling.markerset import SHIPPED
+    from daemon.service.daemon import Daemon
 
     sim = SimConfig(cameras=6, bodies=0, fps=60.0, seed=1, realtime=False, person=True)
     Daemon(Config(sim=sim, fps=sim.fps, markerset=SHIPPED / "sim_person.toml",
@@ -73,10 +73,10 @@ def _offline_tracking(folder: Path) -> None:
     import numpy as np
 
     from calibkit.synthetic import sim
-    from daemon.markers.c3dio import Points
-    from daemon.markers.offline_track import cloud_from_points
-    from daemon.markers.track_file import track_file
-    from daemon.rigid import BodyDef, RigidConfig
+    from daemon.analysis.offline_track import cloud_from_points
+    from daemon.analysis.track_file import track_file
+    from daemon.formats.c3dio import Points
+    from daemon.tracking.rigid import BodyDef, RigidConfig
 
     truth, bodies = sim.rigid_body_motion(2, 240, fps=120.0, markers_per_body=[4, 5], seed=1)
     keep = np.random.default_rng(1).random(len(truth.frame)) > 0.05  # some markers hidden
@@ -90,10 +90,10 @@ def _offline_labelling(folder: Path) -> None:
     set alone on a window, tracking, verification; the compiled labeller (label_take uses
     it on long takes), on a take with hidden markers and ghosts so every stage runs."""
     from calibkit.synthetic import person
-    from daemon.markers.c3dio import Take
-    from daemon.markers.label_offline import label_take
-    from daemon.markers.markerset import SHIPPED, MarkerSet
-    from daemon.markers.markerset_fit import check_points
+    from daemon.formats.c3dio import Take
+    from daemon.labelling.markerset import SHIPPED, MarkerSet
+    from daemon.labelling.markerset_fit import check_points
+    from daemon.labelling.offline import label_take
     from daemon.synthetic.labelling import hide_spans, points_with_ghosts
 
     ms = MarkerSet.load(SHIPPED / "sim_person.toml")
@@ -162,9 +162,9 @@ def cache_location() -> str:
 
     if os.environ.get("NUMBA_CACHE_DIR"):
         return os.environ["NUMBA_CACHE_DIR"]
-    pkg = Path(daemon.__file__).parent / "__pycache__"
-    if os.access(pkg if pkg.exists() else pkg.parent, os.W_OK):
-        return f"{pkg} (and calibkit's, beside its modules)"
+    pkg = Path(daemon.__file__).parent  # each kernel beside its module: tracking/, labelling/...
+    if os.access(pkg, os.W_OK):
+        return f"{pkg}/*/__pycache__ (and calibkit's, beside its modules)"
     return "numba's user-wide cache (~/.cache/numba), or set NUMBA_CACHE_DIR"
 
 

@@ -32,7 +32,7 @@ def _triangulated(path: Path, rig_path: Path | None):
     from calibkit.core.camera import Rig
     from calibkit.core.recording import load_observations
     from calibkit.vision.correspondence import match_frames
-    from daemon.markers.c3dio import Points
+    from daemon.formats.c3dio import Points
 
     if rig_path is None:
         raise UserError(f"{path}: a recording holds 2D blobs; give --rig RIG.toml to "
@@ -76,8 +76,8 @@ def register(app: typer.Typer) -> None:
         json_path: JsonOpt = None,
     ) -> None:
         """Learn a marker set (segments, distances, handedness) from labelled takes."""
-        from daemon.markers.c3dio import read_take
-        from daemon.markers.markerset import learn
+        from daemon.formats.c3dio import read_take
+        from daemon.labelling.markerset import learn
 
         if out.suffix.lower() != ".toml":
             raise UserError(f"--out must be a .toml file, got {out.name}")
@@ -114,9 +114,9 @@ def register(app: typer.Typer) -> None:
         segment's proportions, markers placed otherwise or missing, and a verdict."""
         import numpy as np
 
-        from daemon.markers.c3dio import Points, read_take
-        from daemon.markers.markerset import open_set
-        from daemon.markers.markerset_fit import check_fit, check_points
+        from daemon.formats.c3dio import Points, read_take
+        from daemon.labelling.markerset import open_set
+        from daemon.labelling.markerset_fit import check_fit, check_points
 
         ms = open_set(markerset)
         if not take_path.exists():
@@ -186,13 +186,13 @@ def register(app: typer.Typer) -> None:
         """Name every point of every frame; ghosts are left out."""
         import numpy as np
 
-        from daemon.markers.c3dio import Points, read_take, write_take
-        from daemon.markers.label_offline import (
+        from daemon.formats.c3dio import Points, read_take, write_take
+        from daemon.labelling.markerset import open_set
+        from daemon.labelling.offline import (
             duplicate_trajectories,
             label_take,
             merged_points,
         )
-        from daemon.markers.markerset import open_set
 
         _check_out(out, [points])
         # --seed and --seed-frames: the names these options had before
@@ -282,9 +282,9 @@ def register(app: typer.Typer) -> None:
         json_path: JsonOpt = None,
     ) -> None:
         """Fill the gaps of hidden markers; filled samples are marked (CSV column filled)."""
-        from daemon.markers.c3dio import read_take, write_take
-        from daemon.markers.gapfill import METHODS, fill
-        from daemon.markers.markerset import open_set
+        from daemon.analysis.gapfill import METHODS, fill
+        from daemon.formats.c3dio import read_take, write_take
+        from daemon.labelling.markerset import open_set
 
         _check_out(out, [take_path])
         if method not in METHODS:
@@ -322,8 +322,8 @@ def _register_skeleton(app: typer.Typer) -> None:
         json_path: JsonOpt = None,
     ) -> None:
         """Joint centres by sphere fits, bone lengths; export motion as BVH."""
-        from daemon.markers.c3dio import read_take
-        from daemon.markers.skeleton import export_bvh, fit_skeleton, load_model
+        from daemon.analysis.skeleton import export_bvh, fit_skeleton, load_model
+        from daemon.formats.c3dio import read_take
 
         if out.suffix.lower() != ".toml":
             raise UserError(f"--out must be a .toml file, got {out.name}")

@@ -17,7 +17,7 @@ from calibkit.core.fileio import write_text_atomic
 if TYPE_CHECKING:
     import numpy as np
 
-# daemon.config (the tracker, rigid bodies and their numba kernels) is imported where it
+# daemon.config.mocapd (the tracker, rigid bodies and their numba kernels) is imported where it
 # is used, deferred on purpose: every mocapd command imports this module to register its
 # commands, and loading it costs 0.2-0.3 s of CPU that `mocapd label` does not need.
 
@@ -64,7 +64,7 @@ def append_body(config_path: Path, name: str, body_id: int, markers: np.ndarray)
     that the whole file still validates."""
     import numpy as np
 
-    from daemon.config import parse_config  # deferred: see above
+    from daemon.config.mocapd import parse_config  # deferred: see above
 
     text = config_path.read_text(encoding="utf-8") if config_path.exists() else ""
     table = {"rigid_body": [{"name": name, "id": body_id,
@@ -99,9 +99,9 @@ def register(app: typer.Typer) -> None:
         origin at their centroid and the world's axes."""
         import numpy as np
 
-        from daemon.config import load_config  # deferred: see above
-        from daemon.control import request
-        from daemon.rigid_define import body_from_snapshots
+        from daemon.config.mocapd import load_config  # deferred: see above
+        from daemon.service.control import request
+        from daemon.tracking.rigid_define import body_from_snapshots
 
         if not from_live:
             raise UserError("give --from-live (place the body alone in the volume), or "
@@ -136,8 +136,8 @@ def register(app: typer.Typer) -> None:
         """The rigid bodies a configuration defines, with their closest distance gap."""
         import numpy as np
 
-        from daemon.config import load_config  # deferred: see above
-        from daemon.console import print_table
+        from daemon.config.mocapd import load_config  # deferred: see above
+        from daemon.service.console import print_table
 
         cfg = load_config(config)
         rows = []

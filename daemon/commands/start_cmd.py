@@ -20,7 +20,7 @@ from calibkit.core.errors import UserError
 
 def protocol_outputs(natnet: str | None, natnet_up: str | None, vrpn: list[str]):
     """--natnet IFACE[:COMMAND_PORT] (data port: the next one), --vrpn [HOST:]PORT."""
-    from daemon.config import NatnetOut, VrpnOut, parse_address  # deferred: see above
+    from daemon.config.mocapd import NatnetOut, VrpnOut, parse_address  # deferred: see above
 
     out_natnet = None
     if natnet is not None:
@@ -53,7 +53,7 @@ def command_line_additions(udp: list[str], serial: list[str], mavlink: list[str]
                            natnet: str | None = None, natnet_up: str | None = None,
                            vrpn: list[str] = (), mavlink_origin: str | None = None):
     """A function that adds the flags' outputs to a Config (and again after a reload)."""
-    from daemon.config import (  # deferred: see above
+    from daemon.config.mocapd import (  # deferred: see above
         Config,
         MavlinkOut,
         NatnetOut,
@@ -194,9 +194,9 @@ def register(app: typer.Typer) -> None:
         SIGHUP reloads the configuration. With --frames or --duration it stops by itself
         and prints (and with --json writes) its figures.
         """
-        from daemon.config import Config, load_config  # deferred: see above
-        from daemon.logs import setup_logging
-        from daemon.start import StartOverrides, run_daemon
+        from daemon.config.mocapd import Config, load_config  # deferred: see above
+        from daemon.process.logs import setup_logging
+        from daemon.service.start import StartOverrides, run_daemon
 
         setup_logging(verbose)
         for name, value in (("--frames", frames), ("--duration", duration)):
@@ -228,7 +228,7 @@ def register(app: typer.Typer) -> None:
 
 
 def _report(fig: dict) -> None:
-    from daemon.console import print_table  # deferred: see above (loads rich)
+    from daemon.service.console import print_table  # deferred: see above (loads rich)
 
     lat = fig["latency_to_poses"]
     rows = [["frames", fig["frames"]],

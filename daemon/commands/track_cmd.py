@@ -1,6 +1,6 @@
 """`mocapd track`: rigid-body poses from a file of 3D markers (points CSV, C3D, Motive CSV).
 
-The work is in daemon.markers.track_file, imported by the handler so that other commands
+The work is in daemon.analysis.track_file, imported by the handler so that other commands
 start without it."""
 
 from __future__ import annotations
@@ -63,16 +63,16 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Find and pose rigid bodies in a file of 3D markers with the daemon's own rigid
         tracker; one CSV row per frame and body (see docs/track.md)."""
-        from daemon.config import load_config
-        from daemon.markers.track_file import (
+        from daemon.analysis.track_file import (
             axes_note,
             bodies_from_motive,
             load_markers,
             track_file,
             write_motive,
         )
-        from daemon.markers.trajectory_io import write_poses_csv
-        from daemon.rigid import RigidConfig
+        from daemon.config.mocapd import load_config
+        from daemon.formats.trajectory_io import write_poses_csv
+        from daemon.tracking.rigid import RigidConfig
 
         if (bodies is None) == (not from_file):
             raise UserError("give the bodies to track: --bodies mocapd.toml or "
@@ -140,8 +140,8 @@ def _points_csv(markers: Path, rate: float | None, strict: bool):
     """(Points, BadRows, frame rate) of a points CSV, streamed with its bad rows counted
     (None, None, rate for other files: load_markers reads those); its frame rate is asked
     for before the long read."""
-    from daemon.markers.motive_csv import sniff
-    from daemon.markers.points_csv import points_header
+    from daemon.formats.motive_csv import sniff
+    from daemon.formats.points_csv import points_header
 
     if markers.suffix.lower() != ".csv" or not markers.is_file() or sniff(markers):
         return None, None, rate

@@ -1,8 +1,8 @@
 """A capture node: opens its cameras, detects blobs and publishes them over Zenoh.
 
-Each camera runs on a capture thread as in the daemon (daemon.pipeline.CaptureThread: a
+Each camera runs on a capture thread as in the daemon (daemon.capture.pipeline.CaptureThread: a
 camera that fails is reopened), with the daemon's detector and per-camera settings
-(daemon.sources.DetectCamera). Each frame goes out alone on its camera's key as soon as it
+(daemon.capture.sources.DetectCamera). Each frame goes out alone on its camera's key as soon as it
 is detected (CapturePublisher), stamped on the node's clock (daemon.nodes.wire); with
 `publish = "sets"` the frames of one trigger from all the node's cameras go out as one
 message when the last of them is in (SetPublisher). The node answers the daemon's clock
@@ -28,13 +28,13 @@ import time
 from calibkit.cameras import missing_plugins
 from calibkit.core.errors import UserError
 from calibkit.vision.detect import DetectorConfig
-from daemon import heap
+from daemon.capture.pipeline import CaptureThread
+from daemon.capture.sources import DetectCamera
 from daemon.nodes import wire
 from daemon.nodes.session import announce_key, blobs_key, ping_key, pong_key, sets_key
 from daemon.nodes.settings import NodeConfig
-from daemon.pipeline import CaptureThread
-from daemon.realtime import raise_priority, restore_normal
-from daemon.sources import DetectCamera
+from daemon.process import heap
+from daemon.process.realtime import raise_priority, restore_normal
 
 log = logging.getLogger("mocapd.node")
 ANNOUNCE_S = 1.0
@@ -193,12 +193,12 @@ class Node:
                  capture=None) -> None:
         """`capture(sources, pushes)`: what runs the cameras, as (runners with start, stop
         and join; per camera, a state with connected and frames); by default a capture
-        thread each (daemon.pipeline.CaptureThread), both roles in one."""
+        thread each (daemon.capture.pipeline.CaptureThread), both roles in one."""
         self.cfg, self.sources = cfg, list(sources)
         self.capture = capture or _capture_threads
         self.clock = clock or NodeTime()
         self.boot = random.SystemRandom().getrandbits(32)
-        self.scheduling = "normal"  # what its threads run at, once started (daemon.realtime)
+        self.scheduling = "normal"  # its threads' priority once started (daemon.process.realtime)
         self.stop_event = threading.Event()
         self.runners: list = []
         self.captures: list = []  # per camera: connected, frames
@@ -231,7 +231,7 @@ class Node:
         # a clock ping waits for the interpreter's lock before it is stamped; the default
         # 5 ms switch interval would let a busy capture thread add that to one leg only
         sys.setswitchinterval(1e-4)
-        # ahead of ordinary work, as the daemon's threads (daemon.realtime): before the
+        # ahead of ordinary work, as the daemon's threads (daemon.process.realtime): before the
         # session and the capture threads start, so that theirs inherit it
         self.scheduling = raise_priority(self.cfg.realtime_priority)
 
@@ -251,7 +251,7 @@ class Node:
                   CapturePublisher(self.session, blobs_key(rig, src.name), self.boot,
                                    self.clock) for k, src in enumerate(self.sources)]
         self.runners, self.captures = self.capture(self.sources, pushes)
-        heap.freeze_startup()  # as the daemon does (daemon.heap)
+        heap.freeze_startup()  # as the daemon does (daemon.process.heap)
         for runner in self.runners:
             runner.start()
         log.info("node %s (boot %08x): %d cameras on mocap/%s/ (%s)", self.cfg.name,

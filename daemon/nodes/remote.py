@@ -14,7 +14,7 @@ up. Zenoh's callbacks do no more than decode and push (the multiplexer's push ne
 waits for the frame loop): nothing the network does can hold up the frame loop.
 
 A sample's `arrival_ns` is when the node got the frame, mapped to the daemon's clock: the
-multiplexer's per-camera clock model (daemon.clocks) then learns the camera's clock
+multiplexer's per-camera clock model (daemon.capture.clocks) then learns the camera's clock
 against the node's arrivals (a USB or GigE transfer, tight), not against the network's
 jitter; what the node -> daemon hop adds is counted here, per node.
 """
@@ -31,12 +31,12 @@ from collections import deque
 import numpy as np
 
 from calibkit.core.errors import UserError
+from daemon.capture.sources import CameraSample
 from daemon.nodes import wire
 from daemon.nodes.clock import NodeClock
 from daemon.nodes.session import all_blobs_key, all_sets_key, check_name, ping_key
 from daemon.nodes.zenoh_table import DaemonZenoh, is_remote
 from daemon.publish.bad_input import BadInput
-from daemon.sources import CameraSample
 
 log = logging.getLogger("mocapd.nodes")
 PING_HZ = 20.0
@@ -370,7 +370,7 @@ class RemoteCapture:
     the daemon's interpreter as much as the rest of a sample's way and added its wake-up
     to every frame's latency. Zenoh's callback hands each sample to the multiplexer
     itself, and the hub's watchdog drops a camera that has gone silent. To the daemon it
-    looks like daemon.pipeline.CaptureThread: `push` and `on_open` (called before the
+    looks like daemon.capture.pipeline.CaptureThread: `push` and `on_open` (called before the
     first sample of every session, so the multiplexer starts the camera's clock afresh),
     `connected`, `frames`, `failures`, `rate_hz()`."""
 

@@ -1,6 +1,6 @@
 """A capture node's node.toml (mocapd.toml's [zenoh] table is daemon.nodes.zenoh_table).
 
-Checked up front as mocapd.toml is (daemon.config): one line naming the file, the key and
+Checked up front as mocapd.toml is (daemon.config.mocapd): one line naming the file, the key and
 the problem, before anything opens.
 
     node.toml     name, realtime_priority, publish, set_wait_ms,
@@ -17,8 +17,8 @@ from pathlib import Path
 import tomllib
 
 from calibkit.core.errors import UserError
-from daemon.config import CameraIn, SimConfig, _camera, _dataclass_table, _sim_limits
-from daemon.config_check import _check_keys, _list, _number, _string, _table, _Where
+from daemon.config.check import _check_keys, _list, _number, _string, _table, _Where
+from daemon.config.mocapd import CameraIn, SimConfig, _camera, _dataclass_table, _sim_limits
 from daemon.nodes.session import ZenohSettings, check_name
 from daemon.nodes.zenoh_table import DEFAULT_PORT, _session
 

@@ -1,14 +1,14 @@
 """mocapd.toml's [zenoh] table (keys rig, listen, connect, multicast_scouting, cameras, poses,
 timeout_ms, max_lag_ms): the daemon's Zenoh session, which cameras come from capture
 nodes, and whether poses go out over Zenoh (the nodes' own files are daemon.nodes.settings).
-Apart from those so that daemon.config can read it without importing them back."""
+Apart from those so that daemon.config.mocapd can read it without importing them back."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from daemon.config_check import _bool, _check_keys, _number, _string
+from daemon.config.check import _bool, _check_keys, _number, _string
 from daemon.nodes.session import ZenohSettings, check_endpoint, check_name, read_users
 
 DEFAULT_PORT = 7447  # Zenoh's own default port
@@ -64,7 +64,7 @@ def _session(w, t, prefix: str, listen_default=(), base: Path | None = None) -> 
 
 
 def parse_daemon_zenoh(w, t: dict, base: Path | None = None) -> DaemonZenoh:
-    """mocapd.toml's [zenoh] table (`w`: daemon.config's error helper)."""
+    """mocapd.toml's [zenoh] table (`w`: daemon.config.mocapd's error helper)."""
     p = "zenoh."
     _check_keys(w, t, {"rig", "listen", "connect", "multicast_scouting", "cameras", "poses",
                        "timeout_ms", "max_lag_ms", "user", "password", "users_file"}, p)

@@ -52,7 +52,7 @@ class Publisher:
         """Open the port or socket; raise OSError (or any error) when it cannot."""
 
     def send(self, result) -> None:
-        """Send one FrameResult (daemon.pipeline) on the open output."""
+        """Send one FrameResult (daemon.capture.pipeline) on the open output."""
         raise NotImplementedError
 
     def close(self) -> None:

@@ -53,7 +53,7 @@ def euler_zyx(R: np.ndarray) -> tuple[float, float, float]:
 
 def quaternion_wxyz(R: np.ndarray) -> list[float]:
     # deferred on purpose: loads numba (compiled kernels) only where used
-    from daemon.rigid import quaternion_xyzw
+    from daemon.tracking.rigid import quaternion_xyzw
 
     x, y, z, w = quaternion_xyzw(R[None])[0]
     return [float(w), float(x), float(y), float(z)]

@@ -97,7 +97,7 @@ class NatNetPublisher(Publisher):
     """Serves NatNet: answers the command port, sends frames by multicast and unicast."""
 
     # open servers by (interface, command port). A reload starts the new publisher while
-    # the old one still runs (daemon.pipeline): the new one takes over the old one's command
+    # the old one still runs (daemon.capture.pipeline): the new one takes over the old one's command
     # socket and clients, so no request goes unanswered and no client has to connect again
     # (libmotioncapture never does)
     _live: dict[tuple, NatNetPublisher] = {}

@@ -72,7 +72,7 @@ class Commands:
     subscription (by its address), the take name and session for recordings.
 
     `bodies` (BodyDef) resolve subscriptions by name; `control` is the daemon's control
-    request handler (daemon.service.Daemon.handle), through which StartRecording and
+    request handler (daemon.service.daemon.Daemon.handle), through which StartRecording and
     StopRecording record as `mocapd record` does, into `record_dir`.
 
     Recording writes to the disk, so its commands are taken only from `record_from`

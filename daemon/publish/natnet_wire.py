@@ -280,7 +280,7 @@ def frame_payload(result, up_axis: str = "z", legacy_unlabeled: bool = False,
                   markerset_id: int = MARKERSET_ID, version: tuple[int, int] = DEFAULT_VERSION,
                   timecode: tuple[int, int] = (0, 0), precision: tuple[int, int] = (0, 0),
                   recording: bool = False, view: View = EVERYTHING) -> bytes:
-    """The NAT_FRAMEOFDATA payload for a FrameResult (daemon.pipeline); with a
+    """The NAT_FRAMEOFDATA payload for a FrameResult (daemon.capture.pipeline); with a
     MarkerModel, the bodies' (and the live marker set's) marker sets too. Markers the
     live marker set named (result.labelled) are labelled (markerset_id << 16 | index + 1)
     unless a body holds them. `timecode` and `precision` (see timecode() and

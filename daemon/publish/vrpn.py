@@ -179,7 +179,7 @@ class VrpnPublisher(Publisher):
     """A VRPN server with one tracker per rigid body."""
 
     # open servers by (host, port): a reload's new server takes over the old one's sockets
-    # and connected clients (daemon.pipeline starts it before stopping the old one), so
+    # and connected clients (daemon.capture.pipeline starts it before stopping the old one), so
     # clients stay connected instead of reconnecting seconds later
     _live: dict[tuple, VrpnPublisher] = {}
     _live_lock = threading.Lock()

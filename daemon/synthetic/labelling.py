@@ -8,15 +8,15 @@ from collections import deque
 import numpy as np
 
 from calibkit.synthetic import person as sim_person
-from daemon.markers.c3dio import Points, Take
-from daemon.markers.markerset import MarkerSet, learn
+from daemon.formats.c3dio import Points, Take
+from daemon.labelling.markerset import MarkerSet, learn
 
 
 def sim_person_set() -> MarkerSet:
     """The marker set of the simulator's person (calibkit.synthetic.person), learned from a
-    range-of-motion take and a walk of it: what daemon/markers/sets/sim_person.toml holds
+    range-of-motion take and a walk of it: what daemon/labelling/sets/sim_person.toml holds
     (`python -c "from daemon.synthetic.labelling import sim_person_set as s;
-    s().save('daemon/markers/sets/sim_person.toml')"` writes it again)."""
+    s().save('daemon/labelling/sets/sim_person.toml')"` writes it again)."""
     rom = sim_person.range_of_motion(2400, 120.0, noise_m=0.0003, seed=3)
     walk = sim_person.walk_circle(1200, 120.0, noise_m=0.0003, seed=4)
     return learn([Take(rom.labels, rom.markers_m, 120.0), Take(walk.labels, walk.markers_m,

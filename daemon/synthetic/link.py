@@ -21,7 +21,7 @@ import threading
 import time
 from collections import deque
 
-from daemon.sources import fine_timer_slack
+from daemon.capture.sources import fine_timer_slack
 
 
 def _pump(src: socket.socket, dst: socket.socket, delay_ns: int, jitter_ns: int,

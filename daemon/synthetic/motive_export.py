@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from calibkit.synthetic.sim import rigid_body_motion
-from daemon.markers.c3dio import Take
+from daemon.formats.c3dio import Take
 from daemon.synthetic.labelling import hide_spans
 
 

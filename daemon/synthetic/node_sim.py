@@ -15,9 +15,9 @@ import logging
 import time
 
 from calibkit.core.errors import UserError
+from daemon.capture.sources import fine_timer_slack
 from daemon.nodes.settings import NodeConfig
-from daemon.sources import fine_timer_slack
-from daemon.worker import Worker
+from daemon.process.worker import Worker
 
 log = logging.getLogger("mocapd.node")
 
@@ -61,7 +61,7 @@ class SimNodeCapture(Worker):
     cameras' sessions (SimCamera.session) by arrival time, sleeps until each frame is due
     and stamps its arrival when it wakes, as a camera's own thread would; frames already
     due when it wakes are taken at once. A camera that fails (simulated disconnection) is
-    reopened after `retry_s`, as daemon.pipeline.CaptureThread does."""
+    reopened after `retry_s`, as daemon.capture.pipeline.CaptureThread does."""
 
     def __init__(self, cameras, pushes, retry_s: float = 0.2) -> None:
         self.cameras, self.pushes = list(cameras), list(pushes)

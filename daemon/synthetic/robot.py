@@ -36,7 +36,7 @@ import numpy as np
 from calibkit.core.errors import UserError
 from calibkit.core.observations import Truth
 from calibkit.synthetic import sim
-from daemon.config import SimConfig, SimRobot
+from daemon.config.mocapd import SimConfig, SimRobot
 from daemon.publish.arrival_stamps import receive_stamped, stamp_arrivals
 
 log = logging.getLogger("mocapd")

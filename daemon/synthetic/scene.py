@@ -31,9 +31,9 @@ from calibkit.core.errors import UserError
 from calibkit.core.observations import Truth
 from calibkit.synthetic import person as sim_person
 from calibkit.synthetic import sim
-from daemon.config import SimConfig
-from daemon.multiplexer import FrameSet
-from daemon.sources import CameraSample, fine_timer_slack
+from daemon.capture.multiplexer import FrameSet
+from daemon.capture.sources import CameraSample, fine_timer_slack
+from daemon.config.mocapd import SimConfig
 from daemon.synthetic.ledger import Ledger
 from daemon.synthetic.robot import LiveRobot
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from daemon.markers.c3dio import Take
+from daemon.formats.c3dio import Take
 
 # segment: (markers, joint it hangs from, parent segment); joints are markers or means
 JOINTS = {

@@ -13,7 +13,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation, RotationSpline
 
-from daemon.markers.trajectory_io import Trajectory
+from daemon.formats.trajectory_io import Trajectory
 
 
 @dataclass(frozen=True, eq=False)

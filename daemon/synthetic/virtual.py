@@ -14,7 +14,7 @@ import heapq
 
 import numpy as np
 
-from daemon.multiplexer import Multiplexer
+from daemon.capture.multiplexer import Multiplexer
 from daemon.synthetic.scene import SimCamera, SimScene
 
 START_NS = 10**12

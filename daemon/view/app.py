@@ -22,8 +22,8 @@ import numpy as np
 
 from calibkit.core.errors import UserError
 from calibkit.vision.masks import load_mask
-from daemon.control import request
 from daemon.publish.bad_input import BadInput
+from daemon.service.control import request
 from daemon.view import draw, quiet
 from daemon.view.detection_panel import DetectionPanel
 

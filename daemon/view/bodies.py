@@ -3,7 +3,7 @@
 A body is made exactly as `mocapd rigid-body add --from-live` makes one: frames of the
 daemon's `markers` answer over its control socket (kept to the markers picked in the 3D
 view instead of those --near a point), clustered into a definition
-(daemon.rigid_define), appended as a [[rigid_body]] table after the whole file is checked,
+(daemon.tracking.rigid_define), appended as a [[rigid_body]] table after the whole file is checked,
 and the daemon asked to reload. Renaming and removing edit that one table's text and keep
 the rest of the file, comments included, byte for byte; the result must parse to the same
 configuration but for that body, or nothing is written.
@@ -18,8 +18,8 @@ import numpy as np
 
 from calibkit.core.errors import UserError
 from daemon.commands.rigid_cmd import append_body, body_from_markers, capture_snapshots
-from daemon.config import load_config
-from daemon.rigid_define import body_from_snapshots
+from daemon.config.mocapd import load_config
+from daemon.tracking.rigid_define import body_from_snapshots
 from daemon.view import tomledit
 
 NAME_LINE = re.compile(r"^(\s*name\s*=\s*)(\"[^\"]*\"|'[^']*')(.*)$")

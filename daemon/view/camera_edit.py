@@ -109,7 +109,7 @@ def set_mask(config, camera: str, mask: np.ndarray | None, merge: bool = True) -
         _edit(path, camera, lambda lines: tomledit.remove_key(lines, "mask"))
         return None
     # deferred on purpose: loads numba (compiled kernels) only where used
-    from daemon.config import load_config
+    from daemon.config.mocapd import load_config
 
     table = next((c for c in load_config(path).cameras if c.name == camera), None)
     if table is None:

@@ -72,7 +72,7 @@ def describe(daemon) -> dict:
     """What the view needs once (and again after a reload): the rig, the bodies' names,
     where the control socket and the configuration are, the cameras' detection settings."""
     # deferred on purpose: loads numba (compiled kernels) only where used
-    from daemon.config import default_runtime_dir
+    from daemon.config.mocapd import default_runtime_dir
 
     cfg = daemon.config
     ms = daemon._markerset() if hasattr(daemon, "_markerset") else None

@@ -22,7 +22,7 @@ from calibkit.core.errors import UserError
 from calibkit.core.recording import load_observations
 from calibkit.vision.correspondence import match_frames
 from calibkit.vision.gates import gated_config
-from daemon.markers.c3dio import read_take
+from daemon.formats.c3dio import read_take
 from daemon.view import draw
 
 LABELLED = (60, 220, 90)
@@ -53,7 +53,7 @@ class ReplayFrames:
 
 
 def from_take(take, ms=None) -> ReplayFrames:
-    """A labelled take (daemon.markers.c3dio.Take); sticks from the marker set `ms` for
+    """A labelled take (daemon.formats.c3dio.Take); sticks from the marker set `ms` for
     the labels the take has."""
     vis = np.isfinite(take.xyz_m).all(axis=2)
     _, col = np.nonzero(vis)
@@ -118,7 +118,7 @@ def load_replay(path: Path, rig_path: Path | None = None, markerset: str | None 
     ms = None
     if markerset is not None:
         # deferred on purpose: loads tomli_w only where used
-        from daemon.markers.markerset import open_set
+        from daemon.labelling.markerset import open_set
 
         ms = open_set(markerset)
     return from_take(read_take(path), ms), rig

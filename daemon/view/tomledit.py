@@ -95,7 +95,7 @@ def write_checked(path: Path, old_text: str, new_text: str,
     """Write new_text only if it parses to expect(the old file's tables) and the daemon
     accepts it: nothing else may have moved."""
     # deferred on purpose: loads numba (compiled kernels) only where used
-    from daemon.config import parse_config
+    from daemon.config.mocapd import parse_config
 
     old = tomllib.loads(old_text)
     try:

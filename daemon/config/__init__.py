@@ -1,0 +1,1 @@
+"""The daemon's configuration: mocapd.toml read, checked and turned into a Config."""

@@ -1,0 +1,126 @@
+"""The whole-body terms of the start's score beyond the pairwise distances: the set's
+handedness tetrahedra and the shapes of its rigid modules.
+
+Distances cannot tell a body from its mirror image, nor a foot's markers turned around
+their tetrahedron; the signs of the set's handedness quadruples and a proper (no
+reflection) fit of each rigid module's shape can. The global assignment
+(daemon/labelling/assign.py) and the verification (verify.py) add these terms
+to the pairwise compatibility, and score a labelling that differs in a few markers from
+the last one by what changed only.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from daemon.labelling.markerset import MarkerSet
+from daemon.labelling.modules import module_template, rigid_modules, template_sigma
+
+MODULE_WEIGHT = 0.3    # score per marker of a rigid module per unit chi-square of its shape
+HAND_WEIGHT = 1.0       # score per handedness vote, in units of one well-fitting pair
+
+
+class BodyTerms:
+    """The terms of the whole-body score beyond the pairwise compatibility, for one
+    window: the set's handedness tetrahedra (signed volumes' signs over the window
+    against the set's) and the shapes of its rigid modules (a proper, scaled Procrustes
+    fit of the set's shape of each module of 4+ markers, which tells a module from its
+    mirror image and its reorderings)."""
+
+    def __init__(self, X: np.ndarray, ms: MarkerSet, frames: int = 6,
+                 noise_m: float = 0.003) -> None:
+        self.ms = ms
+        W = X.shape[1]
+        self.X = X[:, np.linspace(0, W - 1, min(W, frames)).astype(int)]     # (T, f, 3)
+        self.quads = np.concatenate([ms.chiral, ms.pair_quads]).astype(int).reshape(-1, 4)
+        self.signs = np.concatenate([ms.chiral_sign, ms.pair_sign])
+        self.modules = [m for m in rigid_modules(ms) if len(m) >= 4]
+        self.shapes = [module_template(ms, m) for m in self.modules]
+        self.sigma = np.array([template_sigma(ms, m, noise_m) for m in self.modules])
+
+        self.quads_of = [np.nonzero((self.quads == i).any(1))[0] for i in range(ms.n)]
+        self.mods_of = [[k for k, m in enumerate(self.modules) if i in m] for i in range(ms.n)]
+        self.mt = None
+        self._memo: dict[tuple, float] = {}
+
+    def _votes(self, mt: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """Each quad's vote (+1 agrees with the set, -1 not, 0 unknown) among quads q."""
+        out = np.zeros(len(q))
+        if not len(q):
+            return out
+        ok = (mt[self.quads[q]] >= 0).all(1)
+        if not ok.any():
+            return out
+        x = self.X[mt[self.quads[q[ok]]]]                           # (q, 4, f, 3)
+        a, b, c = (x[:, k] - x[:, 0] for k in (1, 2, 3))
+        v = np.einsum("qfi,qfi->qf", np.cross(a, b), c)
+        s = np.sign(np.sign(np.where(np.isfinite(v), v, 0.0)).sum(1))     # majority
+        out[ok] = s * self.signs[q[ok]]
+        return out
+
+    def _module_cost(self, mt: np.ndarray, k: int) -> float:
+        """Markers x chi-square per marker (capped at 16) of module k's shape, fitted to
+        its labelled markers (3 or more); a member left unlabelled costs 1 (as much as
+        one that fits), so that leaving a marker out does not pay."""
+        key = (k, *mt[self.modules[k]].tolist())
+        if key not in self._memo:
+            self._memo[key] = self._module_cost_of(mt, k)
+        return self._memo[key]
+
+    def _module_cost_of(self, mt: np.ndarray, k: int) -> float:
+        m = self.modules[k]
+        have = mt[m] >= 0
+        if have.sum() < 3:
+            return float(len(m))
+        x = np.swapaxes(self.X[mt[m[have]]], 0, 1)                  # (f, h, 3)
+        ok = np.isfinite(x).all((1, 2))
+        if not ok.any():
+            return float(len(m))
+        r2 = _scaled_proper_residual(self.shapes[k][have], x[ok])
+        chi2 = min(float(np.median(r2)) / self.sigma[k] ** 2, 16.0)
+        return have.sum() * chi2 + (~have).sum()
+
+    def __call__(self, mt: np.ndarray) -> float:
+        """The terms' value for the labelling mt (marker -> track); remembered, so that
+        `change` can score a labelling that differs in a few markers."""
+        self.mt = mt.copy()
+        self.vote = self._votes(mt, np.arange(len(self.quads)))
+        self.cost = np.array([self._module_cost(mt, k) for k in range(len(self.modules))])
+        return HAND_WEIGHT * self.vote.sum() - MODULE_WEIGHT * self.cost.sum()
+
+    def _affected(self, m2: np.ndarray) -> tuple[np.ndarray, list[int]]:
+        ch = np.nonzero(m2 != self.mt)[0]
+        q = np.unique(np.concatenate([self.quads_of[i] for i in ch])) if len(ch) else []
+        return np.asarray(q, int), sorted({k for i in ch for k in self.mods_of[i]})
+
+    def gain_bound(self, m2: np.ndarray) -> float:
+        """At most how much the terms can rise from the last labelling to m2."""
+        q, ks = self._affected(m2)
+        return HAND_WEIGHT * float((1.0 - self.vote[q]).sum()) + \
+            MODULE_WEIGHT * float(self.cost[ks].sum())
+
+    def change(self, m2: np.ndarray) -> float:
+        """The terms' change from the last labelling scored by __call__ to m2."""
+        q, ks = self._affected(m2)
+        dv = (self._votes(m2, q) - self.vote[q]).sum()
+        dc = sum(self._module_cost(m2, k) - self.cost[k] for k in ks)
+        return HAND_WEIGHT * dv - MODULE_WEIGHT * dc
+
+
+def _scaled_proper_residual(shape: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Mean squared residual per frame (f,) of the best proper rotation, translation and
+    scale (within 0.8-1.25) of `shape` (k, 3) onto each frame's points x (f, k, 3)."""
+    S0 = shape - shape.mean(0)
+    X0 = x - x.mean(1, keepdims=True)
+    H = np.einsum("ki,fkj->fij", S0, X0)
+    U, sv, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(np.einsum("fji,fkj->fik", Vt, U)))
+    d = np.where(d == 0, 1.0, d)
+    sv = sv.copy()
+    sv[:, 2] *= d
+    Vt = Vt.copy()
+    Vt[:, 2] *= d[:, None]
+    R = np.einsum("fji,fkj->fik", Vt, U)
+    scale = np.clip(sv.sum(1) / (S0 ** 2).sum(), 0.8, 1.25)
+    fit = scale[:, None, None] * np.einsum("fij,kj->fki", R, S0)
+    return ((fit - X0) ** 2).sum(2).mean(1)

@@ -1,0 +1,165 @@
+"""Labelling a whole take: the start (labelled frames, or a window from the set alone),
+then the tracker forward to the end and backward to the first frame; and the take-level
+figures about duplicates."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+
+from calibkit.core.blas import one_blas_thread
+from daemon.formats.c3dio import Points, Take
+from daemon.labelling.assign import pair_stats
+from daemon.labelling.labeller import Labeller
+from daemon.labelling.markerset import MarkerSet
+from daemon.labelling.markerset_fit import check_fit
+from daemon.labelling.start import window_start
+from daemon.labelling.verify import MARGIN, Verification, carry_back, improve, verify_labels
+
+KERNELS_FROM = 8000      # frames from which loading the compiled kernels pays off
+
+
+def label_take(points: Points, ms: MarkerSet, rate_hz: float = 120.0,
+               start_labels: Take | None = None, start_frames: int = 0, progress=None,
+               options: dict | None = None, from_window: bool = True,
+               verify: bool = True) -> tuple[Take, np.ndarray, np.ndarray]:
+    """Label every frame of `points`. With `start_labels` (a labelled take) its first
+    `start_frames` frames are taken as they are and tracking starts after them; without,
+    a window of frames is labelled from the marker set alone (`from_window`; otherwise
+    the first frame, as the live labeller does). With `verify` the labels are then
+    checked against the set window by window, and a window whose labels went wrong is
+    labelled again (daemon/labelling/verify.py). Returns the labelled take, per-frame
+    confidence (mean over labelled markers) and the per-point labels (aligned with points
+    rows after sorting by frame, see `Points.split`). Small matrices throughout: one
+    BLAS thread (calibkit/core/blas.py)."""
+    with one_blas_thread():
+        return _label_take(points, ms, rate_hz, start_labels, start_frames, progress,
+                           options, from_window, verify)
+
+
+def _label_take(points, ms, rate_hz, start_labels, start_frames, progress, options,
+                from_window, verify):
+    frames, per_frame = points.split()
+    options = dict(options or {})
+    # the compiled kernels cost ~0.4 s of CPU to load and save ~0.05 ms a frame: on a
+    # shorter take their numpy twins are faster (unless the kernels are loaded already)
+    options.setdefault("compiled", len(per_frame) >= KERNELS_FROM
+                       or "daemon.labelling.kernels" in sys.modules)
+    lab = Labeller(ms, rate_hz, **options)
+    n_frames = int(frames[-1] - frames[0] + 1) if len(frames) else 0
+    first = int(frames[0]) if len(frames) else 0
+    xyz = np.full((n_frames, ms.n, 3), np.nan)
+    conf = np.zeros(n_frames)
+    labels_out = []
+    start = 0
+    own = None            # this body's distances from labelled start frames: they outrank the set
+    if start_labels is not None and start_frames > 0:
+        s = start_labels.select(ms.labels)
+        use = min(start_frames, s.n_frames)
+        sx = s.xyz_m[:use]
+        lab.start_from_labelled_frames(sx)
+        own = start_distances(sx, ms, lab.noise_m)
+        fidx = np.arange(use) + s.first_frame - first
+        keep = (fidx >= 0) & (fidx < n_frames)
+        xyz[fidx[keep]] = sx[keep]
+        conf[fidx[keep]] = 1.0
+        start = int(np.searchsorted(frames, s.first_frame + use))
+        for f in range(start):
+            labels_out.append(np.full(len(per_frame[f]), -2))
+    order = list(range(start, len(frames)))
+    out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    if start == 0 and len(frames) and from_window:
+        # from the marker set alone: one global assignment on a window of frames
+        # (daemon/labelling/start.py), handed to the tracker as labelled start frames, then
+        # tracked forward from the window's end and backward from its start
+        w0, wl, wx = window_start(per_frame, ms, noise_m=lab.noise_m,
+                                  merge_m=lab.merge_m)
+        # the tracker learns this body's distances and shapes from the whole window,
+        # then labels the window itself from its first two frames (markers the start
+        # left out, e.g. hidden for most of the window, are found on the way)
+        lab.start_from_labelled_frames(wx)
+        S = min(2, len(wl))
+        lab.start_from_labelled(wx[0])
+        if S > 1:
+            lab.update_labelled(wx[1])
+        for w in range(S):
+            out[w0 + w] = (wl[w], np.where(wl[w] >= 0, 0.5, 0.0))
+        order = list(range(w0 + S, len(frames)))
+        if w0 > 0:
+            back = Labeller(ms, rate_hz, **options)
+            back.start_from_labelled_frames(wx[::-1])
+            for i in range(w0 - 1, -1, -1):
+                out[i] = back.update(per_frame[i])
+    check = Verification(ms, per_frame, out, noise_m=lab.noise_m, own=own) if verify else None
+    for n_done, i in enumerate(order):
+        out[i] = lab.update(per_frame[i])
+        if check is not None:
+            check.after(lab, order, n_done)
+        if progress is not None and n_done % 200 == 0:
+            progress.update(n_done)
+    if check is not None:
+        check.finish(lab, order)
+        if order and order[0] > start:      # the frames before the window, labelled backward
+            if check.head is not None:      # ... from the start's labels, renamed since
+                ahead = list(range(start, order[0]))[::-1]
+                back = [ahead[j:j + check.width][::-1] for j in range(0, len(ahead), check.width)]
+                carry_back(per_frame, out, back, check.head, ms, check.head_ref, lab.noise_m)
+            verify_labels(per_frame, out, range(start, order[0]), ms, noise_m=lab.noise_m)
+    for i in range(start, len(frames)):
+        P = per_frame[i]
+        m, c = out[i]
+        fi = int(frames[i] - first)
+        got = m >= 0
+        xyz[fi, m[got][::-1]] = P[got][::-1]      # a duplicate: its first point
+        conf[fi] = float(c[got].mean()) if got.any() else 0.0
+        labels_out.append(m)
+    take = Take(list(ms.labels), xyz, rate_hz, first)
+    return take, conf, labels_out
+
+
+def duplicate_trajectories(take: Take, within_m: float = 0.006, share: float = 0.9
+                           ) -> list[tuple[str, str, int]]:
+    """Pairs of a file's trajectories that are one marker stored twice: within
+    `within_m` of each other in at least `share` of the frames both are seen (and in at
+    least 3 frames). Returns (name, twin, frames together) for each pair."""
+    x = take.xyz_m
+    out = []
+    for i in range(len(take.labels)):
+        d = np.linalg.norm(x[:, i + 1:] - x[:, i:i + 1], axis=2)       # (F, n - i - 1)
+        both = np.isfinite(d).sum(0)
+        close = (d < within_m).sum(0)
+        for j in np.nonzero((both >= 3) & (close >= share * np.maximum(both, 1)))[0]:
+            out.append((take.labels[i], take.labels[i + 1 + j], int(both[j])))
+    return out
+
+
+def merged_points(labels_per_frame: list[np.ndarray]) -> int:
+    """Points labelled as a marker another point of their frame already is (duplicates
+    taken as one)."""
+    return int(sum(int((m >= 0).sum()) - len(np.unique(m[m >= 0])) for m in labels_per_frame))
+
+
+def start_distances(xyz: np.ndarray, ms, noise_m: float = 0.003,
+                    trust: float = 3.0) -> tuple[np.ndarray, np.ndarray] | None:
+    """This body's distances (mean, SD (n, n)) from labelled start frames (f, n, 3), for
+    `own_agrees`, or None where the start is not to be trusted. A labelled start can
+    itself be wrong (a leg's labels shifted by one marker, a pelvis mirrored): where the
+    set's local search (verification's, daemon/labelling/verify.py) relabels the
+    start frames themselves, they vouch for nothing; and a marker more than `trust`
+    allowances off the set there (markerset_fit's misfit; a body re-proportioned by
+    15 % sits within 1-3) is not vouched for: the set decides about it."""
+    X = np.ascontiguousarray(xyz.transpose(1, 0, 2))
+    seen = np.isfinite(X).all(2).any(1)
+    lab = np.where(seen, np.arange(ms.n), -1)
+    got, gain = improve(np.where(seen[:, None, None], X, np.nan)[seen], ms, lab[seen],
+                        noise_m)
+    if gain >= MARGIN and not np.array_equal(got, lab[seen]):
+        return None
+    M, S = pair_stats(X)
+    fit = check_fit(ms, xyz, noise_m=noise_m)
+    off = np.array([fit.misfit.get(name, 0.0) > trust for name in ms.labels])
+    M = M.copy()
+    M[off] = np.nan
+    M[:, off] = np.nan
+    return M, S
