@@ -13,7 +13,9 @@ dance stay. Scored against the truth (the scorer may read it, the solve never do
   wand box mm   the grid over the box the wand went through, best-fit aligned: what
                 wand_shape predicts
   predicted mm  wand_shape.shape_uncertainty from each solve's own covariance (RMS over
-                the draws; the others are RMS over the draws too)
+                the draws; the others are RMS over the draws too); beside it the same had
+                all intrinsics, or only the focal lengths, the principal points or the
+                distortion terms of every camera been known (other views of the cameras)
 
 If the error scales with the noise (--noise 0.01) and matches the prediction, it is the
 capture's information, not a bias: no choice of solve reaches below it.
@@ -63,6 +65,7 @@ def run(seed: int, draws: list[int], frames: int, noise_px: float) -> list[dict]
                         "wand_box_mm": best_fit_grid_mm(rig, cal.rig, box),
                         "predicted_mm": shape["grid_rms_mm"],
                         "intrinsics_known_mm": shape.get("intrinsics_known_mm", np.nan),
+                        **{f"known_{k}_mm": v for k, v in shape.get("if_known_mm", {}).items()},
                         "cpu_s": cpu})
             print(out[-1], file=sys.stderr, flush=True)
     return out
@@ -75,11 +78,15 @@ def table(runs: list[dict]) -> None:
 
         def rms(key, g=g):
             return float(np.sqrt(np.mean(np.square([r[key] for r in g]))))
+        known = [rms(f"known_{k}_mm") if f"known_{k}_mm" in g[0] else np.nan
+                 for k in wand_shape.GROUPS]
         rows.append([mode, len(g), rms("grid_mm"), rms("best_fit_mm"), rms("wand_box_mm"),
-                     rms("predicted_mm"), rms("intrinsics_known_mm"),
+                     rms("predicted_mm"), rms("intrinsics_known_mm"), *known,
                      float(np.median([r["cpu_s"] for r in g]))])
     print_table(rows, ["intrinsics", "draws", "grid mm", "best fit mm", "wand box mm",
-                       "predicted mm", "predicted, intrinsics known mm", "cpu s median"])
+                       "predicted mm", "predicted, all known",
+                       *[f"predicted, {k.replace('_', ' ')} known" for k in wand_shape.GROUPS],
+                       "cpu s median"])
 
 
 def main() -> None:

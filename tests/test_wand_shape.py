@@ -56,6 +56,9 @@ def test_prediction_matches_the_error_against_the_truth(scene):
             if refine:
                 known.append(shape["intrinsics_known_mm"])
                 assert shape["intrinsics_part_mm"] > shape["intrinsics_known_mm"]
+                # knowing one group of parameters helps, but less than knowing them all
+                for group, mm in shape["if_known_mm"].items():
+                    assert shape["intrinsics_known_mm"] < mm < shape["grid_rms_mm"], group
 
     def rms(v):
         return float(np.sqrt(np.mean(np.square(v))))

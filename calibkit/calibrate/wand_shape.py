@@ -37,6 +37,9 @@ STEP_RAD = 1e-6  # finite-difference step for rotations (rad), and metres for po
 STEP_REL = 1e-6  # ... and relative to each intrinsic's size (at least 1e-6 absolute)
 INTRINSICS = (0, 1, 3, 4, 5, 6, 7, 8)  # Cal3DS2 fx fy cx cy k1 k2 p1 p2 (skew held)
 NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")
+# which views would rule the rest out: the figure had each group been known in every camera
+GROUPS = {"focal": ("fx", "fy"), "principal_point": ("cx", "cy"),
+          "distortion": ("k1", "k2", "p1", "p2")}
 # the intrinsics' part of the shape uncertainty worth a warning: this many times what it
 # would be with them known, and at least this many millimetres
 DOMINANT_RATIO = 2.0
@@ -176,17 +179,24 @@ def shape_uncertainty(result: bundle.BundleResult, unit_m: float = 1.0) -> dict:
         return float(np.sqrt(max(np.einsum("ij,jk,ik->", A, cov, A), 0.0) / n_pts)
                      * 1000.0 * unit_m)
 
-    poses = np.arange(6 * len(rig))
     out = {"grid_rms_mm": rms_mm(S, np.arange(len(S))), "grid_points": n_pts,
            "intrinsics_refined": refined}
+    def given(fixed: np.ndarray) -> float:  # the figure with the parameters `fixed` known
+        free = np.setdiff1d(np.arange(len(S)), fixed)
+        cond = S[np.ix_(free, free)] - S[np.ix_(free, fixed)] @ np.linalg.solve(
+            S[np.ix_(fixed, fixed)], S[np.ix_(fixed, free)])
+        return rms_mm(cond, free)
+
     if refined:
         intr = np.arange(6 * len(rig), len(S))
         std = np.sqrt(np.clip(np.diag(S)[intr], 0, None)).reshape(len(rig), len(INTRINSICS))
         out["intrinsic_std"] = {cam.name: dict(zip(NAMES, row.tolist(), strict=True))
                                 for cam, row in zip(rig, std, strict=True)}
-        known = S[np.ix_(poses, poses)] - S[np.ix_(poses, intr)] @ np.linalg.solve(
-            S[np.ix_(intr, intr)], S[np.ix_(intr, poses)])
-        out["intrinsics_known_mm"] = rms_mm(known, poses)
+        out["intrinsics_known_mm"] = given(intr)
+        out["if_known_mm"] = {
+            group: given(6 * len(rig) + (len(NAMES) * np.arange(len(rig))[:, None] + np.array(
+                [NAMES.index(p) for p in params])).ravel())
+            for group, params in GROUPS.items()}
         out["intrinsics_part_mm"] = float(np.sqrt(max(
             out["grid_rms_mm"] ** 2 - out["intrinsics_known_mm"] ** 2, 0.0)))
     return out
