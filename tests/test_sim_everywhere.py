@@ -15,7 +15,7 @@ import pytest
 
 from calibkit.clitools import eager_group
 
-APPS = {"calibkit": "calibkit.cli"}
+APPS = {"calibkit": "calibkit.cli", "mocapd": "daemon.cli"}
 
 
 def _leaves(cmd, path):
@@ -63,6 +63,16 @@ def test_every_command_was_walked():
     assert {"calibkit mask", "calibkit triangulate", "calibkit compare", "calibkit convert",
             "calibkit sim", "calibkit rig", "calibkit displays", "calibkit intrinsic"} <= names
     assert sum(p[1] == "sim" for p, _ in COMMANDS) >= 4  # sim's own commands too
+    assert {"mocapd track", "mocapd label", "mocapd view", "mocapd evaluate", "mocapd fill",
+            "mocapd markerset", "mocapd status", "mocapd rigid-body"} <= names
+
+
+@pytest.mark.parametrize("path", [["mocapd", "track"], ["mocapd", "label"],
+                                  ["calibkit", "triangulate"], ["calibkit", "mask"],
+                                  ["calibkit", "displays"], ["mocapd", "start"]])
+def test_the_commands_a_person_tries_first_take_sim(path):
+    cmd = dict((tuple(p), c) for p, c in COMMANDS)[tuple(path)]
+    assert "--sim" in {o for p in cmd.params for o in getattr(p, "opts", ())}
 
 
 def test_top_level_help_says_what_is_true(calibkit_cli):

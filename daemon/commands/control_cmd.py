@@ -26,7 +26,10 @@ def register(app: typer.Typer) -> None:
     @app.command("status")
     def status(runtime_dir: RuntimeDir = None,
                json_path: Annotated[Path | None, typer.Option("--json")] = None) -> None:
-        """Rate per camera, dropped frames, latency, bodies tracked, outputs."""
+        """Rate per camera, dropped frames, latency, bodies tracked, outputs.
+
+        Reads a running daemon's control socket (`mocapd start --sim` runs one on a simulated
+        rig)."""
         from daemon.service.console import print_table
 
         st = request(runtime_dir, {"cmd": "status"})
@@ -68,13 +71,19 @@ def register(app: typer.Typer) -> None:
 
     @app.command("stop")
     def stop(runtime_dir: RuntimeDir = None) -> None:
-        """Stop the daemon cleanly (as SIGTERM does)."""
+        """Stop the daemon cleanly (as SIGTERM does).
+
+        Reads a running daemon's control socket (`mocapd start --sim` runs one on a simulated
+        rig)."""
         request(runtime_dir, {"cmd": "stop"})
         typer.echo("mocapd: stopping")
 
     @app.command("reload")
     def reload(runtime_dir: RuntimeDir = None) -> None:
-        """Re-read the configuration (as SIGHUP does)."""
+        """Re-read the configuration (as SIGHUP does).
+
+        Reads a running daemon's control socket (`mocapd start --sim` runs one on a simulated
+        rig)."""
         request(runtime_dir, {"cmd": "reload"})
         typer.echo("mocapd: reloading")
 
@@ -87,7 +96,10 @@ def register(app: typer.Typer) -> None:
                    "--overwrite", help="Record over an existing file (refused without).")]
                = False,
                runtime_dir: RuntimeDir = None) -> None:
-        """Record the cameras' blobs (.mcrec) or the poses and markers (.mcap), or stop."""
+        """Record the cameras' blobs (.mcrec) or the poses and markers (.mcap), or stop.
+
+        Reads a running daemon's control socket (`mocapd start --sim` runs one on a simulated
+        rig)."""
         from calibkit.core.errors import UserError
 
         if stop:

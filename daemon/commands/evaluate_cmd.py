@@ -60,7 +60,11 @@ def register(app: typer.Typer) -> None:
             "--json", help="Write the figures as JSON.")] = None,
     ) -> None:
         """Line up a trajectory's clock and world frame with a reference, then measure its
-        absolute and relative pose errors."""
+        absolute and relative pose errors.
+
+        Reads two trajectory files: the reference (our poses, e.g. `mocapd track --out`) and
+        the estimate (a robot's own log, TUM or CSV); `mocapd track --sim` writes poses of a
+        simulated take to try it on."""
         # imported here: scipy.signal and the plotting cost every other mocapd command a
         # second and more at its start
         from daemon.analysis import trajectory_report as report

@@ -75,7 +75,10 @@ def register(app: typer.Typer) -> None:
                                         "form a segment.")] = 12.0,
         json_path: JsonOpt = None,
     ) -> None:
-        """Learn a marker set (segments, distances, handedness) from labelled takes."""
+        """Learn a marker set (segments, distances, handedness) from labelled takes.
+
+        Reads labelled takes (.c3d or CSV); `mocapd label --sim --out
+        take.c3d` writes a simulated one."""
         from daemon.formats.c3dio import read_take
         from daemon.labelling.markerset import learn
 
@@ -111,7 +114,10 @@ def register(app: typer.Typer) -> None:
         json_path: JsonOpt = None,
     ) -> None:
         """How well a marker set fits a take, before labelling it: the body's scale, each
-        segment's proportions, markers placed otherwise or missing, and a verdict."""
+        segment's proportions, markers placed otherwise or missing, and a verdict.
+
+        Reads a take, labelled or not; `mocapd label --sim --out
+        take.c3d` writes a simulated one."""
         import numpy as np
 
         from daemon.formats.c3dio import Points, read_take
@@ -161,13 +167,13 @@ def register(app: typer.Typer) -> None:
 
     @app.command("label")
     def label_cmd(
-        points: Annotated[Path, typer.Argument(
-            help="Unlabelled points: CSV frame,x,y,z (metres), a C3D (labels ignored), or a "
-                 "recording of blobs (.mcrec, with --rig: triangulated first).")],
-        markerset: Annotated[str, typer.Option(
-            "--markerset", help="Marker set: a .toml file or a shipped set's name (cmu41, "
-                                "sim_person).")],
         out: Annotated[Path, typer.Option("--out", help="Labelled take (.c3d or .csv).")],
+        points: Annotated[Path | None, typer.Argument(
+            help="Unlabelled points: CSV frame,x,y,z (metres), a C3D (labels ignored), or a "
+                 "recording of blobs (.mcrec, with --rig: triangulated first).")] = None,
+        markerset: Annotated[str | None, typer.Option(
+            "--markerset", help="Marker set: a .toml file or a shipped set's name (cmu41, "
+                                "sim_person; --sim: sim_person).")] = None,
         rig_path: Annotated[Path | None, typer.Option(
             "--rig", help="The calibrated rig, to triangulate a .mcrec recording.")] = None,
         start_frames: Annotated[int, typer.Option(
@@ -182,6 +188,19 @@ def register(app: typer.Typer) -> None:
         strict: Annotated[bool, typer.Option(
             "--strict", help="Refuse a points CSV with bad rows (text, NaN, inf, wrong "
                              "column count) instead of skipping and counting them.")] = False,
+        sim: Annotated[bool, typer.Option(
+            "--sim", help="Instead of POINTS: the simulator's person walking a circle in "
+                          "its marker set, --hidden of the marker-frames hidden and --ghosts "
+                          "stray points a frame; the labels scored against the truth. "
+                          "--start-frames N takes the first N frames' true labels, as a "
+                          "user's hand labels.")] = False,
+        frames: Annotated[int, typer.Option(help="--sim: frames (120 a second).")] = 600,
+        hidden: Annotated[float, typer.Option(
+            help="--sim: share of marker-frames hidden, in spans of 0.1-1 s.")] = 0.1,
+        ghosts: Annotated[int, typer.Option(help="--sim: stray points a frame.")] = 2,
+        sim_seed: Annotated[int, typer.Option(
+            "--sim-seed", help="--sim: random seed (--seed is the old name of "
+                               "--start-labels).")] = 0,
     ) -> None:
         """Name every point of every frame; ghosts are left out."""
         import numpy as np
@@ -194,20 +213,32 @@ def register(app: typer.Typer) -> None:
             merged_points,
         )
 
-        _check_out(out, [points])
+        _check_out(out, [points] if points is not None else [])
         # --seed and --seed-frames: the names these options had before
         start_frames = start_frames if old_frames is None else old_frames
         start_labels = start_labels if old_labels is None else old_labels
         if start_frames < 0:
             raise UserError("--start-frames must be >= 0")
-        ms = open_set(markerset)
-        if not points.exists():
-            raise UserError(f"{points} does not exist")
+        if markerset is None and not sim:
+            raise UserError("give --markerset SET (a .toml file, cmu41 or sim_person)")
+        ms = open_set(markerset or "sim_person")
         rate_hz = rate
         first_labels = None
         twins: list = []
         bad = None
-        if points.suffix.lower() == ".c3d":
+        truth = None
+        if sim:
+            pts, truth, sim_take = _sim_points(points, rig_path, ms, frames, hidden, ghosts,
+                                               sim_seed)
+            rate_hz = sim_take.rate_hz
+            if start_frames and start_labels is None:
+                first_labels = sim_take  # its first frames stand for a user's hand labels
+        elif points is None:
+            raise UserError("give POINTS (a points CSV, a C3D or a .mcrec recording), or --sim "
+                            "for a simulated take")
+        elif not points.exists():
+            raise UserError(f"{points} does not exist")
+        elif points.suffix.lower() == ".c3d":
             labelled = read_take(points)
             pts = Points.from_take(labelled)
             twins = duplicate_trajectories(labelled)
@@ -222,7 +253,7 @@ def register(app: typer.Typer) -> None:
         else:
             raise UserError(f"{points}: POINTS must be a .csv (frame,x,y,z), a .c3d or a "
                             f".mcrec recording")
-        if rig_path is not None and points.suffix.lower() != ".mcrec":
+        if rig_path is not None and not sim and points.suffix.lower() != ".mcrec":
             raise UserError("--rig is for a .mcrec recording; these points are 3D already")
         if start_labels is not None:
             first_labels = read_take(start_labels, rate_hz)
@@ -264,6 +295,8 @@ def register(app: typer.Typer) -> None:
         typer.echo(f"wrote {out}: {take.n_frames} frames, {int(seen.sum()) + merged} of {n_pts} "
                    f"points labelled{twice}, median confidence "
                    f"{figures['confidence_median']:.2f}")
+        if truth is not None:
+            figures["truth"] = _sim_score(pts, truth, labels, start_frames)
         if json_path is not None:
             write_json(json_path, figures)
 
@@ -281,7 +314,11 @@ def register(app: typer.Typer) -> None:
         rate: RateOpt = None,
         json_path: JsonOpt = None,
     ) -> None:
-        """Fill the gaps of hidden markers; filled samples are marked (CSV column filled)."""
+        """Fill the gaps of hidden markers; filled samples are marked (CSV column filled).
+
+        Reads a labelled take with gaps; `mocapd label --sim --out
+        take.c3d` writes a simulated one (a tenth
+        of its marker-frames hidden)."""
         from daemon.analysis.gapfill import METHODS, fill
         from daemon.formats.c3dio import read_take, write_take
         from daemon.labelling.markerset import open_set
@@ -321,7 +358,9 @@ def _register_skeleton(app: typer.Typer) -> None:
         rate: RateOpt = None,
         json_path: JsonOpt = None,
     ) -> None:
-        """Joint centres by sphere fits, bone lengths; export motion as BVH."""
+        """Joint centres by sphere fits, bone lengths; export motion as BVH.
+
+        Reads a labelled range-of-motion take (and optionally a take to export)."""
         from daemon.analysis.skeleton import export_bvh, fit_skeleton, load_model
         from daemon.formats.c3dio import read_take
 
@@ -345,3 +384,50 @@ def _register_skeleton(app: typer.Typer) -> None:
             write_json(json_path, {"joints": {j.name: {"parent": j.parent,
                                                        "fit_rms_mm": 1000 * j.rms_m}
                                               for j in skel.joints}})
+
+
+def _sim_points(points: Path | None, rig_path: Path | None, ms, frames: int, hidden: float,
+                ghosts: int, seed: int):
+    """--sim: the simulator's person walking a circle (calibkit.synthetic.person), `hidden`
+    of its marker-frames hidden in spans and `ghosts` stray points a frame. Returns the
+    unlabelled points, each point's true marker in the set's order (-1: a ghost; for the
+    score only) and the labelled take (for --start-frames: a user's hand labels)."""
+    import numpy as np
+
+    from calibkit.synthetic import person
+    from daemon.formats.c3dio import Take
+    from daemon.synthetic.labelling import hide_spans, points_with_ghosts
+
+    if points is not None:
+        raise UserError(f"give POINTS or --sim, not both (got {points} and --sim)")
+    if rig_path is not None:
+        raise UserError("--rig is for a .mcrec recording; --sim makes 3D points")
+    if frames < 60:
+        raise UserError(f"--frames must be at least 60 (half a second), got {frames}")
+    if not 0.0 <= hidden <= 0.5:
+        raise UserError(f"--hidden is a share of marker-frames, 0 to 0.5; got {hidden}")
+    if ghosts < 0:
+        raise UserError(f"--ghosts must not be negative, got {ghosts}")
+    walk = person.walk_circle(frames, 120.0, noise_m=0.0003, seed=seed)
+    missing = [n for n in walk.labels if n not in ms.labels]
+    if missing:
+        raise UserError(f"--sim labels the simulated person: the set {ms.name} lacks its "
+                        f"marker(s) {', '.join(missing[:5])}; use --markerset sim_person")
+    take = Take(list(walk.labels), walk.markers_m, 120.0)
+    seen = hide_spans(take, hidden, seed=seed) if hidden > 0 else take
+    pts, marker = points_with_ghosts(seen, ghosts, seed=seed)
+    to_set = np.array([ms.labels.index(n) for n in walk.labels])
+    truth = np.where(marker >= 0, to_set[np.maximum(marker, 0)], -1)
+    return pts, truth, seen
+
+
+def _sim_score(pts, truth, labels, start_frames: int) -> dict:
+    """--sim: the labels against the truth, after the start frames (given, not earned)."""
+    from daemon.synthetic.labelling import score
+
+    s = score(pts, truth, labels, start_frames)
+    typer.echo(f"against the simulator's truth: {100 * s['correct']:.2f}% of "
+               f"{s['marker_frames']} marker-points named right ({100 * s['unlabelled']:.2f}% "
+               f"left unlabelled), {100 * s['ghosts_rejected']:.1f}% of {s['ghosts']} ghosts "
+               "left out")
+    return s

@@ -96,7 +96,10 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Define a rigid body from the free markers the daemon tracks over --frames frames
         (clustered: a marker is a cluster seen in most of them); the body's frame has its
-        origin at their centroid and the world's axes."""
+        origin at their centroid and the world's axes.
+
+        Reads the markers a running daemon tracks, through its control socket (`mocapd start
+        --sim` runs one on a simulated rig), and the configuration file it writes to."""
         import numpy as np
 
         from daemon.config.mocapd import load_config  # deferred: see above
@@ -133,7 +136,9 @@ def register(app: typer.Typer) -> None:
 
     @rigid_app.command("list")
     def list_bodies(config: ConfigOpt) -> None:
-        """The rigid bodies a configuration defines, with their closest distance gap."""
+        """The rigid bodies a configuration defines, with their closest distance gap.
+
+        Reads a configuration file (mocapd.toml)."""
         import numpy as np
 
         from daemon.config.mocapd import load_config  # deferred: see above

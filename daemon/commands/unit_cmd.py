@@ -84,7 +84,10 @@ def register(app: typer.Typer) -> None:
                  "so the service tracks from its first second.")] = True,
     ) -> None:
         """Write mocapd.service, compile the daemon's kernels ahead of its first start, and
-        print the systemctl commands that enable it."""
+        print the systemctl commands that enable it.
+
+        Reads nothing but its options (the configuration it names is read by the service
+        when it starts)."""
         if not config.exists():
             raise UserError(f"{config}: no such configuration file")
         if watchdog < 1:

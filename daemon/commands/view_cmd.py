@@ -51,7 +51,10 @@ def register(app: typer.Typer) -> None:
         = None,
     ) -> None:
         """Scrub through a take or a recording in the browser: a frame slider, play, the
-        markers of the chosen frame with their names and a marker set's sticks."""
+        markers of the chosen frame with their names and a marker set's sticks.
+
+        Reads a take or a recording; `mocapd label --sim --out take.c3d` and `calibkit sim
+        static --out take.mcrec` write simulated ones."""
         from calibkit.clitools import Progress, parse_view
         from daemon.view.link import is_loopback
         from daemon.view.replay import load_replay
