@@ -57,6 +57,9 @@ def inputs(tmp_path_factory) -> Path:
                                           seed=5)
     keep = np.random.default_rng(5).random(len(truth.frame)) > 0.08
     write_points_csv(d / "rigid.csv", Points(truth.frame[keep], truth.xyz[keep]))
+    late_first = np.argsort((truth.frame[keep] + 150) % 300, kind="stable")  # 150-299, 0-149
+    write_points_csv(d / "rigid_unsorted.csv", Points(truth.frame[keep][late_first],
+                                                      truth.xyz[keep][late_first]))
     (d / "bodies.toml").write_text(tomli_w.dumps({"rigid_body": [
         {"name": b.name, "id": int(b.id), "markers": b.markers_body.tolist()}
         for b in bodies]}))
@@ -85,10 +88,15 @@ def built_cache(tmp_path_factory) -> Path:
 
 
 def _commands(d: Path, work: Path) -> dict[str, tuple]:
+    """Each command that runs a compiled kernel, once; `mocapd track` on a points CSV both
+    ways it runs (in windows, and whole when the frames are out of order)."""
     return {
         "mocapd track (points CSV)": ("mocapd", "track", d / "rigid.csv", "--bodies",
                                       d / "bodies.toml", "--rate", "100", "--out",
                                       work / "poses.csv"),
+        "mocapd track (points CSV out of frame order: the whole take at once)": (
+            "mocapd", "track", d / "rigid_unsorted.csv", "--bodies", d / "bodies.toml",
+            "--rate", "100", "--out", work / "poses3.csv"),
         "mocapd track (Motive CSV)": (
             "mocapd", "track", ROOT / "fixtures/optitrack_rigidbody_csv/sample_optitrack_take.csv",
             "--bodies-from-file", "--out", work / "poses2.csv"),
@@ -116,6 +124,8 @@ def test_build_kernels_leaves_nothing_to_compile(built_cache, inputs, tmp_path):
         assert report["compiled"] == [], f"{name} compiled {report['compiled']}"
         assert all(c["compiled"] == 0 for c in report["kernels"].values()), name
         assert NOTICE not in err, name
+        if name.startswith("mocapd track (points CSV"):  # both of track's ways were taken
+            assert ("frame numbers go back" in err) == ("out of frame order" in name), name
         if name.startswith(("mocapd track", "mocapd start", "calibkit tri", "calibkit det")):
             assert any(c["loaded"] for c in report["kernels"].values()), \
                 f"{name} ran no compiled kernel"

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from daemon.analysis.point_tracks import PointTrackConfig, TakeTracks, associate
+from daemon.analysis.point_tracks import PointTrackConfig, PointTracker, TakeTracks
 from daemon.formats.c3dio import Points
 from daemon.tracking.rigid import BodyDef, RigidConfig, RigidTracker, quaternion_xyzw
 from daemon.tracking.rigid_kernel import fit_bodies
@@ -85,8 +85,13 @@ def track_cloud(cloud: MarkerCloud, bodies: list[BodyDef],
                 rigid_config: RigidConfig | None = None,
                 point_config: PointTrackConfig | None = None,
                 progress=None, batched: bool = True) -> TrackResult:
-    """Run the daemon's rigid tracker over every frame of `cloud`; progress(frames done)
-    is called as it goes.
+    """Run the daemon's rigid tracker over every frame of `cloud` (a whole take at once);
+    progress(frames done) is called as it goes. See CloudTracker."""
+    return CloudTracker(bodies, rigid_config, point_config, batched).window(cloud, progress)
+
+
+class CloudTracker:
+    """The daemon's rigid tracker over a take, fed whole or a window of frames at a time.
 
     Frame by frame this is `RigidTracker.update(tracks)` as live. Most frames change
     nothing in the tracker's state (every body keeps its tracks, none is released, no free
@@ -94,32 +99,52 @@ def track_cloud(cloud: MarkerCloud, bodies: list[BodyDef],
     searched for): such runs of frames are fitted at once with the tracker's own compiled
     kernel, and only the frames where something may change go through update() itself.
     `batched=False` sends every frame through update().
+
+    Why windows need no overlap: everything a frame's result depends on from the frames
+    before it is state carried here (the point tracks' positions, velocities and ids in
+    PointTracker; the bodies' assigned tracks, poses and frame count in RigidTracker), and
+    a steady run cut at a window's edge gives the poses update() would, frame by frame. So
+    a take tracked in windows gets the poses of the whole take tracked at once.
     """
-    cfg = rigid_config or RigidConfig(refine=False)
-    tracks = associate(cloud.xyz, cloud.counts(), cloud.frame, point_config)
-    rigid = RigidTracker(list(bodies), cfg)
-    out = _Poses(len(cloud), len(bodies))
-    fast = batched and cfg.compiled and bool(bodies) and all(b.smoothing == 0 for b in bodies)
-    n_frames = len(cloud)
-    f = reported = 0
-    length = 64  # frames tried at once: doubled after a steady run, halved after a change
-    while f < n_frames:
-        if fast:
-            end = min(f + length, n_frames)
-            done = _steady_run(rigid, tracks, f, end, out)
-            rigid.frame += done
-            f += done
-            length = min(2 * length, MAX_RUN) if f == end else max(length // 2, MIN_RUN)
-        if f < n_frames and not (fast and f == end):
-            out.put(f, rigid.update(tracks.tracks_at(f)))
-            f += 1
-        if progress is not None and (f - reported >= 1024 or f == n_frames):
-            progress(f)
-            reported = f
-    return TrackResult(cloud.frame, cloud.t_s, [b.name for b in bodies],
-                       np.array([b.id for b in bodies], dtype=np.int64), out.valid,
-                       out.position, out.quaternion, out.error_m, out.n_markers,
-                       cloud.counts())
+
+    def __init__(self, bodies: list[BodyDef], rigid_config: RigidConfig | None = None,
+                 point_config: PointTrackConfig | None = None, batched: bool = True) -> None:
+        cfg = rigid_config or RigidConfig(refine=False)
+        self.bodies = list(bodies)
+        self.points = PointTracker(point_config)
+        self.rigid = RigidTracker(self.bodies, cfg)
+        self.fast = (batched and cfg.compiled and bool(self.bodies)
+                     and all(b.smoothing == 0 for b in self.bodies))
+        self.length = 64  # frames tried at once: doubled after a steady run, halved after
+        self.frames_done = 0  # frames of the take tracked so far (windows before this)
+
+    def window(self, cloud: MarkerCloud, progress=None) -> TrackResult:
+        """The poses of the next frames of the take (after those of the last window);
+        progress(frames of the take done) is called as it goes."""
+        tracks = self.points.window(cloud.xyz, cloud.counts(), cloud.frame)
+        rigid, fast = self.rigid, self.fast
+        out = _Poses(len(cloud), len(self.bodies))
+        n_frames = len(cloud)
+        f = reported = 0
+        while f < n_frames:
+            if fast:
+                end = min(f + self.length, n_frames)
+                done = _steady_run(rigid, tracks, f, end, out)
+                rigid.frame += done
+                f += done
+                self.length = (min(2 * self.length, MAX_RUN) if f == end
+                               else max(self.length // 2, MIN_RUN))
+            if f < n_frames and not (fast and f == end):
+                out.put(f, rigid.update(tracks.tracks_at(f)))
+                f += 1
+            if progress is not None and (f - reported >= 1024 or f == n_frames):
+                progress(self.frames_done + f)
+                reported = f
+        self.frames_done += n_frames
+        return TrackResult(cloud.frame, cloud.t_s, [b.name for b in self.bodies],
+                           np.array([b.id for b in self.bodies], dtype=np.int64), out.valid,
+                           out.position, out.quaternion, out.error_m, out.n_markers,
+                           cloud.counts())
 
 
 class _Poses:
@@ -270,7 +295,37 @@ def figures(result: TrackResult, gross_error_mm: float = 20.0) -> dict:
     """The figures live tracking reports, per body and over all: frames, poses found, the
     valid fraction, the fit error of the markers, and fits worse than gross_error_mm (a
     body posed on a wrong marker) counted apart."""
-    n = len(result.frame)
+    return figures_of(PoseFigures(result.names, result.ids, result.valid, result.error_m,
+                                  result.n_markers, result.markers_seen), gross_error_mm)
+
+
+@dataclass(eq=False)
+class PoseFigures:
+    """What the figures are made of, per frame (F,) and body (F, B): all a take tracked in
+    windows keeps of its poses once they are written (17 bytes a frame and body)."""
+
+    names: list[str]
+    ids: np.ndarray
+    valid: np.ndarray
+    error_m: np.ndarray
+    n_markers: np.ndarray
+    markers_seen: np.ndarray
+
+    @staticmethod
+    def join(parts: list[TrackResult], names: list[str], ids: np.ndarray) -> PoseFigures:
+        """The figures' arrays of a take's windows, in order."""
+        def cat(name, empty):
+            return (np.concatenate([getattr(p, name) for p in parts]) if parts else empty)
+        b = len(names)
+        return PoseFigures(names, ids, cat("valid", np.zeros((0, b), bool)),
+                           cat("error_m", np.zeros((0, b))),
+                           cat("n_markers", np.zeros((0, b), np.int64)),
+                           cat("markers_seen", np.zeros(0, np.int64)))
+
+
+def figures_of(result: PoseFigures, gross_error_mm: float = 20.0) -> dict:
+    """figures() from the figures' arrays alone."""
+    n = len(result.markers_seen)
     err_mm = result.error_m * 1000.0
     bodies = {}
     for b, name in enumerate(result.names):

@@ -5,7 +5,8 @@ CSV, a C3D, a Motive export) has none, and the rigid tracker keeps a body's trac
 has found them. Here each track is predicted at constant velocity, a point and a track are
 paired when each is the other's nearest within the gate, unpaired points start new tracks
 (ids only grow, so each frame's tracks stay sorted by id) and a track unseen for more than
-max_missing frames is dropped, as live. The whole take runs in one compiled loop; the
+max_missing frames is dropped, as live. A take runs in one compiled loop, whole or a
+window at a time (PointTracker carries the live tracks from one window to the next); the
 result is every frame's tracks in one flat table (CSR: frame f's rows are
 start[f]:start[f + 1]), from which `tracks_at` makes the live TrackFrame of any frame.
 """
@@ -56,15 +57,14 @@ def _grow(a, n):
 
 
 @jit
-def _associate(xyz, counts, frames, gate_m, max_missing, alpha):
+def _associate(xyz, counts, frames, gate_m, max_missing, alpha, ids, pos, vel, miss,
+               n_live, next_id, last):
     n_frames, width = xyz.shape[0], xyz.shape[1]
-    cap = width * (max_missing + 2) + 16
-    ids = np.zeros(cap, np.int64)
-    pos = np.zeros((cap, 3))
-    vel = np.zeros((cap, 3))
-    miss = np.zeros(cap, np.int64)
-    n_live = 0
-    next_id = 1
+    cap = max(width * (max_missing + 2) + 16, n_live + 16)
+    if ids.shape[0] < cap:  # the live tracks carried in, with room for this window's
+        ids, pos, vel, miss = _grow(ids, cap), _grow(pos, cap), _grow(vel, cap), \
+            _grow(miss, cap)
+    cap = ids.shape[0]
     out_n = 0
     out_cap = max(16, n_frames * width * 2)
     o_ids = np.zeros(out_cap, np.int64)
@@ -78,7 +78,6 @@ def _associate(xyz, counts, frames, gate_m, max_missing, alpha):
     near_t = np.zeros(width, np.int64)
     pair_of_track = np.zeros(cap, np.int64)
     paired_point = np.zeros(width, np.bool_)
-    last = frames[0] - 1
     for f in range(n_frames):
         step = max(frames[f] - last, 1)
         last = frames[f]
@@ -176,21 +175,47 @@ def _associate(xyz, counts, frames, gate_m, max_missing, alpha):
             next_id += 1
     start[n_frames] = out_n
     return start, o_ids[:out_n].copy(), o_xyz[:out_n].copy(), o_seen[:out_n].copy(), \
-        o_miss[:out_n].copy()
+        o_miss[:out_n].copy(), ids, pos, vel, miss, n_live, next_id, last
+
+
+class PointTracker:
+    """The association resumable window by window: the live tracks (ids, positions,
+    velocities, frames missing), the next id and the last frame number are carried from
+    one window to the next, so a take tracked in windows gets the tracks of the whole take
+    run at once, row for row, whatever the windows (nothing is re-tracked at an edge)."""
+
+    def __init__(self, config: PointTrackConfig | None = None) -> None:
+        self.config = config or PointTrackConfig()
+        self.ids = np.zeros(0, np.int64)
+        self.pos = np.zeros((0, 3))
+        self.vel = np.zeros((0, 3))
+        self.miss = np.zeros(0, np.int64)
+        self.n_live = 0
+        self.next_id = 1
+        self.last = None  # the last frame number tracked
+
+    def window(self, xyz: np.ndarray, counts: np.ndarray, frames: np.ndarray) -> TakeTracks:
+        """The tracks of the next frames: xyz (F, P, 3) with frame f's counts[f] points
+        first, frames (F,) their numbers, after the last window's (a gap is coasted over)."""
+        cfg = self.config
+        xyz = np.ascontiguousarray(xyz, dtype=np.float64)
+        counts = np.ascontiguousarray(counts, dtype=np.int64)
+        frames = np.ascontiguousarray(frames, dtype=np.int64)
+        if not len(frames):
+            return TakeTracks(np.zeros(1, np.int64), np.zeros(0, np.int64),
+                              np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0, np.int64))
+        last = int(frames[0]) - 1 if self.last is None else self.last
+        (start, ids, where, seen, missing, self.ids, self.pos, self.vel, self.miss,
+         n_live, next_id, last) = _associate(
+            xyz, counts, frames, float(cfg.gate_m), int(cfg.max_missing),
+            float(cfg.velocity_alpha), self.ids, self.pos, self.vel, self.miss,
+            int(self.n_live), int(self.next_id), int(last))
+        self.n_live, self.next_id, self.last = int(n_live), int(next_id), int(last)
+        return TakeTracks(start, ids, where, seen, missing)
 
 
 def associate(xyz: np.ndarray, counts: np.ndarray, frames: np.ndarray,
               config: PointTrackConfig | None = None) -> TakeTracks:
-    """Tracks of a take's points: xyz (F, P, 3) with frame f's counts[f] points first,
-    frames (F,) the frame numbers (a gap in them is coasted over)."""
-    cfg = config or PointTrackConfig()
-    xyz = np.ascontiguousarray(xyz, dtype=np.float64)
-    counts = np.ascontiguousarray(counts, dtype=np.int64)
-    frames = np.ascontiguousarray(frames, dtype=np.int64)
-    if not len(frames):
-        return TakeTracks(np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)),
-                          np.zeros(0, bool), np.zeros(0, np.int64))
-    start, ids, where, seen, missing = _associate(xyz, counts, frames, float(cfg.gate_m),
-                                                  int(cfg.max_missing),
-                                                  float(cfg.velocity_alpha))
-    return TakeTracks(start, ids, where, seen, missing)
+    """Tracks of a whole take's points: xyz (F, P, 3) with frame f's counts[f] points
+    first, frames (F,) the frame numbers (a gap in them is coasted over)."""
+    return PointTracker(config).window(xyz, counts, frames)

@@ -126,15 +126,7 @@ def track_file(cloud, motive, defs, rigid_cfg: RigidConfig, gate_mm: float, gros
     elapsed = time.perf_counter() - start
     figs = figures(result, gross_mm)
     figs["frames_per_s"] = len(cloud) / elapsed if elapsed > 0 else None
-    figs["hints"] = []
-    for b, (body, refit) in enumerate(zip(used, refits, strict=True)):
-        share = figs["bodies"][body.name]["valid_fraction"]
-        figs["bodies"][body.name]["refine"] = refit.summary()
-        if share < HINT_BELOW and len(cloud):
-            fit = closest_fit(cloud.xyz, defs[b])
-            figs["bodies"][body.name]["closest_fit_mm"] = (
-                None if fit.residual_m is None else round(fit.residual_m * 1000.0, 3))
-            figs["hints"].append(hint(defs[b], fit, tol_m, refit, share))
+    add_hints(figs, cloud.xyz, defs, used, refits, tol_m)
     if motive is not None:
         against = {}
         for name in result.names:
@@ -144,10 +136,29 @@ def track_file(cloud, motive, defs, rigid_cfg: RigidConfig, gate_mm: float, gros
                                               theirs.xyz_m, theirs.quat_xyzw)
         if against:
             figs["against_motive"] = against
-    table = PoseTable(result.frame, result.t_s, result.names, result.ids, result.valid,
-                      result.position, result.quaternion, result.error_m * 1000.0,
-                      result.n_markers)
-    return table, figs, used
+    return pose_table(result), figs, used
+
+
+def add_hints(figs: dict, xyz, defs, used, refits, tol_m: float) -> None:
+    """Into the figures: what refining did to each definition, and for a body posed in
+    almost no frame its closest fit in the take's frames `xyz` (F, P, 3; only a few of
+    them are looked at) and a hint saying what to change (figs['hints'])."""
+    figs["hints"] = []
+    for b, (body, refit) in enumerate(zip(used, refits, strict=True)):
+        share = figs["bodies"][body.name]["valid_fraction"]
+        figs["bodies"][body.name]["refine"] = refit.summary()
+        if share < HINT_BELOW and len(xyz):
+            fit = closest_fit(xyz, defs[b])
+            figs["bodies"][body.name]["closest_fit_mm"] = (
+                None if fit.residual_m is None else round(fit.residual_m * 1000.0, 3))
+            figs["hints"].append(hint(defs[b], fit, tol_m, refit, share))
+
+
+def pose_table(result) -> PoseTable:
+    """A TrackResult's poses as the poses CSV and MCAP writers take them (error in mm)."""
+    return PoseTable(result.frame, result.t_s, result.names, result.ids, result.valid,
+                     result.position, result.quaternion, result.error_m * 1000.0,
+                     result.n_markers)
 
 
 def write_motive(path: Path, cloud, table: PoseTable, defs, up_axis: str = "z") -> None:

@@ -13,7 +13,11 @@ import typer
 
 from calibkit.clitools import Progress, print_table, write_json
 from calibkit.core.errors import UserError
-from daemon.commands.points_input import bad_rows_json, read_points_for_command
+from daemon.commands.points_input import (
+    bad_rows_json,
+    read_points_for_command,
+    spool_points_for_command,
+)
 
 
 def register(app: typer.Typer) -> None:
@@ -111,7 +115,24 @@ def register(app: typer.Typer) -> None:
             rigid_cfg = replace(rigid_cfg, distance_tol_m=distance_tol_mm / 1000.0)
         if max_error_mm is not None:
             rigid_cfg = replace(rigid_cfg, max_error_m=max_error_mm / 1000.0)
-        points, bad, rate = _points_csv(markers, rate, strict)
+        points, bad = None, None
+        rate = _points_rate(markers, rate)  # None: not a points CSV
+        if rate is not None and out.suffix.lower() == ".csv" and motive_out is None:
+            # a points CSV to a poses CSV: in windows, in memory bounded whatever its size
+            if from_file:
+                bodies_from_motive(None, markers)  # the one-line refusal
+            spool, bad = spool_points_for_command(markers, _folder(out), strict)
+            with spool:
+                if spool.ordered:
+                    _track_in_windows(spool, markers, out, rate, defs, rigid_cfg, gate_mm,
+                                      gross_mm, refine_bodies, up_axis, bad, json_path)
+                    return
+                typer.echo(f"note: {markers}: its frame numbers go back somewhere, so it "
+                           "is tracked whole, in memory (sort it by frame for windows)",
+                           err=True)
+                points = spool.points()
+        elif rate is not None:
+            points, bad = read_points_for_command(markers, strict)
         cloud, motive, kind, up = load_markers(markers, rate,
                                                up_axis.lower() if up_axis else None, points)
         del points  # packed into the cloud: not held through the tracking
@@ -135,34 +156,67 @@ def register(app: typer.Typer) -> None:
                             f"{axes_note(up)}")
         if motive_out is not None:
             write_motive(motive_out, cloud, table, used, up)
-        _print_figures(figs)
-        for name, b in figs["bodies"].items():
-            if b["refine"]["applied"]:
-                moved = ", ".join(f"{v:.1f}" for v in b["refine"]["marker_shift_mm"])
-                typer.echo(f"note: body {name!r}: definition fitted to the take's markers "
-                           f"(markers moved {moved} mm; --refine-bodies off keeps it)",
-                           err=True)
-        for line in figs["hints"]:
-            typer.echo(f"warning: {line}", err=True)
-        typer.echo(f"wrote {out}: {len(cloud)} frames, {len(defs)} bodies, "
-                   f"{figs['poses']} poses ({100 * figs['valid_fraction']:.1f}% valid)")
-        if json_path is not None:
-            write_json(json_path, figs)
+        _report(figs, out, len(cloud), len(defs), json_path)
 
 
-def _points_csv(markers: Path, rate: float | None, strict: bool):
-    """(Points, BadRows, frame rate) of a points CSV, streamed with its bad rows counted
-    (None, None, rate for other files: load_markers reads those); its frame rate is asked
-    for before the long read."""
+def _report(figs: dict, out: Path, n_frames: int, n_bodies: int, json_path: Path | None):
+    """The table, the notes and warnings on stderr, the last line, the JSON."""
+    _print_figures(figs)
+    for name, b in figs["bodies"].items():
+        if b["refine"]["applied"]:
+            moved = ", ".join(f"{v:.1f}" for v in b["refine"]["marker_shift_mm"])
+            typer.echo(f"note: body {name!r}: definition fitted to the take's markers "
+                       f"(markers moved {moved} mm; --refine-bodies off keeps it)", err=True)
+    for line in figs["hints"]:
+        typer.echo(f"warning: {line}", err=True)
+    typer.echo(f"wrote {out}: {n_frames} frames, {n_bodies} bodies, "
+               f"{figs['poses']} poses ({100 * figs['valid_fraction']:.1f}% valid)")
+    if json_path is not None:
+        write_json(json_path, figs)
+
+
+def _track_in_windows(spool, markers: Path, out: Path, rate: float, defs, rigid_cfg,
+                      gate_mm: float, gross_mm: float, refine: str, up_axis: str | None,
+                      bad, json_path: Path | None) -> None:
+    """A spooled points CSV tracked and written a window of frames at a time."""
+    from daemon.analysis.track_file import axes_note
+    from daemon.analysis.track_stream import track_spool
+    from daemon.formats.motive_take import Y_UP_TO_Z_UP
+
+    up = (up_axis or "z").lower()
+    kind = f"points CSV, {rate:g} Hz"
+    progress = Progress("track", len(spool.frames))
+    figs, _ = track_spool(spool, rate, defs, rigid_cfg, gate_mm, gross_mm, out,
+                          f"mocapd track {markers.name} ({kind}); {axes_note(up)}",
+                          progress.update, refine, Y_UP_TO_Z_UP if up == "y" else None)
+    progress.finish(f"{figs['poses']} poses")
+    figs["input"] = {"file": str(markers), "kind": kind, "up_axis": up,
+                     "bad_rows": bad_rows_json(bad)}
+    _report(figs, out, len(spool.frames), len(defs), json_path)
+
+
+def _folder(out: Path) -> Path:
+    """Where the spool goes: the output's folder (made, as the output's writing would)."""
+    folder = out.resolve().parent
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"cannot write in {folder}: {exc.strerror}") from None
+    return folder
+
+
+def _points_rate(markers: Path, rate: float | None) -> float | None:
+    """The frame rate of a points CSV (--rate, else its '# rate_hz=' line), asked for
+    before the long read; None for other files (load_markers reads those)."""
     from daemon.formats.motive_csv import sniff
     from daemon.formats.points_csv import points_header
 
     if markers.suffix.lower() != ".csv" or not markers.is_file() or sniff(markers):
-        return None, None, rate
+        return None
     rate = rate or points_header(markers).rate_hz
     if rate is None:
         raise UserError(f"{markers} has no frame rate: give --rate HZ (the cameras' rate)")
-    return (*read_points_for_command(markers, strict), rate)
+    return rate
 
 
 def _check_outputs(markers: Path, out: Path, motive_out: Path | None) -> None:

@@ -13,6 +13,8 @@ that is not a whole number, more or fewer columns than the header) is not silent
 dropped: it is counted by kind with the first one's line number, for the command to warn
 about in one line, or refused at once (`strict`). The header is read first
 (`points_header`), so a question about it (which frame rate?) is asked before the long read.
+The points go to arrays (`read_points_csv`) or, a block at a time, to any sink
+(`stream_points_csv`: `mocapd track` spools them to disk and tracks them in windows).
 """
 
 from __future__ import annotations
@@ -125,10 +127,24 @@ def read_points_csv(path: str | Path, strict: bool = False, progress=None,
     """Every usable point of the file and the rows that were not. With `strict` the first
     bad row ends the read with a UserError naming it. progress(bytes read, file size) is
     called after each block."""
+    size = os.path.getsize(path) if Path(path).is_file() else 0
+    out = _Growing(max(1024, size // 24))
+    bad = stream_points_csv(path, out, strict, progress, block_bytes)
+    frame, xyz = out.arrays()
+    return Points(frame, xyz), bad
+
+
+def stream_points_csv(path: str | Path, sink, strict: bool = False, progress=None,
+                      block_bytes: int = BLOCK_BYTES) -> BadRows:
+    """Every usable point of the file handed to sink.put(frame (n,), xyz (n, 3)) a block
+    at a time, in the file's order; the rows that were not usable are returned. A file
+    with no usable point is a UserError. With `strict` the first bad row ends the read
+    with a UserError naming it. progress(bytes read, file size) is called after each
+    block."""
     path = Path(path)
     head = points_header(path)
     size = os.path.getsize(path)
-    out = _Growing(max(1024, (size - head.data_offset) // 24))
+    out = _Counting(sink)
     bad = BadRows()
     line = head.data_line
     with open(path, "rb") as handle:
@@ -153,12 +169,23 @@ def read_points_csv(path: str | Path, strict: bool = False, progress=None,
                 progress(handle.tell() - len(carry), size)
             if not block:
                 break
-    frame, xyz = out.arrays()
-    if not len(frame):
+    if not out.n:
         if bad.count:
             raise UserError(f"{path}: holds no usable points: {bad.summary()}")
         raise UserError(f"{path}: holds no points")
-    return Points(frame, xyz), bad
+    return bad
+
+
+class _Counting:
+    """A sink that counts the points it passes on."""
+
+    def __init__(self, sink) -> None:
+        self.sink, self.n = sink, 0
+
+    def put(self, frame: np.ndarray, xyz: np.ndarray) -> None:
+        if len(frame):
+            self.sink.put(frame, xyz)
+            self.n += len(frame)
 
 
 class _Growing:

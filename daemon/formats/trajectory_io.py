@@ -193,33 +193,39 @@ def write_poses_csv(path: str | Path, table: PoseTable, comment: str = "") -> No
     with the pose fields empty. Metres, quaternions x y z w body-to-world, to 0.1 um and
     1e-8; written whole or not at all, a block of frames at a time (an hour-long take's
     rows never sit in memory as Python objects all at once)."""
-    n_frames, n_bodies = table.valid.shape
-    names = [n.replace(",", "_") for n in table.names]
-    ids = table.ids.tolist()
     with atomic_write(path, "w", newline="", encoding="utf-8") as handle:
         if comment:
             handle.write(f"# {comment}\n")
         handle.write(",".join(POSES_COLUMNS) + "\n")
-        for a in range(0, n_frames, ROWS_BLOCK_FRAMES):
-            b = min(a + ROWS_BLOCK_FRAMES, n_frames)
-            frames, times = table.frame[a:b].tolist(), table.t_s[a:b].tolist()
-            pose = np.concatenate([table.xyz[a:b], table.quat[a:b],
-                                   table.error_mm[a:b, :, None]], axis=2)
-            rows = pose.reshape(-1, 8).tolist()
-            valid = table.valid[a:b].reshape(-1).tolist()
-            count = table.markers[a:b].reshape(-1).tolist()
-            lines = []
-            for i in range((b - a) * n_bodies):  # file output, a row at a time
-                f, k = divmod(i, n_bodies)
-                if valid[i]:
-                    x, y, z, qx, qy, qz, qw, e = rows[i]
-                    lines.append(f"{frames[f]},{times[f]:.6f},{names[k]},{ids[k]},1,{x:.7f},"
-                                 f"{y:.7f},{z:.7f},{qx:.8f},{qy:.8f},{qz:.8f},{qw:.8f},"
-                                 f"{e:.4f},{count[i]}\n")
-                else:
-                    lines.append(f"{frames[f]},{times[f]:.6f},{names[k]},{ids[k]},0,,,,,,,,,"
-                                 f"{count[i]}\n")
-            handle.writelines(lines)
+        write_poses_rows(handle, table)
+
+
+def write_poses_rows(handle, table: PoseTable) -> None:
+    """write_poses_csv's rows for the frames of `table`: a take written a window of
+    frames at a time (mocapd track on a big points CSV) calls it once per window."""
+    n_frames, n_bodies = table.valid.shape
+    names = [n.replace(",", "_") for n in table.names]
+    ids = table.ids.tolist()
+    for a in range(0, n_frames, ROWS_BLOCK_FRAMES):
+        b = min(a + ROWS_BLOCK_FRAMES, n_frames)
+        frames, times = table.frame[a:b].tolist(), table.t_s[a:b].tolist()
+        pose = np.concatenate([table.xyz[a:b], table.quat[a:b],
+                               table.error_mm[a:b, :, None]], axis=2)
+        rows = pose.reshape(-1, 8).tolist()
+        valid = table.valid[a:b].reshape(-1).tolist()
+        count = table.markers[a:b].reshape(-1).tolist()
+        lines = []
+        for i in range((b - a) * n_bodies):  # file output, a row at a time
+            f, k = divmod(i, n_bodies)
+            if valid[i]:
+                x, y, z, qx, qy, qz, qw, e = rows[i]
+                lines.append(f"{frames[f]},{times[f]:.6f},{names[k]},{ids[k]},1,{x:.7f},"
+                             f"{y:.7f},{z:.7f},{qx:.8f},{qy:.8f},{qz:.8f},{qw:.8f},"
+                             f"{e:.4f},{count[i]}\n")
+            else:
+                lines.append(f"{frames[f]},{times[f]:.6f},{names[k]},{ids[k]},0,,,,,,,,,"
+                             f"{count[i]}\n")
+        handle.writelines(lines)
 
 
 def read_poses_csv(path: str | Path) -> PoseTable:
