@@ -4,22 +4,28 @@ from __future__ import annotations
 
 import threading
 
+from daemon.process.supervise import Supervised
+
 
 class Worker:
-    """Runs `self._run` on a daemon thread; `_run` returns once `self._stop` is set."""
+    """Runs `self._run` on a daemon thread; `_run` returns once `self._stop` is set. An
+    exception escaping `_run` restarts it (daemon.process.supervise): a camera's thread must not
+    end on a bug while the others go on without it."""
 
     def __init__(self, name: str) -> None:
         self._stop = threading.Event()
-        self.thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self.sup = Supervised(name, self._run, stopping=self._stop.is_set)
+        self.thread = self.sup.thread
+        self.supervised = [self.sup]
 
     def _run(self) -> None:
         raise NotImplementedError
 
     def start(self) -> None:
-        self.thread.start()
+        self.sup.start()
 
     def stop(self) -> None:
         self._stop.set()
 
     def join(self, timeout: float = 1.0) -> None:
-        self.thread.join(timeout)
+        self.sup.join(timeout)

@@ -20,6 +20,8 @@ import threading
 import time
 from collections import deque
 
+from daemon.process.supervise import Supervised, threads_status
+
 log = logging.getLogger("mocapd.publish")
 
 
@@ -36,6 +38,7 @@ class Publisher:
         self._cond = threading.Condition()
         self._stop = False
         self._thread: threading.Thread | None = None
+        self._worker: Supervised | None = None
         self._next_due = 0.0
         self._next_open = 0.0  # when a failed output may be opened again
         self._in_flight = False  # the worker holds a frame it has not sent yet
@@ -61,8 +64,15 @@ class Publisher:
     # ---- the machinery -------------------------------------------------------------------
 
     def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, name=f"pub-{self.name}", daemon=True)
-        self._thread.start()
+        self._worker = Supervised(f"pub-{self.name}", self._run, stopping=lambda: self._stop)
+        self._thread = self._worker.thread
+        self._worker.start()
+
+    @property
+    def supervised(self) -> list:
+        """The threads `mocapd status` reports (daemon.process.supervise): the worker, and a
+        server's own thread where a protocol has one."""
+        return [self._worker]
 
     def submit(self, result) -> None:
         """Hand a frame to the worker; never blocks. Throttled to rate_hz if set."""
@@ -92,12 +102,16 @@ class Publisher:
         with self._cond:
             self._stop = True
             self._cond.notify()
-        if self._thread is not None:
-            self._thread.join(timeout)
+        if self._worker is not None:
+            self._worker.join(timeout)
+            if not self._worker.is_alive():  # a worker that failed at the stop closes nothing
+                self._safe_close()
 
     def status(self) -> dict:
+        threads = threads_status(self)
         return {"name": self.name, "connected": self.connected, "sent": self.sent,
-                "dropped": self.dropped, "errors": self.errors, "last_error": self.last_error}
+                "dropped": self.dropped, "errors": self.errors, "last_error": self.last_error,
+                "threads": threads, "restarts": sum(t["restarts"] for t in threads)}
 
     def _run(self) -> None:
         while True:

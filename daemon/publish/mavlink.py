@@ -20,6 +20,7 @@ import time
 
 import numpy as np
 
+from daemon.process.supervise import Supervised
 from daemon.publish.base import Publisher
 from daemon.publish.mavlink_link import MavlinkLink
 
@@ -92,13 +93,16 @@ class MavlinkPublisher(Publisher):
         self.mav = self.link.mav
         self.name = name or f"mavlink:{device}"
         self._link_stop = threading.Event()
-        self._link_thread: threading.Thread | None = None
+        self._link_thread: Supervised | None = None
 
     def start(self) -> None:
-        self._link_thread = threading.Thread(target=self._run_link, name=f"link-{self.name}",
-                                             daemon=True)
-        self._link_thread.start()
+        self._link_thread = Supervised(f"link-{self.name}", self._run_link,
+                                       stopping=self._link_stop.is_set).start()
         super().start()
+
+    @property
+    def supervised(self) -> list:
+        return [*super().supervised, self._link_thread]
 
     def stop(self, timeout: float = 2.0) -> None:
         self._link_stop.set()

@@ -45,6 +45,7 @@ import struct
 import threading
 import time
 
+from daemon.process.supervise import Supervised
 from daemon.publish.arrival_stamps import receive_stamped, residence_midpoint_ns, stamp_arrivals
 from daemon.publish.base import Publisher
 from daemon.publish.natnet_commands import Commands, code
@@ -137,7 +138,7 @@ class NatNetPublisher(Publisher):
         self.t0_ns: int | None = None
         self._lock = threading.Lock()
         self.handed_over = False
-        self._cmd_thread: threading.Thread | None = None
+        self._cmd_thread: Supervised | None = None
         self._cmd_stop = threading.Event()
         self.markerset, self.markerset_id = markerset, markerset_id
         self.fps = float(fps)
@@ -197,9 +198,8 @@ class NatNetPublisher(Publisher):
             for ip in direct_ips:
                 self._direct(ip)
         self._cmd_stop.clear()
-        self._cmd_thread = threading.Thread(target=self._serve, name=f"{self.name}-cmd",
-                                            daemon=True)
-        self._cmd_thread.start()
+        self._cmd_thread = Supervised(f"{self.name}-cmd", self._serve,
+                                      stopping=self._cmd_stop.is_set).start()
         log.info("%s: NatNet %d.%d on %s:%d, data %s%s:%d%s", self.name, *NATNET_VERSION[:2],
                  self.interface, self.command_port,
                  "multicast " if self.multicast else "unicast ",
@@ -239,6 +239,10 @@ class NatNetPublisher(Publisher):
             if s is not None:
                 s.close()
         self.data_sock = None
+
+    @property
+    def supervised(self) -> list:
+        return [*super().supervised, self._cmd_thread]
 
     def status(self) -> dict:
         st = super().status()

@@ -40,6 +40,7 @@ import time
 
 import numpy as np
 
+from daemon.process.supervise import Supervised
 from daemon.publish.base import Publisher
 
 log = logging.getLogger("mocapd.publish")
@@ -202,11 +203,10 @@ class VrpnPublisher(Publisher):
         self.handed_over = False
         self.pongs = 0
         self._lock = threading.Lock()
-        self._srv_thread: threading.Thread | None = None
+        self._srv_thread: Supervised | None = None
         self._srv_stop = threading.Event()
         self._calling: dict[socket.socket, tuple] = {}  # call backs under way
         self._bad_logged: dict[str, float] = {}  # kind of bad input -> when last logged
-        self.restarts = 0  # server steps that raised (a bug), shown by mocapd status
         self._senders_ids: tuple | None = None
         self._senders = np.zeros(0, np.int64)
         self._wall_offset_ns = time.time_ns() - time.monotonic_ns()
@@ -253,9 +253,8 @@ class VrpnPublisher(Publisher):
                     self._drop(c)
         self._wall_offset_ns = time.time_ns() - time.monotonic_ns()
         self._srv_stop.clear()
-        self._srv_thread = threading.Thread(target=self._serve, name=f"{self.name}-srv",
-                                            daemon=True)
-        self._srv_thread.start()
+        self._srv_thread = Supervised(f"{self.name}-srv", self._serve,
+                                      stopping=self._srv_stop.is_set).start()
         log.info("%s: VRPN trackers %s on %s:%d%s", self.name,
                  ", ".join(self.body_names) or "-", self.host, self.port,
                  f" (taken over with {len(clients)} clients)" if taken is not None else "")
@@ -323,8 +322,12 @@ class VrpnPublisher(Publisher):
             st["clients"] = sum(c.connected for c in self.clients)
         st["address"] = f"{self.host}:{self.port}"
         st["server_alive"] = self._srv_thread is not None and self._srv_thread.is_alive()
-        st["server_restarts"] = self.restarts
+        st["server_restarts"] = self._srv_thread.restarts if self._srv_thread else 0
         return st
+
+    @property
+    def supervised(self) -> list:
+        return [*super().supervised, self._srv_thread]
 
     # ---- frames ------------------------------------------------------------------------------
 
@@ -365,16 +368,10 @@ class VrpnPublisher(Publisher):
             log.info("%s: ignoring %s", self.name, what)
 
     def _serve(self) -> None:
+        """The server's loop; a step that raises (a bug) restarts it (daemon.process.supervise), so
+        one bad client cannot stop every client's stream."""
         while not self._srv_stop.is_set():
-            try:
-                self._serve_once()
-            except Exception:  # noqa: BLE001 - a bug must not stop every client's stream
-                self.restarts += 1
-                if time.monotonic() - self._bad_logged.get("step", -1e9) >= 60.0:
-                    self._bad_logged["step"] = time.monotonic()
-                    log.exception("%s: server step failed (%d so far); serving on",
-                                  self.name, self.restarts)
-                time.sleep(0.05)
+            self._serve_once()
 
     def _serve_once(self) -> None:
         """One pass: wait up to 50 ms, then accept, call back, read and flush."""

@@ -24,6 +24,7 @@ import numpy as np
 
 from calibkit.core.errors import UserError
 from daemon.config.mocapd import default_runtime_dir
+from daemon.process.supervise import Supervised
 
 log = logging.getLogger("mocapd")
 SOCKET_NAME = "mocapd.sock"
@@ -77,7 +78,8 @@ class ControlServer:
         self.path = self.dir / SOCKET_NAME
         self.handler = handler
         self.sock: socket.socket | None = None
-        self.thread: threading.Thread | None = None
+        self.thread: Supervised | None = None
+        self.supervised: list = []
         self._slots = threading.BoundedSemaphore(MAX_CLIENTS)
         self._handling = threading.Lock()
         self._logged: dict[str, float] = {}  # kind of bad request -> when last logged
@@ -107,8 +109,9 @@ class ControlServer:
         sock.listen(8)
         sock.settimeout(0.2)
         self.sock = sock
-        self.thread = threading.Thread(target=self._serve, name="control", daemon=True)
-        self.thread.start()
+        self.thread = Supervised("control", self._serve,
+                                 stopping=lambda: self.sock is None).start()
+        self.supervised = [self.thread]
 
     def _serve(self) -> None:
         while self.sock is not None:
@@ -123,8 +126,13 @@ class ControlServer:
                            MAX_CLIENTS)
                 conn.close()
                 continue
-            threading.Thread(target=self._serve_one, args=(conn,), name="control-client",
-                             daemon=True).start()
+            try:
+                threading.Thread(target=self._serve_one, args=(conn,), name="control-client",
+                                 daemon=True).start()
+            except BaseException:  # no thread to be had: the slot back, the server restarted
+                self._slots.release()
+                conn.close()
+                raise
 
     def _serve_one(self, conn: socket.socket) -> None:
         try:
@@ -175,6 +183,10 @@ class ControlServer:
     def close(self) -> None:
         sock, self.sock = self.sock, None
         if sock is not None:
+            try:  # wakes the accept waiting on it now, not at its next 0.2 s timeout
+                sock.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
             sock.close()
         if self.thread is not None:
             self.thread.join(1.0)

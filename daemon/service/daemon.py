@@ -38,11 +38,12 @@ from daemon.capture.pipeline import (
 )
 from daemon.capture.sources import DetectCamera, ReplayCamera, ReplayScene
 from daemon.config.mocapd import Config, default_runtime_dir, load_config, parse_config
+from daemon.config.zenoh import is_remote
 from daemon.nodes.remote import make_hub
-from daemon.nodes.zenoh_table import is_remote
 from daemon.process import heap
 from daemon.process.notify import sd_notify, watchdog_interval_s
 from daemon.process.realtime import raise_priority, restore_normal
+from daemon.process.supervise import threads_status
 from daemon.publish.mcap_recorder import McapRecorderPublisher
 from daemon.publish.recorder import RecorderPublisher
 from daemon.publish.udp import UdpPublisher
@@ -683,7 +684,8 @@ class Daemon:
                    "rate_hz": cap.rate_hz() if cap else st.rate_hz(),
                    "frames": cap.frames if cap else st.frames,
                    "dropped": int(mux.missing[i]) if mux else 0,
-                   "failures": cap.failures if cap else 0}
+                   "failures": cap.failures if cap else 0,
+                   "restarts": cap.sup.restarts if hasattr(cap, "sup") else 0}
             if mux is not None:  # its clock against the daemon's, frames its counter skipped
                 cam.update(mux.camera_status(i))
             table = tables.get(name)
@@ -712,6 +714,9 @@ class Daemon:
             "labelling": None if self.labelling is None else self.labelling.status(),
             "multiplexer": self.mux_stats(),
             "nodes": self.hub.status() if self.hub is not None else None,
+            # every supervised thread (daemon.process.supervise): state and restarts
+            "threads": threads_status(*self.captures, self.control,
+                                      *self.pipeline.publishers, self.recorder, self.view),
         }
 
     def figures(self) -> dict:

@@ -20,6 +20,7 @@ import time
 import numpy as np
 
 from calibkit.core.errors import UserError
+from daemon.process.supervise import Supervised
 
 log = logging.getLogger("mocapd.view")
 FEED_HZ = 30.0  # frames a second the view gets (its 3D view redraws at this rate)
@@ -124,7 +125,8 @@ class ViewLink:
         child.close()
         self._latest = None
         self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._thread = None  # the feed (daemon.process.supervise.Supervised)
+        self.supervised: list = []
         self._described: tuple | None = None
         self.sent = 0
         self.url = f"http://{host if ':' not in host else f'[{host}]'}:{port}"
@@ -144,8 +146,8 @@ class ViewLink:
         self._daemon = daemon
         self._send({"setup": describe(daemon)})
         daemon.pipeline.hooks.append(self.submit)
-        self._thread = threading.Thread(target=self._feed, name="view-feed", daemon=True)
-        self._thread.start()
+        self._thread = Supervised("view-feed", self._feed, stopping=self._stop.is_set).start()
+        self.supervised = [self._thread]
         where = "" if is_loopback(self.host) else " (not loopback: anyone who can reach " \
                                                    "this address can see and change the rig)"
         log.info("live view at %s%s", self.url, where)
