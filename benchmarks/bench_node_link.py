@@ -48,8 +48,8 @@ def node_publishers(port: int, k: int, names: list[str]):
     """A Zenoh session and a node's publisher per camera name, set up as `mocapd node`
     sets them up (its switch interval, real-time scheduling, Zenoh settings)."""
     from daemon.nodes.node import CapturePublisher, NodeTime
-    from daemon.nodes.session import ZenohSettings
     from daemon.process.realtime import raise_priority
+    from daemon.publish.zenoh_session import ZenohSettings
 
     sys.setswitchinterval(1e-4)
     raise_priority(10)  # before the session: its threads inherit it
@@ -111,8 +111,8 @@ def subscribe(port: int, seconds: float, start) -> np.ndarray:
     """Hop (ms) of every message that came within `seconds`, the first third left out."""
     import zenoh
 
-    from daemon.nodes import wire
-    from daemon.nodes.session import ZenohSettings
+    from daemon.publish import zenoh_wire as wire
+    from daemon.publish.zenoh_session import ZenohSettings
 
     hops: list[int] = []
 

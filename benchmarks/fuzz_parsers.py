@@ -113,8 +113,8 @@ def mavlink():
 def zenoh():
     import json as js
 
-    from daemon.nodes import wire
     from daemon.nodes.remote import NodeHub
+    from daemon.publish import zenoh_wire as wire
 
     hub = NodeHub(SimpleNamespace(session=SimpleNamespace(rig="lab")), ["cam0"],
                   {"cam0": "cam0"})

@@ -13,8 +13,8 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from daemon.nodes import wire
 from daemon.nodes.remote import NodeHub
+from daemon.publish import zenoh_wire as wire
 
 RIG = "lab"
 

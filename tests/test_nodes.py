@@ -18,9 +18,9 @@ import pytest
 
 from calibkit.core.errors import UserError
 from daemon.config.mocapd import parse_config
-from daemon.nodes import wire
 from daemon.nodes.clock import NodeClock
 from daemon.nodes.settings import parse_camera_list, parse_node_config
+from daemon.publish import zenoh_wire as wire
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -472,7 +472,7 @@ def test_a_killed_node_is_dropped_and_its_cameras_rejoin_within_2_s_of_its_resta
 def test_poses_go_out_over_zenoh_to_a_subscriber_on_another_session(tmp_path):
     """A consumer with its own Zenoh session, connected to the daemon, gets every body's
     pose on mocap/<rig>/bodies/<name>, matching what the daemon tracked."""
-    from daemon.nodes.session import ZenohSettings
+    from daemon.publish.zenoh_session import ZenohSettings
 
     port, rig = free_port(), "poses"
     ep = f"tcp/127.0.0.1:{port}"
@@ -519,9 +519,9 @@ def test_a_node_serving_a_camera_the_daemon_does_not_take_is_warned_about(tmp_pa
     """A node announcing a camera outside the daemon's rig gets one warning naming it."""
     import logging
 
+    from daemon.config.zenoh import DaemonZenoh
     from daemon.nodes.remote import NodeHub
-    from daemon.nodes.session import ZenohSettings
-    from daemon.nodes.zenoh_table import DaemonZenoh
+    from daemon.publish.zenoh_session import ZenohSettings
 
     port = free_port()
     hub = NodeHub(DaemonZenoh(ZenohSettings("warn", (f"tcp/127.0.0.1:{port}",), ())),

@@ -66,7 +66,7 @@ def test_priority_zero_leaves_scheduling_alone():
 def test_the_configuration_key_and_the_flag(tmp_path, start_refused):
     """Real-time scheduling only where it is asked for: a file's priority or --realtime
     (which the system unit passes); a run in a terminal or --sim stays normal."""
-    from daemon.service.start import REALTIME_DEFAULT, StartOverrides
+    from daemon.commands.start_run import REALTIME_DEFAULT, StartOverrides
 
     good = tmp_path / "good.toml"
     good.write_text("[pipeline]\nrealtime_priority = 20\n")

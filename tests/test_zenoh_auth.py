@@ -1,4 +1,4 @@
-"""Who may join the daemon's Zenoh session (daemon/nodes/session.py): the users file and the
+"""Who may join the daemon's Zenoh session (daemon/publish/zenoh_session.py): the users file and the
 credentials are checked at start in one line each; on loopback, a peer without a listed
 user's password delivers nothing (the namespace test in test_nodes_link.py runs the nodes)."""
 
@@ -12,8 +12,8 @@ from test_nodes import free_port
 
 from calibkit.core.errors import UserError
 from daemon.config.mocapd import load_config
-from daemon.nodes.session import ZenohSettings
 from daemon.nodes.settings import load_node_config
+from daemon.publish.zenoh_session import ZenohSettings
 
 
 def test_the_keys_are_checked_at_start(tmp_path):

@@ -54,15 +54,15 @@ def register(app: typer.Typer) -> None:
         """Open cameras, detect blobs and publish them over Zenoh to a mocapd elsewhere."""
         from daemon.config.mocapd import SimConfig
         from daemon.nodes.node import Node, NodeTime, live_sources
-        from daemon.nodes.session import check_endpoint, check_name
         from daemon.nodes.settings import PUBLISH, load_node_config, parse_camera_list
         from daemon.process.logs import setup_logging
+        from daemon.publish.zenoh_session import check_endpoint, check_name
         from daemon.synthetic.node_sim import sim_capture, sim_sources
 
         setup_logging(verbose)
         cfg = load_node_config(config)
         if realtime and cfg.realtime_priority == 0:
-            from daemon.service.start import REALTIME_DEFAULT
+            from daemon.commands.start_run import REALTIME_DEFAULT
 
             cfg = replace(cfg, realtime_priority=REALTIME_DEFAULT)
         try:

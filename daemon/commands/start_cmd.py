@@ -194,9 +194,9 @@ def register(app: typer.Typer) -> None:
         SIGHUP reloads the configuration. With --frames or --duration it stops by itself
         and prints (and with --json writes) its figures.
         """
+        from daemon.commands.start_run import StartOverrides, run_daemon
         from daemon.config.mocapd import Config, load_config  # deferred: see above
         from daemon.process.logs import setup_logging
-        from daemon.service.start import StartOverrides, run_daemon
 
         setup_logging(verbose)
         for name, value in (("--frames", frames), ("--duration", duration)):

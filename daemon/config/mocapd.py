@@ -56,7 +56,7 @@ from daemon.config.check import (
     _table,
     _Where,
 )
-from daemon.nodes.zenoh_table import parse_daemon_zenoh
+from daemon.config.zenoh import parse_daemon_zenoh
 from daemon.publish.mavlink import MESSAGES, WORLD_TO_NED
 from daemon.publish.natnet_commands import networks
 from daemon.tracking.rigid import BodyDef, RigidConfig

@@ -3,7 +3,7 @@
 Each camera runs on a capture thread as in the daemon (daemon.capture.pipeline.CaptureThread: a
 camera that fails is reopened), with the daemon's detector and per-camera settings
 (daemon.capture.sources.DetectCamera). Each frame goes out alone on its camera's key as soon as it
-is detected (CapturePublisher), stamped on the node's clock (daemon.nodes.wire); with
+is detected (CapturePublisher), stamped on the node's clock (daemon.publish.zenoh_wire); with
 `publish = "sets"` the frames of one trigger from all the node's cameras go out as one
 message when the last of them is in (SetPublisher). The node answers the daemon's clock
 pings and announces its cameras once a second. Publishing never blocks: a message the link
@@ -30,11 +30,11 @@ from calibkit.core.errors import UserError
 from calibkit.vision.detect import DetectorConfig
 from daemon.capture.pipeline import CaptureThread
 from daemon.capture.sources import DetectCamera
-from daemon.nodes import wire
-from daemon.nodes.session import announce_key, blobs_key, ping_key, pong_key, sets_key
 from daemon.nodes.settings import NodeConfig
 from daemon.process import heap
 from daemon.process.realtime import raise_priority, restore_normal
+from daemon.publish import zenoh_wire as wire
+from daemon.publish.zenoh_session import announce_key, blobs_key, ping_key, pong_key, sets_key
 
 log = logging.getLogger("mocapd.node")
 ANNOUNCE_S = 1.0

@@ -32,11 +32,11 @@ import numpy as np
 
 from calibkit.core.errors import UserError
 from daemon.capture.sources import CameraSample
-from daemon.nodes import wire
+from daemon.config.zenoh import DaemonZenoh, is_remote
 from daemon.nodes.clock import NodeClock
-from daemon.nodes.session import all_blobs_key, all_sets_key, check_name, ping_key
-from daemon.nodes.zenoh_table import DaemonZenoh, is_remote
+from daemon.publish import zenoh_wire as wire
 from daemon.publish.bad_input import BadInput
+from daemon.publish.zenoh_session import all_blobs_key, all_sets_key, check_name, ping_key
 
 log = logging.getLogger("mocapd.nodes")
 PING_HZ = 20.0

@@ -1,4 +1,4 @@
-"""A capture node's node.toml (mocapd.toml's [zenoh] table is daemon.nodes.zenoh_table).
+"""A capture node's node.toml (mocapd.toml's [zenoh] table is daemon.config.zenoh).
 
 Checked up front as mocapd.toml is (daemon.config.mocapd): one line naming the file, the key and
 the problem, before anything opens.
@@ -19,8 +19,8 @@ import tomllib
 from calibkit.core.errors import UserError
 from daemon.config.check import _check_keys, _list, _number, _string, _table, _Where
 from daemon.config.mocapd import CameraIn, SimConfig, _camera, _dataclass_table, _sim_limits
-from daemon.nodes.session import ZenohSettings, check_name
-from daemon.nodes.zenoh_table import DEFAULT_PORT, _session
+from daemon.config.zenoh import DEFAULT_PORT, _session
+from daemon.publish.zenoh_session import ZenohSettings, check_name
 
 PUBLISH = ("cameras", "sets")
 

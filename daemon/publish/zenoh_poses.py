@@ -2,7 +2,7 @@
 
 Consumers on other machines subscribe with any Zenoh client (Python, C, Rust, ROS 2
 through rmw_zenoh or zenoh-bridge-ros2dds) without NatNet or VRPN. One message per body
-per frame, the fixed 60-byte pose record of daemon.nodes.wire; a body not seen this
+per frame, the fixed 60-byte pose record of daemon.publish.zenoh_wire; a body not seen this
 frame is sent with its valid flag clear, so a consumer can tell "lost" from "no data".
 The session is the daemon's (the nodes' hub): the poses leave by the endpoints the nodes
 reach it on. Puts are express and dropped under congestion, so a slow subscriber never
@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import time
 
-from daemon.nodes import wire
-from daemon.nodes.session import body_key
+from daemon.publish import zenoh_wire as wire
 from daemon.publish.base import Publisher
+from daemon.publish.zenoh_session import body_key
 
 
 class ZenohPosePublisher(Publisher):

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from daemon.config.check import _bool, _check_keys, _number, _string
-from daemon.nodes.session import ZenohSettings, check_endpoint, check_name, read_users
+from daemon.publish.zenoh_session import ZenohSettings, check_endpoint, check_name, read_users
 
 DEFAULT_PORT = 7447  # Zenoh's own default port
 
