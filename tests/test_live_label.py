@@ -102,21 +102,28 @@ def test_stage_labels_the_person_inline_with_ghosts_and_gaps():
 
 def test_stage_starts_on_a_thread_and_catches_up():
     """Realtime: the first frames go out unlabelled while the set is searched on a thread,
-    then the caught-up labeller names every marker; a stream that never waits for it."""
+    then the caught-up labeller names every marker; a stream that never waits for it.
+    Frames come at their rate until the search has ended, however long that takes on a
+    loaded machine (up to the 30 s of frames made), then the next 120 are scored."""
     stage = LiveLabeller(load(SET), 120.0, background=True)
     outs, truths = [], []
-    for r, truth in list(_frames(240, hide=False)):
+    first = None
+    for r, truth in _frames(120 * 30, hide=False):
         outs.append(stage(r))
         truths.append(truth)
+        if first is None and len(outs[-1].index):
+            first = len(outs) - 1
+        if first is not None and len(outs) >= first + 120:
+            break
         time.sleep(1 / 120)  # frames at their rate
     assert len(outs[0].index) == 0  # the search never holds up a frame
-    first = next(i for i, o in enumerate(outs) if len(o.index))
-    assert first < 200
+    assert first is not None, "the search on its thread never ended"
     right = total = 0
     for o, t in zip(outs[first:], truths[first:], strict=True):
         a, b = _score(o, t)
         right, total = right + a, total + b
-    assert right >= 0.99 * total and total >= 0.9 * 36 * (240 - first)
+    assert len(outs) == first + 120
+    assert right >= 0.99 * total and total >= 0.9 * 36 * 120
     assert stage.starts == 1 and stage.failures == 0
 
 
@@ -155,17 +162,18 @@ def test_stage_start_waits_for_a_busy_worker():
     """A start due while the worker thread is still busy (a check of the labeller before
     the subject was lost) is submitted again on a later frame, not dropped."""
     stage = LiveLabeller(load(SET), 120.0, background=True, window_s=0.1)
-    frames = list(_frames(200, hide=False))
+    frames = _frames(120 * 30, hide=False)  # up to 30 s of frames: a loaded machine's wait
     stage.worker.busy = True                      # another search running
-    for r, _ in frames[:40]:
-        assert len(stage(r).index) == 0
+    for _ in range(40):
+        assert len(stage(next(frames)[0]).index) == 0
     stage.worker.busy = False
-    first = None
-    for i, (r, _) in enumerate(frames[40:]):
-        if len(stage(r).index) and first is None:
-            first = i
-        time.sleep(1 / 240)
-    assert first is not None and stage.starts == 1 and stage.failures == 0
+    labelled = False
+    for r, _ in frames:
+        if len(stage(r).index):
+            labelled = True
+            break
+        time.sleep(1 / 120)
+    assert labelled and stage.starts == 1 and stage.failures == 0
 
 
 def _cmu_tracks(name, pattern, ms):
