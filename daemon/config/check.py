@@ -5,6 +5,7 @@ naming the file, the key and the problem, raised as the UserError a command prin
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 from calibkit.core.errors import UserError
@@ -27,6 +28,15 @@ def _check_keys(w: _Where, table: dict, allowed, prefix: str) -> None:
             w.fail(f"{prefix}{key}", "unknown key (allowed: " + ", ".join(sorted(allowed)) + ")")
 
 
+def finite_number(v) -> bool:
+    """A TOML number that is one: not a bool, not nan or inf, an integer within 64 bits."""
+    if isinstance(v, bool):
+        return False
+    if isinstance(v, int):
+        return abs(v) < 2**63
+    return isinstance(v, float) and math.isfinite(v)
+
+
 def _number(w, table, key, prefix, default, kind=float, lo=None, hi=None):
     if key not in table:
         return default
@@ -35,8 +45,8 @@ def _number(w, table, key, prefix, default, kind=float, lo=None, hi=None):
                                                                   not isinstance(v, int)):
         w.fail(prefix + key, f"expected {'an integer' if kind is int else 'a number'}, "
                              f"got {v!r}")
-    if v != v:  # TOML's nan passes every range check below
-        w.fail(prefix + key, "expected a number, got nan")
+    if not finite_number(v):  # nan and inf pass the range checks below (inf is above any lo)
+        w.fail(prefix + key, f"expected a number, got {v!r}")
     if (lo is not None and v < lo) or (hi is not None and v > hi):
         rng = f"between {lo} and {hi}" if hi is not None else f"at least {lo}"
         w.fail(prefix + key, f"must be {rng}, got {v}")

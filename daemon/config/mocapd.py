@@ -55,6 +55,7 @@ from daemon.config.check import (
     _string,
     _table,
     _Where,
+    finite_number,
 )
 from daemon.config.zenoh import parse_daemon_zenoh
 from daemon.publish.mavlink import MESSAGES, WORLD_TO_NED
@@ -403,8 +404,8 @@ def _sim_robot(w, t, base: Path, volume_m: float) -> SimRobot:
                            "commands come in on")
     start = t.get("start", [0.0, 0.0, 0.0])
     if not (isinstance(start, list) and len(start) == 3 and all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) for v in start)):
-        w.fail(p + "start", f"expected [x, y, yaw_deg], got {start!r}")
+            finite_number(v) for v in start)):
+        w.fail(p + "start", f"expected [x, y, yaw_deg] (finite numbers), got {start!r}")
     if max(abs(start[0]), abs(start[1])) > 0.4 * volume_m:
         w.fail(p + "start", f"must be inside the volume's inner 80 % (|x|, |y| <= "
                             f"{0.4 * volume_m:g} m), got {start[:2]}")
