@@ -189,7 +189,8 @@ def _output(daemon, prefix: str):
 
 
 def test_every_kind_of_thread_restarts_after_an_injected_exception(daemon_with_every_output,
-                                                                   caplog, monkeypatch):
+                                                                   caplog, monkeypatch,
+                                                                   mocapd_cli):
     import daemon.publish.natnet as natnet_module
     from daemon.publish.natnet_wire import NAT_CONNECT
     from daemon.publish.vrpn import cookie
@@ -286,6 +287,15 @@ def test_every_kind_of_thread_restarts_after_an_injected_exception(daemon_with_e
                 cap.sup.name}
     assert sorted(m.split(": thread failed")[0] for m in said) == sorted(expected), said
     assert all(t["state"] == "running" for t in d.status()["threads"])
+    # `mocapd status` names each restarted thread with its state, restarts and last error
+    r = mocapd_cli("status", "--runtime-dir", env.rt)
+    assert r.code == 0, r.err
+    n = len(d.status()["threads"])
+    assert f"threads: {n} supervised, {len(expected)} restarted or not running" in r.out
+    rows = [ln.split() for ln in r.out.splitlines() if ln.split()[:1] and ln.split()[0]
+            in expected]
+    assert sorted(row[0] for row in rows) == sorted(expected)
+    assert all(row[1:3] == ["running", "1"] for row in rows), rows
 
 
 @pytest.mark.parametrize("suffix", [".mcrec", ".mcap"])

@@ -61,6 +61,13 @@ def register(app: typer.Typer) -> None:
         for o in st["outputs"]:
             if "autopilot" in o:
                 typer.echo(link_line(o))
+        threads = st.get("threads") or []  # supervised threads (daemon.process.supervise)
+        shown = [t for t in threads if t["state"] != "running" or t["restarts"]]
+        typer.echo(f"threads: {len(threads)} supervised, "
+                   + (f"{len(shown)} restarted or not running" if shown else "all running"))
+        if shown:
+            print_table([[t["name"], t["state"], t["restarts"], t["last_error"] or "-"]
+                         for t in shown], ["thread", "state", "restarts", "last error"])
         if st.get("recording"):
             rec = st.get("recording_status") or {}
             typer.echo(f"recording to {st['recording']}: {rec.get('sent', 0)} frames"
