@@ -20,6 +20,7 @@ from projector.dots import Dots
 SMALL = ("--views", 3, "--size", "320x240", "--step", 160, "--radius", 12)
 
 
+@pytest.mark.slow  # a whole run of the command
 def test_display_sim_recovers_the_simulated_camera(calibkit_cli, tmp_path, monkeypatch):
     shown = []
     real_show = OffscreenDisplay.show
@@ -50,6 +51,7 @@ def test_display_sim_recovers_the_simulated_camera(calibkit_cli, tmp_path, monke
     assert last.startswith("rendering: 39/39 (100%)") and "elapsed" in last
 
 
+@pytest.mark.slow  # a whole run of the command
 def test_the_camera_sees_only_what_the_display_draws(calibkit_cli, monkeypatch):
     """With a display that draws nothing, the simulated camera sees no dots: the pattern
     cannot come from anywhere but the display code. One clear line, exit 2."""
@@ -60,6 +62,7 @@ def test_the_camera_sees_only_what_the_display_draws(calibkit_cli, monkeypatch):
     assert len(r.err.strip().splitlines()[-1]) > 20 and "Traceback" not in r.err
 
 
+@pytest.mark.slow  # renders frames (EGL, spots)
 def test_a_drawn_frame_and_the_simulators_own_render_give_the_same_image():
     """show_image(what the display drew) is the very picture show(dots) puts on the glass."""
     cfg = MonitorSimConfig(seed=3)
@@ -87,6 +90,7 @@ def test_the_simulated_monitor_reports_its_size_as_an_edid_does():
     assert screen.pixel_pitch_mm == pytest.approx(cfg.pixel_pitch_mm, rel=2e-3)
 
 
+@pytest.mark.slow  # renders frames (EGL, spots)
 def test_bench_frames_come_from_a_live_camera(tmp_path):
     from calibkit.synthetic.sim import make_rig
 

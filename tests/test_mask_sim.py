@@ -15,6 +15,7 @@ from calibkit.vision.masks import build_mask, load_mask
 
 
 @pytest.mark.parametrize("seed, camera", [(0, "0"), (4, "cam3")])
+@pytest.mark.slow  # a whole run of the command
 def test_mask_covers_the_reflections_and_not_the_markers(calibkit_cli, tmp_path, seed, camera):
     out, js = tmp_path / "mask.png", tmp_path / "mask.json"
     r = calibkit_cli("mask", "--sim", "--out", out, "--json", js, "--seed", seed, "--camera",
@@ -46,6 +47,7 @@ def test_mask_covers_the_reflections_and_not_the_markers(calibkit_cli, tmp_path,
     assert "against the simulator's truth: 12/12 reflections" in r.out
 
 
+@pytest.mark.slow  # a whole run of the command
 def test_the_score_sees_a_bad_mask(calibkit_cli, tmp_path):
     """A threshold under the background masks everything: the score says so."""
     js = tmp_path / "m.json"
@@ -56,6 +58,7 @@ def test_the_score_sees_a_bad_mask(calibkit_cli, tmp_path):
     assert truth["markers_hidden"] == truth["markers"] > 20
 
 
+@pytest.mark.slow  # renders frames (EGL, spots)
 def test_one_frame_and_no_dilation_miss_the_flicker():
     """Why the defaults: dim reflections' edges flicker with the noise; one frame, no
     dilation leaves some of their pixels out, 30 frames and 4 px catch them all."""
@@ -68,6 +71,7 @@ def test_one_frame_and_no_dilation_miss_the_flicker():
     assert score_mask(many, refl, none, np.zeros(0))["reflection_pixels_covered"] == 1.0
 
 
+@pytest.mark.slow  # a whole run of the command
 def test_detect_with_the_mask_drops_the_reflections_only(calibkit_cli, tmp_path):
     out, mask_json = tmp_path / "mask.png", tmp_path / "mask.json"
     assert calibkit_cli("mask", "--sim", "--out", out, "--reflections", 10, "--json",

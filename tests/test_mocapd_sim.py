@@ -13,6 +13,7 @@ import pytest
 from daemon.formats.c3dio import read_take
 
 
+@pytest.mark.slow  # a whole run of the command
 def test_label_sim_names_the_simulated_person(mocapd_cli, tmp_path):
     out, js = tmp_path / "walk.c3d", tmp_path / "l.json"
     r = mocapd_cli("label", "--sim", "--frames", 300, "--out", out, "--json", js)
@@ -35,6 +36,7 @@ def test_label_sim_names_the_simulated_person(mocapd_cli, tmp_path):
     assert np.mean(err < 0.002) >= 0.97  # named right: at its own marker (0.3 mm noise)
 
 
+@pytest.mark.slow  # a whole run of the command
 def test_label_sim_with_start_frames_and_mistakes(mocapd_cli, tmp_path):
     js = tmp_path / "l.json"
     r = mocapd_cli("label", "--sim", "--frames", 240, "--start-frames", 10, "--hidden", 0,

@@ -82,6 +82,7 @@ def test_top_level_help_says_what_is_true(calibkit_cli):
     assert "add --sim to any command to" not in text
 
 
+@pytest.mark.slow  # a whole run of the command
 def test_triangulate_sim_is_scored_against_the_truth(calibkit_cli, tmp_path):
     out, js = tmp_path / "points.csv", tmp_path / "t.json"
     r = calibkit_cli("triangulate", "--sim", "--frames", 60, "--out", out, "--json", js)
@@ -104,6 +105,7 @@ def test_triangulate_sim_with_a_rig_of_other_cameras_is_one_line(calibkit_cli, t
     assert r.code == 2 and "--sim" in r.err and len(r.err.strip().splitlines()) == 1
 
 
+@pytest.mark.slow  # a whole run of the command
 def test_triangulate_sim_with_an_estimated_rig(calibkit_cli, tmp_path):
     """A rig file of the same cameras, a little off (as an estimate is): triangulated with
     it, the error grows above the perfect calibration's."""
