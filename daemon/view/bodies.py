@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from calibkit.core.errors import UserError
-from daemon.commands.rigid_cmd import append_body, body_from_markers, capture_snapshots
 from daemon.config.mocapd import load_config
+from daemon.service.live_bodies import append_body, body_from_markers, capture_snapshots
 from daemon.tracking.rigid_define import body_from_snapshots
 from daemon.view import tomledit
 
