@@ -70,3 +70,31 @@ def test_track_sim_poses_the_simulated_bodies(mocapd_cli, tmp_path):
     assert r.code == 2 and len(r.err.strip().splitlines()) == 1
     r = mocapd_cli("track", "--out", tmp_path / "p3.csv")
     assert r.code == 2 and "--sim" in r.err
+
+
+@pytest.mark.slow  # a whole run of the command
+def test_fill_sim_is_scored_against_where_the_markers_were(mocapd_cli, tmp_path):
+    from calibkit.synthetic import person
+    from daemon.formats.c3dio import Take
+    from daemon.synthetic.labelling import hide_spans
+
+    out, js = tmp_path / "filled.c3d", tmp_path / "f.json"
+    r = mocapd_cli("fill", "--sim", "--frames", 360, "--max-gap", 0.3, "--out", out,
+                   "--json", js)
+    assert r.code == 0, r.err
+    # the truth, made here as the command's simulator makes it
+    walk = person.walk_circle(360, 120.0, noise_m=0.0003, seed=0)
+    gapped = hide_spans(Take(list(walk.labels), walk.markers_m, 120.0), 0.1, seed=0)
+    filled = read_take(out)
+    idx = [filled.labels.index(n) for n in walk.labels]
+    got = filled.xyz_m[:, idx]
+    new = ~gapped.visible & np.isfinite(got).all(axis=2)
+    assert new.sum() > 20
+    err_mm = 1000 * np.linalg.norm(got[new] - walk.markers_m[new], axis=1)
+    # gaps up to 0.3 s of a walk: a few mm (longer ones are left empty by --max-gap)
+    assert np.sqrt(np.mean(err_mm ** 2)) < 6.0 and err_mm.max() < 20.0
+    truth = json.loads(js.read_text())["truth"]
+    assert truth["filled"] == int(new.sum()) and truth["gross_over_20mm"] == 0
+    assert truth["error_mm_rms"] == pytest.approx(np.sqrt(np.mean(err_mm ** 2)), rel=1e-3)
+    r = mocapd_cli("fill", "--sim", "--hidden", 0, "--out", tmp_path / "x.c3d")
+    assert r.code == 2 and "--hidden" in r.err and len(r.err.strip().splitlines()) == 1

@@ -302,8 +302,9 @@ def register(app: typer.Typer) -> None:
 
     @app.command("fill")
     def fill_cmd(
-        take_path: Annotated[Path, typer.Argument(help="Labelled take (.c3d or .csv).")],
         out: Annotated[Path, typer.Option("--out", help="Filled take (.c3d or .csv).")],
+        take_path: Annotated[Path | None, typer.Argument(
+            help="Labelled take (.c3d or .csv).")] = None,
         max_gap: Annotated[float | None, typer.Option(
             "--max-gap", help="Longest gap to fill, seconds (longer ones stay empty).")] = None,
         method: Annotated[str, typer.Option(
@@ -313,22 +314,36 @@ def register(app: typer.Typer) -> None:
                                 "spreads; else the take's own.")] = None,
         rate: RateOpt = None,
         json_path: JsonOpt = None,
+        sim: Annotated[bool, typer.Option(
+            "--sim", help="Instead of a take: the simulator's person walking, --hidden of "
+                          "its marker-frames hidden in spans of 0.1-1 s; the filled samples "
+                          "scored against where the markers truly were.")] = False,
+        frames: Annotated[int, typer.Option(help="--sim: frames (120 a second).")] = 600,
+        hidden: Annotated[float, typer.Option(
+            help="--sim: share of marker-frames hidden.")] = 0.1,
+        seed: Annotated[int, typer.Option(help="--sim: random seed.")] = 0,
     ) -> None:
         """Fill the gaps of hidden markers; filled samples are marked (CSV column filled).
 
-        Reads a labelled take with gaps; `mocapd label --sim --out
-        take.c3d` writes a simulated one (a tenth
-        of its marker-frames hidden)."""
+        Reads a labelled take with gaps, or with --sim a simulated one (`mocapd label --sim
+        --out take.c3d` writes one too)."""
         from daemon.analysis.gapfill import METHODS, fill
         from daemon.formats.c3dio import read_take, write_take
         from daemon.labelling.markerset import open_set
 
-        _check_out(out, [take_path])
+        _check_out(out, [take_path] if take_path is not None else [])
         if method not in METHODS:
             raise UserError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
         if max_gap is not None and max_gap <= 0:
             raise UserError("--max-gap must be positive (seconds)")
-        take = read_take(take_path, rate)
+        truth = None
+        if sim:
+            take, truth = _sim_gaps(take_path, frames, hidden, seed)
+        elif take_path is None:
+            raise UserError("give TAKE (a labelled .c3d or .csv), or --sim for a simulated "
+                            "one")
+        else:
+            take = read_take(take_path, rate)
         ms = open_set(markerset) if markerset is not None else None
         before = int((~take.visible).sum())
         filled, counts = fill(take, ms, max_gap, method)
@@ -336,9 +351,12 @@ def register(app: typer.Typer) -> None:
         after = int((~filled.visible).sum())
         typer.echo(f"wrote {out}: filled {before - after} of {before} missing samples "
                    f"({', '.join(f'{k} {v}' for k, v in counts.items() if v) or 'no gaps'})")
+        figures = {"missing_before": before, "missing_after": after,
+                   "gaps_by_method": counts}
+        if truth is not None:
+            figures["truth"] = _fill_score(take, filled, truth)
         if json_path is not None:
-            write_json(json_path, {"missing_before": before, "missing_after": after,
-                                   "gaps_by_method": counts})
+            write_json(json_path, figures)
 
     _register_skeleton(app)
 
@@ -431,3 +449,41 @@ def _sim_score(pts, truth, labels, start_frames: int) -> dict:
                f"left unlabelled), {100 * s['ghosts_rejected']:.1f}% of {s['ghosts']} ghosts "
                "left out")
     return s
+
+
+def _sim_gaps(take_path: Path | None, frames: int, hidden: float, seed: int):
+    """--sim: the simulator's person walking with spans of its markers hidden (the take to
+    fill), and the whole walk (where the hidden markers were: for the score only)."""
+    from calibkit.synthetic import person
+    from daemon.formats.c3dio import Take
+    from daemon.synthetic.labelling import hide_spans
+
+    if take_path is not None:
+        raise UserError(f"give TAKE or --sim, not both (got {take_path} and --sim)")
+    if frames < 60:
+        raise UserError(f"--frames must be at least 60 (half a second), got {frames}")
+    if not 0.0 < hidden <= 0.5:
+        raise UserError(f"--hidden is a share of marker-frames, above 0 and up to 0.5; got "
+                        f"{hidden}")
+    walk = person.walk_circle(frames, 120.0, noise_m=0.0003, seed=seed)
+    truth = Take(list(walk.labels), walk.markers_m, 120.0)
+    return hide_spans(truth, hidden, seed=seed), truth
+
+
+def _fill_score(gapped, filled, truth) -> dict:
+    """--sim: the filled samples against the truth (mm), gross (> 20 mm) counted apart."""
+    import numpy as np
+
+    new = ~gapped.visible & filled.visible
+    err = 1000.0 * np.linalg.norm(filled.xyz_m[new] - truth.xyz_m[new], axis=1)
+    figures = {"filled": int(new.sum()),
+               "error_mm_rms": float(np.sqrt(np.mean(err ** 2))) if len(err) else None,
+               "error_mm_median": float(np.median(err)) if len(err) else None,
+               "error_mm_p95": float(np.percentile(err, 95)) if len(err) else None,
+               "gross_over_20mm": int((err > 20.0).sum())}
+    if len(err):
+        typer.echo(f"against the simulator's truth: {figures['filled']} filled samples, "
+                   f"{figures['error_mm_rms']:.2f} mm RMS (median "
+                   f"{figures['error_mm_median']:.2f}, p95 {figures['error_mm_p95']:.2f}), "
+                   f"{figures['gross_over_20mm']} over 20 mm")
+    return figures
