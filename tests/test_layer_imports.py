@@ -2,7 +2,9 @@
 OpenGL display (a capture is handed a display object by its command), the daemon never
 imports calibkit's command handlers (what both share lives in calibkit.clitools or
 calibkit.core), calibkit's core layer (calibkit.core, calibkit.cameras) imports nothing
-above it, and no module of ours imports itself through others (no import cycles)."""
+above it, no module of ours imports itself through others (no import cycles), the daemon's
+packages import only the layers below them (the order in DAEMON_LAYERS, as
+docs/architecture.md draws it), and projector needs nothing of calibkit above its core."""
 
 from __future__ import annotations
 
@@ -176,3 +178,81 @@ def test_our_packages_have_no_import_cycles():
     assert "calibkit.cameras.spec" in graph["calibkit.cameras"]
     assert sum(len(v) for v in graph.values()) > 300
     assert cycles(graph) == []
+
+
+# ---- the daemon's layers ---------------------------------------------------------------------
+
+# Bottom to top; a package imports its own modules and those of lower layers only, never a
+# package of its own layer or above (packages sharing a layer do not know each other).
+DAEMON_LAYERS = [
+    ("process",),                          # plumbing of a long-running process
+    ("tracking",),                         # live 3D markers and rigid bodies
+    ("formats",),                          # files of markers and poses
+    ("labelling",),                        # marker sets and the labeller
+    ("analysis", "capture", "publish"),    # whole takes; frame sets; one file per protocol
+    ("config",),                           # mocapd.toml
+    ("nodes",),                            # capture nodes and their daemon-side source
+    ("synthetic",),                        # the simulator and its scorers
+    ("service",),                          # the running daemon
+    ("view",),                             # the live view
+    ("commands",),                         # the command lines' handlers and their runs
+    ("cli",),                              # the entry point
+]
+
+
+def _daemon_part(module: str) -> str | None:
+    parts = module.split(".")
+    return parts[1] if parts[0] == "daemon" and len(parts) > 1 else None
+
+
+def daemon_layer_violations(graph: dict[str, set[str]]) -> list[str]:
+    level = {pkg: i for i, layer in enumerate(DAEMON_LAYERS) for pkg in layer}
+    out = []
+    for module, deps in sorted(graph.items()):
+        own = _daemon_part(module)
+        if own is None:
+            continue
+        for dep in sorted(deps):
+            other = _daemon_part(dep)
+            if other is not None and other != own and level[other] >= level[own]:
+                out.append(f"{module} -> {dep}")
+    return out
+
+
+def test_every_daemon_package_has_a_layer():
+    graph = import_graph()
+    found = {_daemon_part(m) for m in graph} - {None}
+    placed = {pkg for layer in DAEMON_LAYERS for pkg in layer}
+    assert {"tracking", "labelling", "formats", "service"} <= found  # the scan sees them
+    assert found == placed
+
+
+def test_the_layer_check_finds_an_upward_import():
+    graph = {"daemon.tracking.tracker": {"daemon.service.daemon"},
+             "daemon.capture.pipeline": {"daemon.publish.base"},
+             "daemon.service.daemon": {"daemon.capture.pipeline", "daemon.service.control"}}
+    assert daemon_layer_violations(graph) == [
+        "daemon.capture.pipeline -> daemon.publish.base",
+        "daemon.tracking.tracker -> daemon.service.daemon"]
+
+
+def test_the_daemon_packages_import_only_lower_layers():
+    graph = import_graph()
+    assert "daemon.tracking.tracker" in graph["daemon.capture.pipeline"]  # the scan sees them
+    assert daemon_layer_violations(graph) == []
+
+
+def test_only_the_entry_point_imports_the_command_handlers():
+    graph = import_graph()
+    # the scan sees an import of a command module (here one command's of another's run)
+    assert "daemon.commands.start_run" in graph["daemon.commands.start_cmd"]
+    users = {m for m, deps in graph.items() if not m.startswith("daemon.commands")
+             and any(d.startswith("daemon.commands") for d in deps)}
+    assert users <= {"daemon.cli"}  # daemon.cli loads them by name, when a command runs
+
+
+def test_projector_needs_only_calibkits_core():
+    hits = {f: [m for m in ms if not m.startswith("calibkit.core")]
+            for f, ms in _offenders(["projector"], "calibkit").items()}
+    assert {f: ms for f, ms in hits.items() if ms} == {}
+    assert _offenders(["calibkit/core", "calibkit/cameras"], "projector") == {}
