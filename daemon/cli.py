@@ -50,7 +50,13 @@ app = build_app("mocapd", "Track markers and rigid bodies with a calibrated rig 
 
 
 def main() -> None:
-    run_app(app, "mocapd")
+    try:
+        run_app(app, "mocapd")
+    except SystemExit as exc:
+        from daemon.process.ending import end_now_if_armed
+
+        end_now_if_armed(exc.code)  # `mocapd start` done and flushed: no teardown
+        raise
 
 
 if __name__ == "__main__":

@@ -41,7 +41,22 @@ class RecordingOutput(Publisher):
         self.min_free_mb = float(min_free_mb)
         self.failed = ""  # why the recording stopped early ("" while it goes on)
         self.lost = 0  # frames handed over after it stopped
+        self.handed = 0  # frames the frame loop handed over (written, lost or left queued)
         self._space_due = 0.0
+
+    def submit(self, result) -> None:
+        self.handed += 1
+        super().submit(result)
+
+    def stop(self, timeout: float = 2.0) -> None:
+        """Write what is queued, close, and say in one line whether every frame handed over
+        is in the file (what a stop by SIGTERM must leave: benchmarks/bench_stop.py reads
+        this line)."""
+        super().stop(timeout)
+        missing = self.handed - self.sent
+        log.info("%s: recording closed, %d of %d frames written%s", self.name, self.sent,
+                 self.handed, "" if not missing else
+                 f" ({self.lost} after it stopped, {missing - self.lost} not written)")
 
     def _deliver(self, result) -> None:
         if self.failed:
@@ -82,5 +97,6 @@ class RecordingOutput(Publisher):
 
     def status(self) -> dict:
         st = super().status()
-        st.update(path=str(self.path), failed=self.failed or None, lost=self.lost)
+        st.update(path=str(self.path), failed=self.failed or None, lost=self.lost,
+                  handed=self.handed)
         return st
