@@ -2,24 +2,28 @@
 the solve's own covariance predicts, and how much of it the intrinsics' uncertainty adds.
 
 Why this figure: refined from the wand alone, intrinsics are known only as well as the
-capture pins them, and on a ring of cameras the weak direction is shared by the principal
-points, the focal lengths and the cameras' turns (a camera's principal point and a small
-turn of it look alike; see docs/wand.md). Camera position standard deviations show it
-badly (a camera's distance along its axis trades against its focal length at little cost
-to the reconstructed space), the residuals not at all (the fit is as good either way). What
-a user feels is the error of a point triangulated in the volume, so that is what this
-predicts: a grid filling the box the wand went through is triangulated with the solved rig,
-the derivatives of every grid point by every camera parameter (poses and, when refined,
-fx fy cx cy k1 k2 p1 p2) are taken numerically, and the joint marginal covariance of
-those parameters (gauge held at the reference camera) is carried through them. The
-similarity any wand calibration is free in (3 translations, 3 rotations, the scale, which
-the wand's length and the floor set apart) is projected out, as calibkit compare aligns.
+capture pins them, and the weak directions mix the distortion terms, the principal points,
+the focal lengths and the cameras' turns (a principal point and a small turn of the camera
+look alike but for the distortion about it; see docs/wand.md). Camera position standard
+deviations show it badly (a camera's distance along its axis trades against its focal
+length at little cost to the reconstructed space), the residuals not at all (the fit is as
+good either way). What a user feels is the error of a point triangulated in the volume,
+so that is what this predicts: a grid filling the box the wand went through is
+triangulated with the solved rig, the derivatives of every grid point by every camera
+parameter (poses and, when refined, fx fy cx cy k1 k2 p1 p2) are taken numerically, and
+the joint marginal covariance of those parameters (gauge held at the reference camera) is
+carried through them. The similarity any wand calibration is free in (3 translations, 3
+rotations, the scale, which the wand's length and the floor set apart) is projected out,
+as calibkit compare aligns.
 Conditioning the covariance on the intrinsics gives the same figure had the intrinsics
 been known exactly: the difference is what only other views of the cameras (the monitor's)
 or intrinsics given with their uncertainty can rule out.
 
 It is a first-order prediction for the noise the solve estimated: the RMS over the grid,
-one standard deviation, not a bound on any single capture's error (which is one draw).
+one standard deviation, not a bound on any single capture's error (which is one draw), and
+blind to what is wrong beyond the noise (intrinsics held at wrong values, a biased monitor
+calibration): on the simulator the error against the truth was 0.7-0.9 times it where
+only noise was at work (benchmarks/bench_wand_shape.py).
 """
 
 from __future__ import annotations
