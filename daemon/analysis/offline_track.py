@@ -302,7 +302,8 @@ def figures(result: TrackResult, gross_error_mm: float = 20.0) -> dict:
 @dataclass(eq=False)
 class PoseFigures:
     """What the figures are made of, per frame (F,) and body (F, B): all a take tracked in
-    windows keeps of its poses once they are written (17 bytes a frame and body)."""
+    windows keeps of its poses once they are written (13 bytes a frame and body, with
+    n_markers as int32)."""
 
     names: list[str]
     ids: np.ndarray
@@ -310,17 +311,6 @@ class PoseFigures:
     error_m: np.ndarray
     n_markers: np.ndarray
     markers_seen: np.ndarray
-
-    @staticmethod
-    def join(parts: list[TrackResult], names: list[str], ids: np.ndarray) -> PoseFigures:
-        """The figures' arrays of a take's windows, in order."""
-        def cat(name, empty):
-            return (np.concatenate([getattr(p, name) for p in parts]) if parts else empty)
-        b = len(names)
-        return PoseFigures(names, ids, cat("valid", np.zeros((0, b), bool)),
-                           cat("error_m", np.zeros((0, b))),
-                           cat("n_markers", np.zeros((0, b), np.int64)),
-                           cat("markers_seen", np.zeros(0, np.int64)))
 
 
 def figures_of(result: PoseFigures, gross_error_mm: float = 20.0) -> dict:

@@ -8,7 +8,7 @@ with the first record of each frame indexed. Windows of whole frames (at most
 `window_points` points, or a single frame) are then read back, tracked by one CloudTracker
 that carries the point tracks and the bodies from window to window, and their poses
 written to the output as they come. What stays in memory is one window, the index
-(16 bytes a frame) and the arrays the figures are made of (17 bytes a frame and body),
+(16 bytes a frame) and the arrays the figures are made of (13 bytes a frame and body),
 not the file.
 
 The definitions are fitted to the take (daemon.analysis.body_refine) before tracking, and a
@@ -149,9 +149,11 @@ def track_spool(spool: Spool, rate_hz: float, defs: list[BodyDef], rigid_cfg: Ri
     used, refits = refine_bodies(frames, list(defs), rigid_cfg.distance_tol_m, refine)
     tracker = CloudTracker(used, replace(rigid_cfg, refine=False),
                            PointTrackConfig(gate_m=gate_mm / 1000.0))
-    names = [b.name for b in used]
-    ids = np.array([b.id for b in used], dtype=np.int64)
-    parts = []
+    n, nb = len(frames), len(used)
+    kept = PoseFigures([b.name for b in used], np.array([b.id for b in used], np.int64),
+                       np.zeros((n, nb), bool), np.full((n, nb), np.nan),
+                       np.zeros((n, nb), np.int32), np.zeros(n, np.int64))  # filled in place
+    count = 0
     with atomic_write(out, "w", newline="", encoding="utf-8") as handle:
         handle.write(f"# {comment}\n" + ",".join(POSES_COLUMNS) + "\n")
         for a, b in windows(spool.starts, window_points or WINDOW_POINTS):
@@ -160,11 +162,12 @@ def track_spool(spool: Spool, rate_hz: float, defs: list[BodyDef], rigid_cfg: Ri
                 xyz = xyz @ turn.T
             result = tracker.window(cloud_from_points(Points(frame, xyz), rate_hz), progress)
             write_poses_rows(handle, pose_table(result))
-            parts.append(PoseFigures(names, ids, result.valid, result.error_m,
-                                     result.n_markers.astype(np.int32), result.markers_seen))
+            kept.valid[a:b], kept.error_m[a:b] = result.valid, result.error_m
+            kept.n_markers[a:b], kept.markers_seen[a:b] = result.n_markers, result.markers_seen
+            count += 1
     elapsed = time.perf_counter() - start
-    figs = figures_of(PoseFigures.join(parts, names, ids), gross_mm)
-    figs["frames_per_s"] = len(frames) / elapsed if elapsed > 0 else None
-    figs["windows"] = len(parts)
+    figs = figures_of(kept, gross_mm)
+    figs["frames_per_s"] = n / elapsed if elapsed > 0 else None
+    figs["windows"] = count
     add_hints(figs, frames, defs, used, refits, rigid_cfg.distance_tol_m)
     return figs, used
