@@ -101,12 +101,12 @@ def make_hub(cameras: int, nodes: int, push):
     return hub
 
 
-def run(cameras: int, nodes: int, triggers: int, kind: str, stage: str) -> float:
-    """CPU us per camera-frame of the stages up to `stage`."""
-    batches = messages(cameras, nodes, triggers, kind, time.monotonic_ns())
+def run(batches, cameras: int, nodes: int, kind: str, stage: str) -> float:
+    """CPU us per camera-frame of the stages up to `stage`, over the messages `batches`."""
+    triggers = len(batches)
     mux = Multiplexer(cameras, fps=FPS)
     hub = make_hub(cameras, nodes, mux.push if stage in ("mux", "loop") else (lambda s: None))
-    decode = wire.decode_sets if kind == "sets" else wire.decode_blobs
+    decode = wire.decode_sets_arrays if kind == "sets" else wire.decode_blobs
     start = time.thread_time_ns()
     for batch in batches:
         for cb, sample in batch:
@@ -138,7 +138,8 @@ def main() -> None:
     rows = []
     for cameras in args.cameras:
         for kind in ("cameras", "sets"):
-            med = {s: float(np.median([run(cameras, args.nodes, args.triggers, kind, s)
+            batches = messages(cameras, args.nodes, args.triggers, kind, time.monotonic_ns())
+            med = {s: float(np.median([run(batches, cameras, args.nodes, kind, s)
                                        for _ in range(args.repeats)])) for s in stages}
             row = [cameras, args.nodes, kind]
             prev = 0.0
@@ -156,7 +157,9 @@ def main() -> None:
         for kind in ("cameras", "sets"):
             prof = cProfile.Profile()
             prof.enable()
-            run(max(args.cameras), args.nodes, args.triggers, kind, "loop")
+            cameras = max(args.cameras)
+            batches = messages(cameras, args.nodes, args.triggers, kind, time.monotonic_ns())
+            run(batches, cameras, args.nodes, kind, "loop")
             prof.disable()
             print(f"\n--- {kind}, {max(args.cameras)} cameras: top functions by own time")
             pstats.Stats(prof).sort_stats("tottime").print_stats(12)

@@ -156,40 +156,51 @@ class Multiplexer:
 
     def push(self, sample: CameraSample) -> None:
         with self.cond:
-            t = self.capture_ns(sample)
-            if t is None:
-                self.settling += 1
-                return
-            sample.t_ns = t
-            if self.mode == "greedy":
-                hist = self.latest[sample.camera]
-                hist.append(sample)
-                del hist[:-3]
-                self._put(self._greedy_set(sample))
-                return
-            if self.last_t is not None and t < self.last_t + self.tol_ns:
-                self.late += 1
-                return
-            group = None
-            for g in self.pending:  # a few at most: the instants still being gathered
-                if abs(t - g.t_ns) < self.tol_ns and sample.camera not in g.samples:
-                    group = g
-                    break
-            if group is None:
-                # which cameras this set waits for: asked once per set, not per sample
-                # (eight threads push in turn; every microsecond here is latency)
-                group = _Group(float(t), 0.0, {}, sample.arrival_ns,
-                               set(np.flatnonzero(self.connected()).tolist()))
-                k = len(self.pending)
-                while k and self.pending[k - 1].t_ns > t:
-                    k -= 1
-                self.pending.insert(k, group)
-            group.samples[sample.camera] = sample
-            group.waiting.discard(sample.camera)
-            group.total_ns += t
-            group.t_ns = group.total_ns / len(group.samples)
-            if not group.waiting or len(group.samples) == self.n:
-                self._emit(group)
+            self._push(sample)
+
+    def push_many(self, samples) -> None:
+        """Several cameras' samples at once (a node's frames of one trigger): the lock
+        taken and the frame loop woken once, not once per camera."""
+        with self.cond:
+            for sample in samples:
+                self._push(sample)
+
+    def _push(self, sample: CameraSample) -> None:
+        """push, the lock held."""
+        t = self.capture_ns(sample)
+        if t is None:
+            self.settling += 1
+            return
+        sample.t_ns = t
+        if self.mode == "greedy":
+            hist = self.latest[sample.camera]
+            hist.append(sample)
+            del hist[:-3]
+            self._put(self._greedy_set(sample))
+            return
+        if self.last_t is not None and t < self.last_t + self.tol_ns:
+            self.late += 1
+            return
+        group = None
+        for g in self.pending:  # a few at most: the instants still being gathered
+            if abs(t - g.t_ns) < self.tol_ns and sample.camera not in g.samples:
+                group = g
+                break
+        if group is None:
+            # which cameras this set waits for: asked once per set, not per sample
+            # (eight threads push in turn; every microsecond here is latency)
+            group = _Group(float(t), 0.0, {}, sample.arrival_ns,
+                           set(np.flatnonzero(self.connected()).tolist()))
+            k = len(self.pending)
+            while k and self.pending[k - 1].t_ns > t:
+                k -= 1
+            self.pending.insert(k, group)
+        group.samples[sample.camera] = sample
+        group.waiting.discard(sample.camera)
+        group.total_ns += t
+        group.t_ns = group.total_ns / len(group.samples)
+        if not group.waiting or len(group.samples) == self.n:
+            self._emit(group)
 
     def _put(self, fs: FrameSet) -> None:
         if len(self.ready) == self.ready.maxlen:

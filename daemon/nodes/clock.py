@@ -96,6 +96,14 @@ class NodeClock:
         # node = daemon + off + slope * (daemon - ref), solved for daemon
         return round(ref + (node_ns - ref - off) / (1.0 + slope))
 
+    def to_daemon_array(self, node_ns: np.ndarray) -> np.ndarray:
+        """to_daemon of many times at once (int64 ns): a node's set of frames is mapped in
+        one call. Differences from the fit's reference are taken in integers first, so the
+        float64 step loses nothing at monotonic-clock magnitudes."""
+        off, slope, ref = self.fit
+        d = (np.asarray(node_ns, dtype=np.int64) - ref).astype(np.float64)
+        return ref + np.rint((d - off) / (1.0 + slope)).astype(np.int64)
+
     def status(self) -> dict:
         n = min(self._n, self.window)
         rtt = self._rtt[:n]

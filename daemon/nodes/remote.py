@@ -253,10 +253,53 @@ class NodeHub:
         self._take(((name, wire.decode_blobs(sample.payload.to_bytes())),))
 
     def _sets(self, sample) -> None:
-        """The frames of one trigger from all of a node's cameras."""
-        frames = wire.decode_sets(sample.payload.to_bytes())
-        if frames:
-            self._take(frames)
+        """The frames of one trigger from all of a node's cameras: decoded as arrays, their
+        times mapped in one call, and handed to the multiplexer in one push (one lock and
+        one wake-up of the frame loop per node per trigger, not per camera)."""
+        m = wire.decode_sets_arrays(sample.payload.to_bytes())
+        if not m.names:
+            return
+        node = self.nodes.get(m.boot)
+        if node is None or not node.clock.ready:
+            if node is not None:
+                node.waiting_clock += len(m.names)
+            return
+        has = time.monotonic_ns()
+        table = m.table
+        times = node.clock.to_daemon_array(np.concatenate([table["t_ns"], table["arrival_ns"]]))
+        count = len(m.names)
+        t_ns, arrival = times[:count].tolist(), times[count:].tolist()
+        node.in_node_ns.extend((m.sent_ns - table["arrival_ns"]).tolist())
+        batches: dict = {}  # push -> the samples for it (one multiplexer: one batch)
+        a = 0
+        for k, (name, index, device, fid, b) in enumerate(zip(
+                m.names, table["index"].tolist(), table["device_time_ns"].tolist(),
+                table["device_frame_id"].tolist(), m.ends, strict=True)):
+            cam = self.cameras.get(name)
+            if cam is None:
+                self.unknown += 1
+            else:
+                node.samples += 1
+                cap = cam.capture
+                if cap is not None:
+                    s = CameraSample(cam.index, index, t_ns[k], arrival[k], m.uv[a:b],
+                                     m.area[a:b], m.peak[a:b], device, fid)
+                    accept = getattr(cap, "accept", None)
+                    if accept is None:  # a capture of another shape: one at a time
+                        cap.deliver(s, node, has)
+                    elif accept(s, node, has):
+                        batches.setdefault(cap.push, []).append(s)
+            a = b
+        for push, samples in batches.items():
+            many = getattr(getattr(push, "__self__", None), "push_many", None)
+            if many is not None and getattr(push, "__name__", "") == "push":
+                many(samples)
+            else:
+                for s in samples:
+                    push(s)
+        ready = (node.clock.to_daemon(m.sent_ns) if m.flags & wire.SET_SHORT
+                 else max(arrival))
+        node.hop_ns.append(time.monotonic_ns() - ready)
 
     def _take(self, frames) -> None:
         """A message's frames, their times mapped to the daemon's clock, to their cameras'
@@ -415,6 +458,12 @@ class RemoteCapture:
     def deliver(self, s: CameraSample, node: _Node, has: int) -> None:
         """One sample the daemon has had since `has`, on Zenoh's thread: to the multiplexer
         unless late."""
+        if self.accept(s, node, has):
+            self.push(s)
+
+    def accept(self, s: CameraSample, node: _Node, has: int) -> bool:
+        """The checks and counts of deliver, without the push: whether `s` goes on to the
+        multiplexer (the hub pushes a node's accepted samples together)."""
         lag = has - s.arrival_ns
         node.lag_ns = lag
         with self._lock:
@@ -423,7 +472,7 @@ class RemoteCapture:
             if lag > self.max_lag_ns:
                 node.late += 1
                 self.last_error = f"{node.name} is {lag * 1e-6:.0f} ms behind"
-                return
+                return False
             if self._boot is None:  # a new session: the camera's clock starts again
                 self._boot = node.boot
                 self.cam.node, self.cam.boot = node.name, node.boot
@@ -435,7 +484,7 @@ class RemoteCapture:
             self._last_good = has
             self.frames += 1
             self.times.append(s.arrival_ns)
-        self.push(s)
+        return True
 
     def check(self, now_ns: int) -> None:
         """The watchdog: a camera with nothing on time for timeout_ms is dropped."""

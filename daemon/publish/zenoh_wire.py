@@ -130,8 +130,38 @@ def encode_sets(boot: int, seq: int, sent_ns: int, frames, flags: int = 0) -> by
                      table.tobytes(), *names, *blobs])
 
 
+class BlobSets(NamedTuple):
+    """A blob-sets message as arrays (decode_sets_arrays): what the daemon's hub maps and
+    hands to the multiplexer in one call, without an object per frame first."""
+
+    boot: int
+    seq: int
+    sent_ns: int
+    flags: int
+    names: list[str]  # per frame, its camera's name
+    table: np.ndarray  # per frame: SETS_FRAME's fields
+    uv: np.ndarray  # (total blobs, 2), every frame's blobs in order
+    area: np.ndarray
+    peak: np.ndarray
+    ends: list[int]  # per frame, where its blobs end in uv, area and peak
+
+
 def decode_sets(data: bytes) -> list[tuple[str, BlobsMessage]]:
     """(camera name, its frame) for every frame of a blob-sets message (docs/protocol.md)."""
+    m = decode_sets_arrays(data)
+    out, a = [], 0
+    rows = m.table.tolist()
+    for name, (index, t_ns, arrival, device, fid, _n), b in zip(m.names, rows, m.ends,
+                                                                strict=True):
+        out.append((name, BlobsMessage(m.boot, m.seq, index, t_ns, arrival, m.sent_ns, device,
+                                       fid, m.uv[a:b], m.area[a:b], m.peak[a:b], m.flags)))
+        a = b
+    return out
+
+
+def decode_sets_arrays(data: bytes) -> BlobSets:
+    """A blob-sets message's frames as one table and its blobs as three arrays: a handful
+    of numpy calls whatever the number of frames (the names are the one per-frame loop)."""
     size = len(data)
     if size < SETS_HEAD.size:
         raise WireError(f"a blob-sets message of {size} bytes is shorter than its header")
@@ -153,14 +183,8 @@ def decode_sets(data: bytes) -> list[tuple[str, BlobsMessage]]:
         raise WireError(f"a blob-sets message of {size} bytes does not hold the {total} "
                         "blobs it says")
     uv, area, peak = _blobs(data, total, at)
-    ends = np.cumsum(counts).tolist()
-    out, a = [], 0
-    rows = table.tolist()
-    for name, (index, t_ns, arrival, device, fid, _n), b in zip(names, rows, ends, strict=True):
-        out.append((name, BlobsMessage(boot, seq, index, t_ns, arrival, sent, device, fid,
-                                       uv[a:b], area[a:b], peak[a:b], flags)))
-        a = b
-    return out
+    return BlobSets(boot, seq, sent, flags, names, table, uv, area, peak,
+                    np.cumsum(counts).tolist())
 
 
 def encode_ping(seq: int, t1_ns: int) -> bytes:
