@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from daemon.config.mocapd import load_config, parse_address, parse_serial
+from daemon.config.mocapd import load_config
+from daemon.config.outputs import parse_address, parse_serial
 
 GOOD = """
 rig = "rig.toml"

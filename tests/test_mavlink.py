@@ -18,7 +18,8 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
-from daemon.config.mocapd import MavlinkOut, SerialOut, parse_config
+from daemon.config.mocapd import parse_config
+from daemon.config.outputs import MavlinkOut, SerialOut
 from daemon.publish.line import fit_mavlink, fit_serial, serial_frame_bytes
 from daemon.publish.mavlink import MavlinkPublisher
 from daemon.tracking.rigid import BodyPoses, matrix_from_quaternion

@@ -20,7 +20,7 @@ from calibkit.core.errors import UserError
 
 def protocol_outputs(natnet: str | None, natnet_up: str | None, vrpn: list[str]):
     """--natnet IFACE[:COMMAND_PORT] (data port: the next one), --vrpn [HOST:]PORT."""
-    from daemon.config.mocapd import NatnetOut, VrpnOut, parse_address  # deferred: see above
+    from daemon.config.outputs import NatnetOut, VrpnOut, parse_address  # deferred: see above
 
     out_natnet = None
     if natnet is not None:
@@ -53,8 +53,8 @@ def command_line_additions(udp: list[str], serial: list[str], mavlink: list[str]
                            natnet: str | None = None, natnet_up: str | None = None,
                            vrpn: list[str] = (), mavlink_origin: str | None = None):
     """A function that adds the flags' outputs to a Config (and again after a reload)."""
-    from daemon.config.mocapd import (  # deferred: see above
-        Config,
+    from daemon.config.mocapd import Config  # deferred: see above
+    from daemon.config.outputs import (
         MavlinkOut,
         NatnetOut,
         SerialOut,

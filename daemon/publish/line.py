@@ -75,7 +75,7 @@ def _refusal(what: str, need_bytes_per_s: float, baud: int, fits_hz: float,
 
 
 def fit_serial(out, n_bodies: int, fps: float, default_hz: float = 100.0):
-    """A [[serial]] output (daemon.config.mocapd.SerialOut) with its rate checked against its
+    """A [[serial]] output (daemon.config.outputs.SerialOut) with its rate checked against its
     line: "auto" (None) becomes the highest rate up to `default_hz` (and the cameras'
     `fps`) that fills at most AUTO_SHARE of it; 0 (every frame) is `fps`. Returns (output,
     note for the log or None); ValueError when a rate given does not fit."""
@@ -98,7 +98,7 @@ def fit_serial(out, n_bodies: int, fps: float, default_hz: float = 100.0):
 
 
 def fit_mavlink(out, fps: float, default_hz: float = 50.0):
-    """A [[mavlink]] output (daemon.config.mocapd.MavlinkOut) checked as fit_serial checks a
+    """A [[mavlink]] output (daemon.config.outputs.MavlinkOut) checked as fit_serial checks a
     serial one, counting HEARTBEAT and TIMESYNC too; outputs over UDP or TCP pass as
     they are ("auto": `default_hz`)."""
     default_hz = min(default_hz, fps)
