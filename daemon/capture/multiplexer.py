@@ -14,6 +14,7 @@ to that time from their 2D motion (free-running cameras).
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections import deque
@@ -38,6 +39,9 @@ class FrameSet:
 # ---- multiplexer -----------------------------------------------------------------------------
 
 GREEDY_MATCH_PX = 20.0  # farthest a blob moves between two samples of its camera
+BEHIND_SAY_S = 10.0  # the frame loop falling behind is logged at most this often
+BEHIND_SHOWN_S = 5.0  # and shown in the status this long after its last skip
+log = logging.getLogger("mocapd.multiplexer")
 
 
 def _match(a: np.ndarray, b: np.ndarray, gate_px: float) -> np.ndarray:
@@ -122,6 +126,11 @@ class Multiplexer:
         self.overflow = 0
         self.skipped = 0  # sets dropped by the frame loop to stay live (it fell behind)
         self.max_backlog = 2
+        self._made: deque = deque(maxlen=480)  # when the latest sets were made (ns)
+        self._taken: deque = deque(maxlen=480)  # and when the frame loop took its latest
+        self._skip_ns = 0  # the last skip
+        self._said_ns = -(10**18)
+        self._behind = ""
         self.missing = np.zeros(n_cameras, dtype=np.int64)  # per camera: sets without it
         self.latest: list[list[CameraSample]] = [[] for _ in range(n_cameras)]
 
@@ -206,6 +215,7 @@ class Multiplexer:
         if len(self.ready) == self.ready.maxlen:
             self.overflow += 1
         self.ready.append(fs)
+        self._made.append(time.monotonic_ns())
         self.cond.notify()
 
     def _emit(self, group: _Group) -> None:
@@ -269,6 +279,31 @@ class Multiplexer:
                                     cur.peak, cur.device_time_ns, cur.device_frame_id))
         return FrameSet(self.last_index, t, newest.arrival_ns, out)
 
+    @staticmethod
+    def _rate_hz(times: deque) -> float:
+        if len(times) < 2 or times[-1] <= times[0]:
+            return 0.0
+        return (len(times) - 1) * 1e9 / (times[-1] - times[0])
+
+    def _say_behind(self, now_ns: int) -> None:
+        """The frame loop dropped sets to stay live: said with the measured rates (the
+        lock held). Whole sets are dropped, the oldest waiting, so the sets kept are
+        spread over time as the loop's pace allows, never a set missing cameras."""
+        self._skip_ns = now_ns
+        self._behind = (f"the frame loop is behind: it takes {self._rate_hz(self._taken):.0f} "
+                        f"frame sets a second of the {self._rate_hz(self._made):.0f} made; "
+                        f"the oldest waiting are skipped whole ({self.skipped} so far)")
+        if now_ns - self._said_ns >= BEHIND_SAY_S * 1e9:
+            self._said_ns = now_ns
+            log.warning("%s", self._behind)
+
+    @property
+    def behind(self) -> str:
+        """What the status says while the frame loop skips sets ("" when it keeps up)."""
+        if time.monotonic_ns() - self._skip_ns > BEHIND_SHOWN_S * 1e9:
+            return ""
+        return self._behind
+
     def camera_status(self, camera: int) -> dict:
         """What the multiplexer knows of one camera: its clock against the daemon's and the
         frames its own counter skipped (taken but never delivered)."""
@@ -281,9 +316,15 @@ class Multiplexer:
         with self.cond:
             while True:
                 if self.ready:
+                    skipped = 0
                     while len(self.ready) > self.max_backlog:
                         self.ready.popleft()
-                        self.skipped += 1
+                        skipped += 1
+                    now = time.monotonic_ns()
+                    self._taken.append(now)
+                    if skipped:
+                        self.skipped += skipped
+                        self._say_behind(now)
                     return self.ready.popleft()
                 now = time.monotonic_ns()
                 if self.pending:

@@ -38,6 +38,8 @@ def register(app: typer.Typer) -> None:
                    f"{lat['median_ms'] or 0:.2f} ms, p99 {lat['p99_ms'] or 0:.2f} ms, "
                    f"{st['bodies_tracked']} of {len(st['bodies'])} bodies tracked, "
                    f"scheduling {st.get('scheduling', '?')}")
+        if (st.get("multiplexer") or {}).get("behind"):  # falling behind: said at the top
+            typer.echo(f"WARNING: {st['multiplexer']['behind']}")
         detects = any("threshold" in c for c in st["cameras"])  # [[camera]] tables
         print_table([[c["name"], "yes" if c["connected"] else "NO", round(c["rate_hz"], 1),
                       c["frames"], c["dropped"]]

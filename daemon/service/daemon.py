@@ -781,7 +781,7 @@ class Daemon:
             return None
         return {"incomplete_sets": mux.incomplete, "late_samples": mux.late,
                 "settling_samples": mux.settling, "overflow": mux.overflow,
-                "skipped_behind": mux.skipped}
+                "skipped_behind": mux.skipped, "behind": getattr(mux, "behind", "")}
 
 
 def _read(path: Path | None) -> bytes | None:
