@@ -8,6 +8,7 @@ import subprocess
 import sys
 import tempfile
 import threading
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,81 +41,250 @@ LIVE_DAEMON_MODULES = {"test_daemon_e2e", "test_daemon_pipeline", "test_live_lab
 
 
 ALL = "every test of the module"
-# The slow tests: `python3 -m pytest -m "not slow"` leaves them out (the fast set, under a
-# minute on a quiet 2-core machine); CI runs everything. Each took over about a second in
-# a full run (docs/testing.md has the figures): live daemons and nodes, a browser, child
-# processes, fuzzing, whole calibrations and labellings, compiling. Kept here, beside the
-# live modules above, rather than as a decorator on each test: one table to read and keep
-# up, and a name in it that its module no longer defines fails the run.
+# The slow tests: `python3 -m pytest -m "not slow"` leaves them out (the fast set, for a
+# developer at work); CI runs everything. Live daemons and nodes, a browser, example
+# programs, hundreds of fuzzing examples, whole labellings, compiling: the tests that took
+# 3 s or more (about half a second on a quiet machine) in a full run at load 10-35 on
+# 2026-11-27 (docs/testing.md; `-m "not slow" --durations=20` shows what else belongs
+# here). Kept in one table beside the live modules above rather than a decorator on each
+# of some 250 tests: one place to read and keep up; a name in it that its module no longer
+# defines is warned about. Newer modules mark their own with @pytest.mark.slow.
 SLOW: dict[str, str | set[str]] = {
-    # whole modules: compiling, the demo, namespaces, a browser, a live daemon per test
-    "test_kernels_cache": ALL, "test_demo": ALL, "test_nodes_link": ALL,
-    "test_view_browser": ALL, "test_view_detection": ALL, "test_reload": ALL,
-    "test_daemon_e2e": {"test_live_daemon_outputs_control_reload_and_stop",
-                        "test_camera_dropout_and_a_consumer_that_stops_reading",
-                        "test_fast_sim_run_writes_pose_errors", "test_install_unit",
-                        "test_replay_a_recording", "test_live_cameras_with_a_missing_plugin",
-                        "test_greedy_multiplexer_live",
-                        "test_greedy_multiplexer_with_unsynchronised_cameras",
-                        "test_late_opener_and_a_reconnecting_camera_live",
-                        "test_sim_without_scoring_runs_the_daemon_alone"},
-    "test_natnet": {"test_natnet_clients_unicast_and_multicast_join_and_leave",
-                    "test_motioncapture_natnet_multicast_with_a_late_second_client",
-                    "test_motioncapture_natnet_unicast",
-                    "test_mocapd_serves_natnet_poses_matching_the_simulator",
-                    "test_a_reloaded_server_takes_over_the_port_and_the_clients",
-                    "test_a_reload_keeps_unicast_clients_that_send_no_keep_alives"},
-    "test_natnet_protocol": {"test_optitrack_sample_client_unicast_against_mocapd",
-                             "test_optitrack_sample_client_multicast_against_mocapd"},
-    "test_live_label": {"test_stage_labels_the_person_inline_with_ghosts_and_gaps",
-                        "test_stage_starts_on_a_thread_and_catches_up",
-                        "test_stage_start_waits_for_a_busy_worker",
-                        "test_stage_starts_from_the_set_alone_and_repairs_itself_on_another_subject",
-                        "test_mocapd_publishes_named_markers_over_udp_and_natnet_and_reloads_the_set"},
-    "test_nodes": {"test_a_simulated_node_serves_its_cameras_from_one_thread_on_time",
-                   "test_node_with_a_bad_endpoint_exits_with_one_line",
-                   "test_two_nodes_feed_one_daemon_clocks_estimated_and_bodies_tracked",
-                   "test_a_killed_node_is_dropped_and_its_cameras_rejoin_within_2_s_of_its_restart",
-                   "test_poses_go_out_over_zenoh_to_a_subscriber_on_another_session",
-                   "test_a_node_serving_a_camera_the_daemon_does_not_take_is_warned_about"},
-    "test_robot_example": {"test_goto_point_reaches_ten_targets_within_2_cm_of_the_truth",
-                           "test_goto_point_c_decodes_the_serial_line_as_python_does_and_drives",
-                           "test_sysid_estimates_the_simulated_robots_delay_and_lag",
-                           "test_examples_refuse_bad_input_in_one_line"},
-    "test_examples": {"test_head_tracking_against_the_simulated_daemon",
-                      "test_head_tracking_refuses_a_bad_screen",
-                      "test_paint3d_against_the_simulated_daemon",
-                      "test_paint3d_refuses_bad_input"},
-    "test_mavlink": {
-        "test_a_uart_autopilot_hears_heartbeats_gapless_sequences_timesync_and_the_origin",
-        "test_udp_both_ways_with_a_mavutil_autopilot",
-        "test_mocapd_start_serves_an_autopilot_over_udp_and_status_shows_it"},
-    "test_vrpn": {"test_raw_clients_over_tcp_and_connect_back_with_pings",
-                  "test_motioncapture_vrpn_clients_join_and_leave",
-                  "test_a_client_that_stops_reading_is_dropped_and_the_others_go_on",
-                  "test_mocapd_vrpn_flag_serves_poses_matching_the_simulator",
-                  "test_a_reload_keeps_the_clients_connected"},
-    "test_logs": {"test_mocapd_start_under_the_journal"},
-    "test_daemon_pipeline": {"test_rigid_body_from_live_markers"},
-    "test_realtime": {"test_a_live_run_tracks_real_time_reports_its_stages_and_returns_normal",
-                      "test_a_live_run_keeps_its_start_up_out_of_the_collector_and_gives_it_back"},
-    "test_soak_short": {"test_daemon_through_a_reload_and_a_recording_keeps_its_figures_bounded"},
-    "test_fuzz_files": {"test_any_json_records_give_observations_or_one_user_error",
-                        "test_any_csv_bytes_give_observations_or_one_user_error",
-                        "test_a_damaged_c3d_gives_a_take_or_one_user_error",
-                        "test_any_configuration_values_give_a_config_or_one_user_error"},
+    # whole modules: compiling, the demo, namespaces, a browser, a daemon per test
+    "test_demo": ALL, "test_kernels_cache": ALL, "test_nodes_link": ALL, "test_reload": ALL,
+    "test_view_browser": ALL, "test_view_detection": ALL,
+    "test_boundary": {
+        "test_importing_every_estimating_module_loads_no_simulator"},
+    "test_cli_startup": {
+        "test_help_everywhere_imports_nothing_heavy"},
+    "test_daemon_e2e": {
+        "test_camera_dropout_and_a_consumer_that_stops_reading",
+        "test_fast_sim_run_writes_pose_errors",
+        "test_greedy_multiplexer_live",
+        "test_greedy_multiplexer_with_unsynchronised_cameras",
+        "test_install_unit",
+        "test_late_opener_and_a_reconnecting_camera_live",
+        "test_live_cameras_with_a_missing_plugin",
+        "test_live_daemon_outputs_control_reload_and_stop",
+        "test_replay_a_recording",
+        "test_sim_without_scoring_runs_the_daemon_alone"},
+    "test_daemon_pipeline": {
+        "test_rigid_body_from_live_markers"},
+    "test_detect": {
+        "test_colour_images_and_16_bit_images_are_converted",
+        "test_compiled_path_equals_the_numpy_reference_on_random_scenes"},
+    "test_easywand": {
+        "test_wand_from_xypts_end_to_end"},
+    "test_examples": {
+        "test_head_tracking_against_the_simulated_daemon",
+        "test_head_tracking_refuses_a_bad_screen",
+        "test_paint3d_against_the_simulated_daemon",
+        "test_paint3d_refuses_bad_input"},
+    "test_extrinsic": {
+        "test_a_camera_that_sees_nothing_is_named_and_the_others_are_calibrated",
+        "test_plane_dots_hold_the_world_frame_in_a_wand_bundle",
+        "test_plane_observations_for_the_bundle_and_the_floor",
+        "test_poses_meet_the_targets_with_tape_error_and_centroid_noise",
+        "test_rendered_capture_identifies_dots_and_places_cameras",
+        "test_the_dots_recover_the_table_height_from_a_bad_tape"},
+    "test_extrinsic_cli": {
+        "test_live_path_with_a_stand_in_projector_and_cameras",
+        "test_rendered_sim_runs_detection_end_to_end",
+        "test_sim_starts_from_the_intrinsics_file",
+        "test_sim_without_a_table_warns_and_still_calibrates",
+        "test_sim_writes_the_rig_truth_and_plane_observations"},
+    "test_fast_pairing": {
+        "test_the_fast_daemon_run_goes_through_the_multiplexer"},
+    "test_fuzz_files": {
+        "test_a_bad_csv_cell_names_its_line_and_column",
+        "test_a_damaged_c3d_gives_a_take_or_one_user_error",
+        "test_a_malformed_record_names_the_file_and_its_line",
+        "test_any_configuration_values_give_a_config_or_one_user_error",
+        "test_any_csv_bytes_give_observations_or_one_user_error",
+        "test_any_json_records_give_observations_or_one_user_error"},
+    "test_fuzz_mavlink": {
+        "test_any_bytes_from_the_autopilot_are_parsed_without_raising"},
     "test_fuzz_natnet": {
-        "test_every_message_kind_with_any_payload_gets_a_well_formed_answer_or_none",
         "test_every_command_with_random_arguments",
+        "test_every_message_kind_with_any_payload_gets_a_well_formed_answer_or_none",
         "test_junk_on_a_live_command_port_logs_one_line_per_kind_and_frames_keep_coming"},
-    "test_fuzz_nodes": {"test_no_payload_escapes_a_callback"},
-    "test_fuzz_view": {"test_malformed_connections_to_a_running_view_log_one_line_per_kind",
-                       "test_detection_values_from_the_page_are_checked"},
-    "test_fuzz_mavlink": {"test_any_bytes_from_the_autopilot_are_parsed_without_raising"},
-    "test_label_subjects": {"test_a_correct_start_never_ends_worse_on_another_body"},
-    "test_cli_startup": {"test_help_everywhere_imports_nothing_heavy"},
-    "test_detect": {"test_colour_images_and_16_bit_images_are_converted"},
-    "test_extrinsic_cli": {"test_sim_starts_from_the_intrinsics_file"},
+    "test_fuzz_nodes": {
+        "test_no_payload_escapes_a_callback"},
+    "test_fuzz_view": {
+        "test_detection_values_from_the_page_are_checked",
+        "test_library_records_become_one_line_per_kind",
+        "test_malformed_connections_to_a_running_view_log_one_line_per_kind"},
+    "test_intrinsic": {
+        "test_bias_correction_removes_large_dot_error",
+        "test_display_mode_runs_with_a_monitor_and_camera",
+        "test_every_camera_of_a_simulated_rig",
+        "test_intrinsic_sim_command",
+        "test_monitor_out_of_view_is_a_clear_error",
+        "test_monitor_partly_out_of_view_reaches_the_corners",
+        "test_projected_dots_agree_with_the_rendered_capture",
+        "test_raster_scan_capture",
+        "test_reported_std_matches_the_actual_errors",
+        "test_solve_against_truth"},
+    "test_label": {
+        "test_cli_label_by_shipped_name_reports_a_marker_stored_twice",
+        "test_cli_label_from_labelled_start_frames",
+        "test_forearm_hidden_whole_is_found_again",
+        "test_gap_free_from_the_template_alone",
+        "test_hard_occlusion_patterns",
+        "test_hidden_spans_and_ghosts",
+        "test_kernels_match_their_numpy_twins",
+        "test_markers_stored_twice_are_labelled_as_one",
+        "test_modules_found_again_after_long_occlusions",
+        "test_other_subjects_marker_set_from_the_template_alone",
+        "test_other_subjects_marker_set_with_labelled_start_frames",
+        "test_start_from_the_marker_set_alone_with_occlusions",
+        "test_verification_repairs_a_wrong_start",
+        "test_wrist_markers_taken_for_each_other_are_set_right"},
+    "test_label_recording": {
+        "test_label_a_recording_against_the_truth"},
+    "test_label_start": {
+        "test_cmu_set_starts_right_on_a_walker_of_another_size",
+        "test_set_learned_on_another_subject_starts_right"},
+    "test_label_subjects": {
+        "test_a_correct_start_never_ends_worse_on_another_body"},
+    "test_label_verify": {
+        "test_verification_brings_in_points_tracking_left_out"},
+    "test_layer_imports": {
+        "test_calibration_and_vision_never_import_the_display",
+        "test_importing_the_calibration_modules_loads_no_display",
+        "test_importing_the_core_and_the_cameras_loads_no_upper_layer",
+        "test_our_packages_have_no_import_cycles",
+        "test_the_core_and_the_cameras_import_no_upper_layer",
+        "test_the_daemon_never_imports_calibkit_commands"},
+    "test_live_label": {
+        "test_mocapd_publishes_named_markers_over_udp_and_natnet_and_reloads_the_set",
+        "test_stage_labels_the_person_inline_with_ghosts_and_gaps",
+        "test_stage_searches_again_after_losing_the_subject_and_survives_a_failure",
+        "test_stage_start_waits_for_a_busy_worker",
+        "test_stage_starts_from_the_set_alone_and_repairs_itself_on_another_subject",
+        "test_stage_starts_on_a_thread_and_catches_up",
+        "test_the_shipped_person_set_is_what_sim_person_set_learns"},
+    "test_logs": {
+        "test_mocapd_start_under_the_journal"},
+    "test_markerset": {
+        "test_cli_learn",
+        "test_cli_markerset_check",
+        "test_segments_group_markers_that_keep_their_shape"},
+    "test_mavlink": {
+        "test_a_rate_that_does_not_fit_refuses_to_start",
+        "test_a_uart_autopilot_hears_heartbeats_gapless_sequences_timesync_and_the_origin",
+        "test_mocapd_start_serves_an_autopilot_over_udp_and_status_shows_it",
+        "test_udp_both_ways_with_a_mavutil_autopilot"},
+    "test_mcap": {
+        "test_track_to_mcap_holds_the_poses_and_markers"},
+    "test_multiplexer": {
+        "test_clocks_drifting_50_ppm_for_two_minutes_stay_paired"},
+    "test_natnet": {
+        "test_a_reload_keeps_unicast_clients_that_send_no_keep_alives",
+        "test_a_reloaded_server_takes_over_the_port_and_the_clients",
+        "test_any_datagram_on_the_command_port_gets_an_answer_or_none",
+        "test_mocapd_serves_natnet_poses_matching_the_simulator",
+        "test_motioncapture_natnet_multicast_with_a_late_second_client",
+        "test_motioncapture_natnet_unicast",
+        "test_natnet_clients_unicast_and_multicast_join_and_leave"},
+    "test_natnet_protocol": {
+        "test_optitrack_sample_client_multicast_against_mocapd",
+        "test_optitrack_sample_client_unicast_against_mocapd"},
+    "test_nodes": {
+        "test_a_killed_node_is_dropped_and_its_cameras_rejoin_within_2_s_of_its_restart",
+        "test_a_node_serving_a_camera_the_daemon_does_not_take_is_warned_about",
+        "test_a_simulated_node_serves_its_cameras_from_one_thread_on_time",
+        "test_node_with_a_bad_endpoint_exits_with_one_line",
+        "test_poses_go_out_over_zenoh_to_a_subscriber_on_another_session",
+        "test_two_nodes_feed_one_daemon_clocks_estimated_and_bodies_tracked"},
+    "test_points_csv": {
+        "test_label_warns_about_bad_rows_and_strict_refuses"},
+    "test_publish": {
+        "test_cobs_round_trip_has_no_zero"},
+    "test_realtime": {
+        "test_a_live_run_keeps_its_start_up_out_of_the_collector_and_gives_it_back",
+        "test_a_live_run_tracks_real_time_reports_its_stages_and_returns_normal"},
+    "test_rigformats": {
+        "test_any_damage_reads_or_gives_one_line_never_a_traceback"},
+    "test_robot_example": {
+        "test_examples_refuse_bad_input_in_one_line",
+        "test_goto_point_c_decodes_the_serial_line_as_python_does_and_drives",
+        "test_goto_point_reaches_ten_targets_within_2_cm_of_the_truth",
+        "test_sysid_estimates_the_simulated_robots_delay_and_lag",
+        "test_sysid_recovers_the_delay_and_time_constant_of_a_simulated_response",
+        "test_the_cameras_see_the_robot_where_its_truth_says"},
+    "test_skeleton": {
+        "test_cli_skeleton"},
+    "test_soak_short": {
+        "test_daemon_through_a_reload_and_a_recording_keeps_its_figures_bounded",
+        "test_stats_keep_a_bounded_sample_whose_percentiles_are_the_runs"},
+    "test_track": {
+        "test_command_output_is_the_rigid_tracker_called_frame_by_frame",
+        "test_definition_4mm_off_is_fitted_to_the_take",
+        "test_motive_1_0_take_four_bodies_one_definition_off",
+        "test_simulated_capture_poses_against_the_truth"},
+    "test_tracker": {
+        "test_compiled_kernel_matches_the_numpy_reference",
+        "test_markers_of_two_bodies_crossing_closer_than_the_gate_keep_their_identities",
+        "test_the_daemon_tracks_with_a_calibrated_rig_and_bodies_defined_live"},
+    "test_trajectory": {
+        "test_the_command_scores_a_flight_and_writes_its_report"},
+    "test_view_coverage": {
+        "test_intrinsic_display_view_shows_the_views_before_each_prompt",
+        "test_intrinsic_views_page_shows_each_views_dots_and_the_coverage",
+        "test_the_page_fills_in_as_the_wand_is_waved"},
+    "test_view_replay": {
+        "test_the_slider_draws_the_chosen_frame"},
+    "test_view_report": {
+        "test_extrinsic_report_renders_with_the_json_figures",
+        "test_intrinsic_report_renders_with_the_json_figures",
+        "test_report_is_written_beside_the_rig_and_holds_everything",
+        "test_report_renders_in_a_browser_with_the_json_figures"},
+    "test_vrpn": {
+        "test_a_client_that_stops_reading_is_dropped_and_the_others_go_on",
+        "test_a_reload_keeps_the_clients_connected",
+        "test_hostile_datagrams_never_stop_the_server_nor_send_it_elsewhere",
+        "test_mocapd_vrpn_flag_serves_poses_matching_the_simulator",
+        "test_motioncapture_vrpn_clients_join_and_leave",
+        "test_raw_clients_over_tcp_and_connect_back_with_pings"},
+    "test_wand": {
+        "test_grade_sees_wrong_intrinsics_that_the_pixels_hide",
+        "test_held_out_figures_match_the_solved_ones",
+        "test_initial_poses_from_nothing",
+        "test_one_marker_wand_needs_initial_poses_for_its_scale",
+        "test_two_marker_wand_with_initial_poses_and_from_nothing"},
+    "test_wand_cli": {
+        "test_a_camera_that_never_sees_the_wand",
+        "test_live_capture_from_camera_image_folders",
+        "test_wand_bad_input_is_one_clear_line",
+        "test_wand_from_csv_with_intrinsics",
+        "test_wand_sim_end_to_end",
+        "test_wand_sim_starts_from_the_intrinsics_file",
+        "test_wand_with_an_lframe_recording_sets_the_floor"},
+    "test_wand_dots": {
+        "test_dots_keep_the_tape_frame_and_the_wand_sharpens_the_rig"},
+    "test_wand_pairing": {
+        "test_dropped_frames_solve_as_well_as_none_dropped",
+        "test_old_recordings_numbered_by_instant_are_read_as_they_are",
+        "test_recordings_keep_each_cameras_frames_and_pair_the_same",
+        "test_triangulate_pairs_a_recording_whose_cameras_count_their_own_frames"},
+    "test_wand_small": {
+        "test_an_lframe_sets_the_scale_of_a_wand_of_unknown_length",
+        "test_cli_small_capture_of_unknown_length",
+        "test_degenerate_captures_solve_or_say_why_in_one_line",
+        "test_every_figure_is_a_number_or_says_why_not",
+        "test_exact_intrinsics_without_uncertainties_are_kept",
+        "test_held_intrinsics_off_show_as_structure_on_a_small_capture",
+        "test_nan_rows_are_left_out_not_solved",
+        "test_refined_intrinsics_the_file_was_overconfident_about_are_not_excellent",
+        "test_small_captures_start_from_pairwise_geometry_and_solve",
+        "test_unknown_length_is_the_known_solve_scaled",
+        "test_wrong_intrinsics_without_uncertainties_are_refined"},
+    "test_wand_views": {
+        "test_monitor_views_set_the_intrinsics_the_wand_alone_cannot",
+        "test_views_file_round_trip_merge_and_rebase"},
+    "test_zenoh_auth": {
+        "test_only_listed_users_deliver_on_loopback"},
 }
 
 
@@ -127,7 +297,9 @@ def _slow_names(module) -> set[str] | None:
 
 @pytest.hookimpl(tryfirst=True)  # before -m reads the marks
 def pytest_collection_modifyitems(config, items):
-    """Marks the tests SLOW names; a name its module does not define is an error."""
+    """Marks the tests SLOW names; a name its module does not define (a test renamed or
+    removed) is a warning in the run's summary, not an error that would stop everyone's
+    runs for a table entry."""
     checked = set()
     for item in items:
         module = getattr(item, "module", None)
@@ -138,8 +310,9 @@ def pytest_collection_modifyitems(config, items):
             checked.add(module)
             gone = sorted(n for n in names if not hasattr(module, n))
             if gone:
-                raise pytest.UsageError(f"tests/conftest.py SLOW names tests "
-                                        f"{module.__name__} does not define: {', '.join(gone)}")
+                warnings.warn(pytest.PytestConfigWarning(
+                    f"tests/conftest.py SLOW names tests {module.__name__} does not define: "
+                    f"{', '.join(gone)}"), stacklevel=1)
         if getattr(item, "originalname", item.name) in names:
             item.add_marker(pytest.mark.slow)
 
@@ -150,8 +323,9 @@ def _daemon_kernels_compiled(request):
     user does after installing), before tests that run the daemon live: on a fresh
     checkout the first start would compile for tens of seconds, and a live test timing its
     first packets would measure the compiler instead of the daemon."""
-    modules = {Path(str(item.fspath)).stem for item in request.session.items}
-    if modules & LIVE_DAEMON_MODULES:
+    live = {Path(str(item.fspath)).stem for item in request.session.items
+            if item.get_closest_marker("slow") is not None}  # the fast set runs none live
+    if live & LIVE_DAEMON_MODULES:
         subprocess.run([sys.executable, "-m", "daemon.cli", "build-kernels", "--quiet"],
                        cwd=ROOT, capture_output=True, timeout=900, check=True,
                        env=dict(os.environ, PYTHONPATH=str(ROOT)))
