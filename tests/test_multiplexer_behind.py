@@ -76,3 +76,58 @@ def test_a_frame_loop_that_keeps_up_is_not_said_to_be_behind(caplog):
             assert fs is not None and len(fs.samples) == CAMERAS
     assert mux.skipped == 0 and mux.behind == ""
     assert not [r for r in caplog.records if "behind" in r.getMessage()]
+
+
+def _push_set(mux, k, t0, lag_ns, cameras=range(CAMERAS)):
+    """Trigger k's samples; the last camera's batch lands lag_ns after the others' (the
+    others' arrival stamps are that much older than now, as from a slower node's hop)."""
+    now = time.monotonic_ns()
+    samples = []
+    for c in cameras:
+        s = _sample(c, k, t0, mux.period_ns)
+        s.arrival_ns = now if c == CAMERAS - 1 else now - lag_ns
+        samples.append(s)
+    mux.push_many(samples)
+
+
+def test_the_set_deadline_follows_the_waits_complete_sets_took_within_its_bounds():
+    mux = Multiplexer(CAMERAS, fps=240.0)
+    base_ms = mux.timeout_ns * 1e-6  # 1.5 periods: 6.25 ms
+    t0 = time.monotonic_ns() - 10**9
+    for k in range(300):  # camera 3 always 10 ms behind the rest
+        _push_set(mux, k, t0, 10_000_000)
+        assert mux.next(5.0) is not None
+    assert mux.incomplete == 0
+    deadline_ms = mux.camera_status(0)["set_deadline_ms"]
+    # its p99 + 0.5 ms: the 10 ms, and whatever this (loaded) machine added, within bounds
+    assert 10.5 <= deadline_ms <= 4.0 * mux.period_ns * 1e-6 + 1e-3, deadline_ms
+    assert deadline_ms > base_ms
+
+    # a camera that is gone is given up on at the deadline, counted against it alone
+    for k in range(300, 320):
+        _push_set(mux, k, t0, 0, cameras=range(CAMERAS - 1))
+    got = []
+    end = time.monotonic() + 30.0
+    while len(got) < 20 and time.monotonic() < end:
+        fs = mux.next(0.5)
+        if fs is not None:
+            got.append(fs)
+    assert got and all(len(fs.samples) == CAMERAS - 1 for fs in got)
+    assert mux.camera_status(CAMERAS - 1)["sets_without"] == 20
+    assert [mux.camera_status(c)["sets_without"] for c in range(CAMERAS - 1)] == [0, 0, 0]
+
+    # waits far past the bound: the deadline stops at DEADLINE_MAX_FRAMES periods
+    slow = Multiplexer(CAMERAS, fps=240.0)
+    for k in range(300):
+        _push_set(slow, k, t0, 50_000_000)
+        assert slow.next(5.0) is not None
+    assert abs(slow.timeout_ns - 4.0 * slow.period_ns) < 1_000
+
+
+def test_waits_shorter_than_the_configured_timeout_keep_it():
+    mux = Multiplexer(CAMERAS, fps=240.0, timeout_frames=3.0)  # 12.5 ms; bound 16.7
+    t0 = time.monotonic_ns() - 10**9
+    for k in range(300):
+        _push_set(mux, k, t0, 100_000)
+        assert mux.next(5.0) is not None
+    assert mux.timeout_ns == mux.base_timeout_ns == int(3.0 * mux.period_ns)

@@ -39,6 +39,9 @@ class FrameSet:
 # ---- multiplexer -----------------------------------------------------------------------------
 
 GREEDY_MATCH_PX = 20.0  # farthest a blob moves between two samples of its camera
+DEADLINE_MAX_FRAMES = 4.0  # the longest a set waits for a camera, whatever the waits seen
+DEADLINE_MARGIN_NS = 500_000  # added to the p99 of the waits complete sets took
+DEADLINE_EVERY = 240  # complete sets between two refits of the deadline
 BEHIND_SAY_S = 10.0  # the frame loop falling behind is logged at most this often
 BEHIND_SHOWN_S = 5.0  # and shown in the status this long after its last skip
 log = logging.getLogger("mocapd.multiplexer")
@@ -111,6 +114,11 @@ class Multiplexer:
         self.period_ns = 1e9 / fps
         self.tol_ns = tolerance_frames * self.period_ns
         self.timeout_ns = int(timeout_frames * self.period_ns)
+        # how long a set waits for its last camera: at least the configured timeout, more
+        # when complete sets are seen to take longer (a node's batch behind a slow hop),
+        # up to DEADLINE_MAX_FRAMES periods (see _fit_deadline)
+        self.base_timeout_ns = self.timeout_ns
+        self._waits: deque = deque(maxlen=2048)  # complete sets: first sample -> last, ns
         self.connected = connected or (lambda: np.ones(n_cameras, dtype=bool))
         self.cond = threading.Condition()
         self.clocks = [CameraClock(self.period_ns) for _ in range(n_cameras)]
@@ -235,12 +243,25 @@ class Multiplexer:
             return
         self.last_index = self._number(t, 1)
         self.last_t = t
+        if len(samples) == self.n:
+            self._waits.append(time.monotonic_ns() - group.first_arrival)
+            if len(self._waits) % DEADLINE_EVERY == 0 or len(self._waits) == 64:
+                self._fit_deadline()
         if len(samples) < self.n:
             self.incomplete += 1
             got = np.zeros(self.n, dtype=bool)
             got[list(group.samples)] = True
             self.missing[~got] += 1
         self._put(FrameSet(self.last_index, t, max(s.arrival_ns for s in samples), samples))
+
+    def _fit_deadline(self) -> None:
+        """The set deadline from the measured waits: their p99 plus a margin, never below
+        the configured timeout nor above DEADLINE_MAX_FRAMES periods. A node's batch that
+        usually lands 2 ms after the other nodes' is then waited for, not given up on;
+        a camera that is truly gone still costs at most the bound."""
+        p99 = float(np.percentile(np.fromiter(self._waits, np.float64), 99))
+        top = max(self.base_timeout_ns, DEADLINE_MAX_FRAMES * self.period_ns)
+        self.timeout_ns = int(min(max(p99 + DEADLINE_MARGIN_NS, self.base_timeout_ns), top))
 
     def _number(self, t: float, least_step: int) -> int:
         """The frame number of a set taken at t: frame periods since the origin (or since
@@ -308,7 +329,9 @@ class Multiplexer:
         """What the multiplexer knows of one camera: its clock against the daemon's and the
         frames its own counter skipped (taken but never delivered)."""
         return {"clock": self.clocks[camera].status(),
-                "frame_gaps": int(self.frame_gaps[camera])}
+                "frame_gaps": int(self.frame_gaps[camera]),
+                "sets_without": int(self.missing[camera]),  # given up on at the deadline
+                "set_deadline_ms": self.timeout_ns * 1e-6}
 
     def next(self, timeout_s: float = 0.2) -> FrameSet | None:
         """The next frame set, or None after timeout_s with nothing to give."""
