@@ -34,7 +34,6 @@ from daemon.capture.pipeline import (
     Multiplexer,
     Pipeline,
     latency_figures,
-    latency_stage_figures,
 )
 from daemon.capture.sources import DetectCamera, ReplayCamera, ReplayScene
 from daemon.config.mocapd import Config, default_runtime_dir, load_config, parse_config
@@ -43,10 +42,8 @@ from daemon.nodes.remote import make_hub
 from daemon.process import heap
 from daemon.process.notify import sd_notify, watchdog_interval_s
 from daemon.process.realtime import raise_priority, restore_normal
-from daemon.process.supervise import threads_status
-from daemon.publish.mcap_recorder import McapRecorderPublisher
 from daemon.publish.recorder import RecorderPublisher
-from daemon.publish.udp import UdpPublisher
+from daemon.service import control_requests, report
 from daemon.service.control import ControlServer
 from daemon.service.outputs import make_publishers
 from daemon.synthetic import virtual
@@ -608,180 +605,19 @@ class Daemon:
     # ---- control requests ------------------------------------------------------------------
 
     def handle(self, req: dict) -> dict:
-        cmd = req.get("cmd")
-        if cmd == "status":
-            return {"ok": True, **self.status()}
-        if cmd == "stop":
-            self.stop_event.set()
-            return {"ok": True}
-        if cmd == "reload":
-            self.reload_event.set()
-            return {"ok": True}
-        if cmd == "record":
-            return self._record(req.get("path"), bool(req.get("overwrite")))
-        if cmd == "record_stop":
-            if self.recorder is None:
-                raise UserError("not recording")
-            rec, self.recorder = self.recorder, None
-            self.pipeline.hooks.remove(rec.submit)
-            rec.stop(timeout=10.0)
-            return {"ok": True, "path": str(rec.path), "frames": rec.sent,
-                    "failed": rec.failed or None, "lost": rec.lost}
-        if cmd == "markers":
-            return {"ok": True, **self._markers()}
-        raise UserError(f"unknown request {cmd!r}")
-
-    def _record(self, path, overwrite: bool = False) -> dict:
-        if not path:
-            raise UserError("record needs a PATH")
-        if Path(path).exists() and not overwrite:
-            raise UserError(f"{path} exists; record to another name (or --overwrite)")
-        if not Path(path).parent.is_dir():
-            raise UserError(f"{path}: the folder {Path(path).parent} does not exist")
-        if self.recorder is not None:
-            raise UserError(f"already recording to {self.recorder.path}; "
-                            "`mocapd record --stop` first")
-        if Path(path).suffix.lower() not in (".mcrec", ".mcap"):
-            raise UserError(f"{path}: record to a .mcrec (the blobs, for replay) or a .mcap "
-                            "(poses and markers, for Foxglove)")
-        if Path(path).suffix.lower() == ".mcap":
-            rec = McapRecorderPublisher(Path(path), [b.name for b in self.pipeline.rigid.bodies],
-                                        self.config.record_min_free_mb)
-        else:
-            rec = RecorderPublisher(Path(path), self.rig, self.scene.fps if self.scene else None,
-                                    self.config.record_min_free_mb)
-        rec.start()
-        self.recorder = rec
-        self.pipeline.hooks.append(rec.submit)
-        return {"ok": True, "path": str(path)}
-
-    def _markers(self) -> dict:
-        """The seen tracks of the latest frame, and whether a body holds each (for
-        `mocapd rigid-body add --from-live`)."""
-        res = self.pipeline.last_result
-        if res is None:
-            return {"markers": []}
-        tr, taken = res.tracks, res.held_by_bodies()
-        sel = tr.seen
-        return {"markers": [{"id": int(i), "xyz": [float(v) for v in p], "body": bool(t)}
-                            for i, p, t in zip(tr.ids[sel], tr.xyz[sel], taken[sel],
-                                               strict=True)]}
+        return control_requests.handle(self, req)
 
     def status(self) -> dict:
-        st = self.pipeline.stats
-        cams = []
-        by_camera = {c.source.camera: c for c in self.captures}
-        tables = {c.name: c for c in self.config.cameras}
-        for i, name in enumerate(self.rig.names):
-            cap = by_camera.get(i)
-            if cap is None and self.captures:  # a camera that was skipped
-                cams.append({"name": name, "connected": False, "rate_hz": 0.0, "frames": 0,
-                             "dropped": 0, "failures": 0})
-                continue
-            mux = getattr(self, "mux", None)
-            cam = {"name": name,
-                   "connected": bool(cap.connected) if cap else True,
-                   "rate_hz": cap.rate_hz() if cap else st.rate_hz(),
-                   "frames": cap.frames if cap else st.frames,
-                   "dropped": int(mux.missing[i]) if mux else 0,
-                   "failures": cap.failures if cap else 0,
-                   "restarts": cap.sup.restarts if hasattr(cap, "sup") else 0}
-            if mux is not None:  # its clock against the daemon's, frames its counter skipped
-                cam.update(mux.camera_status(i))
-            table = tables.get(name)
-            if table is not None:  # a [[camera]] of the configuration: how it detects
-                cam.update(threshold=table.threshold, min_area=table.min_area,
-                           max_area=table.max_area,
-                           mask=None if table.mask is None else str(table.mask))
-            cams.append(cam)
-        poses = getattr(self.pipeline, "last_result", None)
-        bodies = self.pipeline.rigid.bodies
-        valid = poses.poses.valid if poses is not None else ()
-        if len(valid) != len(bodies):  # a reload changed the bodies; no frame has them yet
-            valid = np.zeros(len(bodies), dtype=bool)
-        return {
-            "uptime_s": (time.monotonic_ns() - self.started_ns) * 1e-9,
-            "scheduling": self.scheduling,
-            "frames": st.frames, "rate_hz": st.rate_hz(),
-            "latency": latency_figures(st.latency),
-            "cameras": cams,
-            "bodies": [{"id": int(b.id), "name": b.name, "valid": bool(v)}
-                       for b, v in zip(bodies, valid, strict=True)],
-            "bodies_tracked": st.valid_bodies,
-            "outputs": [p.status() for p in self.pipeline.publishers],
-            "recording": str(self.recorder.path) if self.recorder else None,
-            "recording_status": self.recorder.status() if self.recorder else None,
-            "labelling": None if self.labelling is None else self.labelling.status(),
-            "multiplexer": self.mux_stats(),
-            "nodes": self.hub.status() if self.hub is not None else None,
-            # every supervised thread (daemon.process.supervise): state and restarts
-            "threads": threads_status(*self.captures, self.control,
-                                      *self.pipeline.publishers, self.recorder, self.view),
-        }
+        return report.status(self)
 
     def figures(self) -> dict:
-        st = self.pipeline.stats
-        fps = self.config.sim.fps if self.config.sim is not None else self.config.fps
-        elapsed = (st.done[-1] - st.done[0]) * 1e-9 if len(st.done) > 1 else 0.0
-        out = {
-            "frames": st.frames,
-            "rate_hz": (len(st.done) - 1) / elapsed if elapsed > 0 else None,
-            "latency_to_poses": latency_figures(st.all_latency),
-            "markers_tracked_median": float(np.median(st.markers_seen)) if len(st.markers_seen)
-            else 0.0,
-            "bodies_valid_fraction": {str(i): st.body_valid[i] / st.body_frames[i]
-                                      for i in st.body_frames},
-            "cameras": self.status()["cameras"],
-            "outputs": [p.status() for p in self.pipeline.publishers],
-            "scheduling": self.scheduling,
-        }
-        sent = [p for p in self.pipeline.publishers if isinstance(p, UdpPublisher)]
-        if sent:
-            out["latency_to_udp_sent"] = latency_figures(
-                [s - a for a, s in sent[0].send_ns])
-        if self.captures:  # live: where the latency goes (the first second left out)
-            out["latency_stages"] = latency_stage_figures(st.stage_ns, skip=int(fps))
-        if self.mux_stats():
-            out["multiplexer"] = self.mux_stats()
-        if self.hub is not None:
-            out["nodes"] = self.hub.status()
-        if self.evaluator is not None:
-            out["truth"] = self.evaluator.figures()
-            out["truth"]["tracking_rig"] = self.tracking_rig_note()
-        if self._learned is not None:
-            out["bodies_defined_live"] = {
-                "file": None if self.learned_path is None else str(self.learned_path),
-                "frames_each": LEARN_FRAMES,
-                "bodies": [{"name": b.name, "id": b.id, "markers": len(b.markers)}
-                           for b in self._learned[1]]}
-        if self.label_score is not None and self.label_score.frames:
-            out.setdefault("truth", {})["labelling"] = self.label_score.figures()
-        if self.labelling is not None:
-            st = self.labelling.status()
-            out["labelling"] = {k: st[k] for k in ("markerset", "frames", "starts", "failures",
-                                                   "time_ms_median", "time_ms_p99")}
-        return out
+        return report.figures(self, LEARN_FRAMES)
 
     def tracking_rig_note(self) -> str:
-        """Which cameras a simulated run tracked with, said beside its figures: a
-        calibrated rig file, or (no rig given) the simulator's own cameras, whose figures
-        are those of a perfect calibration."""
-        cfg = self.config
-        if self._truth_rig is not None:
-            return f"calibrated: {cfg.rig or 'the rig given'} (blobs from the --truth-rig)"
-        if cfg.rig is not None:
-            return (f"{cfg.rig}, which also made the blobs (a perfect calibration; give "
-                    "--truth-rig for the true cameras, or run `calibkit demo`)")
-        return ("the simulator's own cameras (a perfect calibration; give a calibrated --rig "
-                "and the --truth-rig, or run `calibkit demo`)")
+        return report.tracking_rig_note(self)
 
     def mux_stats(self) -> dict | None:
-        mux = getattr(self, "mux", None)
-        if mux is None:
-            return None
-        return {"incomplete_sets": mux.incomplete, "late_samples": mux.late,
-                "settling_samples": mux.settling, "overflow": mux.overflow,
-                "skipped_behind": mux.skipped, "behind": getattr(mux, "behind", "")}
+        return report.mux_stats(self)
 
 
 def _read(path: Path | None) -> bytes | None:
