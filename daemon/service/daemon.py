@@ -18,12 +18,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-import tomllib
 
 from calibkit.cameras import missing_plugins
 from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
-from calibkit.core.fileio import write_text_atomic
 from calibkit.vision.correspondence import match_frame
 from calibkit.vision.detect import DetectorConfig, detect
 from calibkit.vision.gates import correspondence_config, rig_residual, tracker_gates
@@ -36,14 +34,14 @@ from daemon.capture.pipeline import (
     latency_figures,
 )
 from daemon.capture.sources import DetectCamera, ReplayCamera, ReplayScene
-from daemon.config.mocapd import Config, default_runtime_dir, load_config, parse_config
+from daemon.config.mocapd import Config, default_runtime_dir, load_config
 from daemon.config.zenoh import is_remote
 from daemon.nodes.remote import make_hub
 from daemon.process import heap
 from daemon.process.notify import sd_notify, watchdog_interval_s
 from daemon.process.realtime import raise_priority, restore_normal
 from daemon.publish.recorder import RecorderPublisher
-from daemon.service import control_requests, report
+from daemon.service import control_requests, report, sim_bodies
 from daemon.service.control import ControlServer
 from daemon.service.outputs import make_publishers
 from daemon.synthetic import virtual
@@ -51,7 +49,6 @@ from daemon.synthetic.evaluator import Evaluator
 from daemon.synthetic.labelling import LabelScore
 from daemon.synthetic.scene import SimCamera, SimScene
 from daemon.tracking.rigid import alike_bodies
-from daemon.tracking.rigid_define import bodies_toml, learn_body
 from daemon.tracking.tracker import Tracker
 from daemon.tracking.tracker_kernel import refine_step
 
@@ -60,9 +57,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("mocapd")
 OPEN_GRACE_NS = 1_000_000_000  # after the start, sets wait this long for cameras not open yet
-LEARN_FRAMES = 30  # --sim: frames each body is held still (as `rigid-body add`'s default)
-HOLD_TRIES = 4  # --sim: places each body is held at until its definition has every marker
-LEARNED_BODIES = "sim-bodies.toml"  # where (in the runtime directory) they are written
 
 
 # ---- the daemon ------------------------------------------------------------------------------
@@ -161,7 +155,7 @@ class Daemon:
         self.control.open()
         if self._learned is not None:
             log.info("%s", self._learn_note)
-            self._write_learned(runtime)
+            sim_bodies.write_learned(self, runtime)
         if self.hub is not None:
             self.hub.start()
         for p in self.pipeline.publishers:
@@ -285,59 +279,13 @@ class Daemon:
 
     def _bodies(self, cfg: Config) -> list:
         """The configuration's rigid bodies; with --sim and none configured, the scene's
-        bodies defined live, once, as a user would (see _learn_bodies)."""
+        bodies defined live, once, as a user would (daemon.service.sim_bodies)."""
         if cfg.bodies or cfg.sim is None or not cfg.sim.define_bodies \
                 or not isinstance(self.scene, SimScene):
             return list(cfg.bodies)
         if self._learned is None:
-            self._learned = self._learn_bodies(cfg)
+            self._learned = sim_bodies.learn_bodies(self, cfg)
         return list(self._learned[1])
-
-    def _learn_bodies(self, cfg: Config) -> tuple[str, list]:
-        """Each of the scene's bodies held still and alone in the volume for LEARN_FRAMES
-        frames (SimScene.held_alone: blobs only), tracked with this daemon's rig and
-        tracker, and defined from the tracked points as `mocapd rigid-body add --from-live`
-        defines one (daemon.tracking.rigid_define); named body0, body1, ... in the order held, as
-        [[rigid_body]] tables read back through the configuration's checks. Never the
-        simulator's definitions: the scorer matches these to its bodies by their shape."""
-        started = time.monotonic()
-        found = []
-        want = cfg.sim.markers_per_body  # the user knows how many markers a body carries
-        for k in range(len(self.scene.bodies_truth)):
-            got, why = None, ""
-            for place in range(HOLD_TRIES):  # short of markers: moved, tried again
-                pipe = Pipeline(self.rig, self.tracker_config, cfg.rigid, [])
-                try:
-                    got = learn_body(lambda fs, p=pipe: p.process(fs).tracks,
-                                     self.scene.held_alone(k, LEARN_FRAMES, place))
-                except UserError as exc:
-                    got, why = None, str(exc)
-                    continue
-                if len(got) == want:
-                    break
-                why = f"found {len(got)} markers, not {want}"
-                log.debug("defining body%d live: %s; moving it and trying again", k, why)
-            if got is None or len(got) != want:
-                raise UserError(f"--sim: defining body{k} live failed ({why}) at "
-                                f"{HOLD_TRIES} places; check the rig's calibration")
-            found.append((f"body{k}", k + 1, got))
-        text = bodies_toml(found)
-        bodies = list(parse_config(tomllib.loads(text)).bodies)
-        # logged once the outputs are checked: a start refused for them says only why
-        self._learn_note = (f"defined {len(bodies)} rigid bodies live in "
-                            f"{time.monotonic() - started:.1f} s ("
-                            + ", ".join(str(len(b.markers)) for b in bodies)
-                            + f" markers, each held still for {LEARN_FRAMES} frames)")
-        return text, bodies
-
-    def _write_learned(self, runtime: Path) -> None:
-        """The bodies defined live, written where a user can read (and keep) them."""
-        path = Path(runtime) / LEARNED_BODIES
-        write_text_atomic(path, "# rigid bodies mocapd --sim defined live at its start; "
-                          "copy them into your configuration to keep them\n\n"
-                          + self._learned[0])
-        self.learned_path = path
-        log.info("rigid bodies defined live written to %s", path)
 
     def _warn_alike(self, bodies) -> None:
         for a, b in alike_bodies(bodies, self.config.rigid.distance_tol_m):
@@ -611,7 +559,7 @@ class Daemon:
         return report.status(self)
 
     def figures(self) -> dict:
-        return report.figures(self, LEARN_FRAMES)
+        return report.figures(self, sim_bodies.LEARN_FRAMES)
 
     def tracking_rig_note(self) -> str:
         return report.tracking_rig_note(self)
