@@ -34,7 +34,7 @@ from daemon.capture.pipeline import (
     latency_figures,
 )
 from daemon.capture.sources import DetectCamera, ReplayCamera, ReplayScene
-from daemon.config.mocapd import Config, default_runtime_dir, load_config
+from daemon.config.mocapd import Config, default_runtime_dir
 from daemon.config.zenoh import is_remote
 from daemon.nodes.remote import make_hub
 from daemon.process import heap
@@ -44,6 +44,8 @@ from daemon.publish.recorder import RecorderPublisher
 from daemon.service import control_requests, report, sim_bodies
 from daemon.service.control import ControlServer
 from daemon.service.outputs import make_publishers
+from daemon.service.reload import read_bytes
+from daemon.service.reload import reload as reload_config
 from daemon.synthetic import virtual
 from daemon.synthetic.evaluator import Evaluator
 from daemon.synthetic.labelling import LabelScore
@@ -90,7 +92,7 @@ class Daemon:
         self._learned: tuple[str, list] | None = None  # --sim: bodies defined live (toml, defs)
         self.learned_path: Path | None = None
         self.rig = self._rig(config)
-        self._rig_text = _read(config.rig)  # a reload swaps the rig only when it changed
+        self._rig_text = read_bytes(config.rig)  # a reload swaps the rig only when it changed
         self._truth_rig = truth_rig
         self.control: ControlServer | None = None
         self.view = None  # the live web view (daemon.view.link.ViewLink), when asked for
@@ -457,73 +459,7 @@ class Daemon:
             progress(self.pipeline.stats.frames)
 
     def reload(self) -> bool:
-        """Re-read the configuration: rigid bodies and outputs change, the stream goes on.
-        A bad file is logged and the running configuration kept."""
-        sd_notify("RELOADING=1")
-        try:
-            new = self.extend(load_config(self.config.path)) if self.config.path else self.config
-            key = self._set_key(new)
-            labelling = self._labeller(new) if key != self._markerset_key else self.labelling
-            detectors = self._reload_detectors(new)
-            rig = self._reload_rig(new)
-            tracker_config = self._tracker_config(new, rig or self.rig)
-        except UserError as exc:
-            log.error("reload failed, keeping the running configuration: %s", exc)
-            sd_notify("READY=1")
-            return False
-        bodies = self._bodies(new)
-        self._warn_alike(bodies)
-        if self.evaluator is not None:
-            self.pipeline.run_idle()  # frames tracked so far are scored against the old
-            self.evaluator.set_bodies(bodies)
-        try:
-            publishers = make_publishers(new, bodies, labelling.ms if labelling else None,
-                                         self.handle, self.hub)
-        except UserError as exc:
-            log.error("reload failed, keeping the running configuration: %s", exc)
-            if labelling is not self.labelling and labelling is not None:
-                labelling.close()
-            sd_notify("READY=1")
-            return False
-        changes = {} if labelling is self.labelling else {"labeller": labelling}
-        if changes and self.labelling is not None:
-            self.labelling.close()  # a start still searching on its thread stops
-        self.labelling, self._markerset_key = labelling, key
-        if rig is not None or tracker_config != self.tracker_config:
-            # tracks start afresh on the new rig or gates, between two frames
-            changes["tracker"] = Tracker(rig or self.rig, tracker_config)
-            self.rig, self.tracker_config = rig or self.rig, tracker_config
-        self.pipeline.replace(bodies=bodies, publishers=publishers, **changes)
-        for src, det in detectors:
-            src.detector = det
-        self.config = new
-        log.info("configuration reloaded: %d rigid bodies, %d outputs%s", len(bodies),
-                 len(new.udp) + len(new.serial) + len(new.mavlink),
-                 "" if labelling is None else f", marker set {labelling.set_name}")
-        sd_notify("READY=1")
-        return True
-
-    def _reload_rig(self, new: Config) -> Rig | None:
-        """The rig a reloaded configuration names, read and checked in full before anything
-        changes: None when it is the running one. A live rig may change its calibration, not
-        its cameras (they are open); a simulated or replayed run keeps its rig."""
-        if new.rig == self.config.rig and (new.rig is None or self._rig_text == _read(new.rig)):
-            return None
-        rig = self._rig(new)  # read in full: a missing or broken file fails the reload
-        if self.scene is not None:
-            log.warning("reload: the rig file changed, but a --sim or --replay run keeps the "
-                        "rig it started with (restart mocapd to use %s)", new.rig)
-            return None
-        if rig is None:
-            raise UserError("rig: a live daemon needs one; the reloaded configuration has none")
-        old = [(c.name, tuple(c.size)) for c in self.rig]
-        now = [(c.name, tuple(c.size)) for c in rig]
-        if now != old:
-            raise UserError(f"{new.rig}: its cameras ({', '.join(n for n, _ in now)}) are not "
-                            f"the running rig's ({', '.join(n for n, _ in old)}) with their "
-                            "image sizes; restart mocapd to change cameras")
-        self._rig_text = _read(new.rig)
-        return rig
+        return reload_config(self)
 
     def shutdown(self) -> None:
         sd_notify("STOPPING=1")
@@ -566,11 +502,3 @@ class Daemon:
 
     def mux_stats(self) -> dict | None:
         return report.mux_stats(self)
-
-
-def _read(path: Path | None) -> bytes | None:
-    """A file's bytes (None: no file, or unreadable: the loader then says why)."""
-    try:
-        return None if path is None else Path(path).read_bytes()
-    except OSError:
-        return None
