@@ -57,7 +57,9 @@ class Browser:
         i = next(self._ids)
         self.ws.send(json.dumps({"id": i, "method": method, "params": params}))
         while True:
-            msg = json.loads(self.ws.recv(timeout=60))
+            # generous: a page rendering WebGL in software on a loaded machine can take a
+            # minute to answer (a screenshot waits for the next frame it draws)
+            msg = json.loads(self.ws.recv(timeout=180))
             if "method" in msg:
                 self.events.append(msg)
                 del self.events[:-5000]

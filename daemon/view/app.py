@@ -26,16 +26,13 @@ from daemon.publish.bad_input import BadInput
 from daemon.service.control import request
 from daemon.view import draw, quiet
 from daemon.view.detection_panel import DetectionPanel
+from daemon.view.scene import Scene, marker_colours
 
 log = logging.getLogger("mocapd.view")
 THUMB_HZ = 8.0  # thumbnails a second, per camera
 SCENE_HZ = 30.0  # 3D updates a second
 STATUS_HZ = 2.0  # `status` requests a second
 TRAIL_S = 2.0
-COLOURS = {"free": (235, 235, 235), "held": (40, 200, 230), "picked": (255, 0, 200),
-           "labelled": (60, 220, 90)}
-BODY_COLOURS = [(230, 80, 60), (70, 160, 240), (250, 200, 40), (160, 90, 220),
-                (60, 200, 120), (240, 130, 200), (140, 140, 140), (255, 150, 60)]
 
 
 def main(conn, host: str, port: int) -> None:
@@ -89,11 +86,11 @@ class LiveView:
         self.server = server
         self.desc: dict | None = None
         self.frame: dict | None = None
+        self.dirty = False  # a frame or a pick the 3D view has not drawn yet
         self.blobs: dict[int, tuple] = {}  # camera -> (uv, area) of its newest sample
         self.status: dict | None = None
         self.picked: set[int] = set()
         self.trails: dict[int, deque] = {}
-        self.body_frames: dict[int, object] = {}
         self.thumbs: list = []
         self.masks: dict = {}
         self.cam_md: list = []
@@ -133,7 +130,7 @@ class LiveView:
             if self.desc is None:
                 continue
             now = time.monotonic()
-            if now >= next_scene and self.frame is not None:
+            if now >= next_scene and self.frame is not None and self.dirty:
                 next_scene = _next(next_scene, SCENE_HZ, now)
                 self.draw_scene()
             if now >= next_thumb:
@@ -145,6 +142,7 @@ class LiveView:
 
     def take(self, frame: dict) -> None:
         self.frame = frame
+        self.dirty = True
         for cam, uv, area in frame["cameras"]:
             self.blobs[cam] = (uv, area)
         now = frame["t_ns"] * 1e-9
@@ -176,6 +174,7 @@ class LiveView:
         else:
             self.detection.fill()
         self._build_bodies(desc["bodies"])
+        self._build_sticks()
 
     @staticmethod
     def _load_masks(desc: dict) -> dict:
@@ -190,38 +189,9 @@ class LiveView:
         return out
 
     def _build_scene(self, rig) -> None:
-        sc = self.server.scene
-        centre, side = draw.floor_extent(rig)
-        sc.add_grid("/floor", width=side, height=side, plane="xy", cell_size=0.5,
-                    section_size=1.0, position=(float(centre[0]), float(centre[1]), 0.0),
-                    cell_color=(90, 90, 90), section_color=(130, 130, 130))
-        sc.add_frame("/world", axes_length=0.3, axes_radius=0.008)
-        for f in draw.camera_frusta(rig):
-            sc.add_camera_frustum(f"/cameras/{f['name']}", fov=float(f["fov"]),
-                                  aspect=float(f["aspect"]), scale=0.25, thickness=0.01,
-                                  color=(200, 200, 120), wxyz=f["wxyz"],
-                                  position=f["position"])
-            sc.add_label(f"/cameras/{f['name']}/label", f["name"], font_screen_scale=0.8)
-        empty = np.zeros((1, 3), np.float32)
-        self.clouds = {k: sc.add_point_cloud(f"/markers/{k}", empty, c, point_size=0.05
-                                             if k == "picked" else 0.035,
-                                             point_shape="circle", precision="float32",
-                                             visible=False)
-                       for k, c in COLOURS.items()}
-        self.sticks = sc.add_line_segments("/markers/sticks", np.zeros((1, 2, 3), np.float32),
-                                           COLOURS["labelled"], thickness=0.006,
-                                           visible=False)
-        self.trail_lines = sc.add_line_segments(
-            "/bodies/trails", np.zeros((1, 2, 3), np.float32), (255, 255, 255),
-            thickness=0.004, visible=False)
-        top = rig.centres()
-        self.server.initial_camera.look_at = (float(centre[0]), float(centre[1]), 0.8)
-        self.server.initial_camera.position = tuple(
-            (np.array([centre[0], centre[1], 0.8]) + 1.6 * (top[0] - [centre[0], centre[1],
-                                                                       0.8])).tolist())
-        self.server.initial_camera.up = (0.0, 0.0, 1.0)
-        sc.on_click()(self._on_click)
-        sc.on_rect_select(modifier="shift")(self._on_rect)
+        self.scene = Scene(self.server, rig)
+        self.server.scene.on_click()(self._on_click)
+        self.server.scene.on_rect_select(modifier="shift")(self._on_rect)
 
     def _build_gui(self, desc: dict) -> None:
         gui = self.server.gui
@@ -259,17 +229,15 @@ class LiveView:
         rename.on_click(lambda _: self.run_edit(self._rename, self.message))
         remove.on_click(lambda _: self.run_edit(self._remove, self.message))
 
+    def _build_sticks(self) -> None:
+        """The set's sticks, coloured by segment once (only their ends move afterwards)."""
+        self._pairs = np.asarray(self.desc.get("sticks") or [], np.int64).reshape(-1, 2)
+        n = len(self._pairs)
+        self.scene.set_sticks(marker_colours(n, np.full(n, -1), np.zeros(n, bool),
+                                             self._segment_of(self._pairs[:, 0])))
+
     def _build_bodies(self, bodies: list) -> None:
-        for handle in self.body_frames.values():
-            handle.remove()
-        self.body_frames = {}
-        sc = self.server.scene
-        for k, (i, name) in enumerate(bodies):
-            h = sc.add_frame(f"/bodies/{name}", axes_length=0.15, axes_radius=0.006,
-                             origin_radius=0.012,
-                             origin_color=BODY_COLOURS[k % len(BODY_COLOURS)], visible=False)
-            sc.add_label(f"/bodies/{name}/label", name, font_screen_scale=0.8)
-            self.body_frames[i] = h
+        self.scene.set_bodies(bodies)
         names = [n for _, n in bodies]
         self.body_choice.options = names or ["-"]
         self.names = dict(bodies)
@@ -277,55 +245,67 @@ class LiveView:
     # ---- drawing ----------------------------------------------------------------------------
 
     def draw_scene(self) -> None:
+        """The frame's markers (a labelled marker drawn once, in its segment's colour, with
+        the set's sticks), the bodies at their poses and their trails."""
         f = self.frame
+        self.dirty = False
         seen = f["track_seen"]
-        ids, xyz, held = f["track_ids"][seen], f["track_xyz"][seen], f["track_held"][seen]
-        picked = np.isin(ids, list(self.picked))
+        ids, xyz = f["track_ids"][seen], f["track_xyz"][seen]
+        held_by = f["track_body"][seen] if "track_body" in f else \
+            np.where(f["track_held"][seen], 0, -1)
         lab_idx = f.get("labelled_index")
-        labelled = np.zeros(len(ids), bool)
-        groups = {"free": ~held & ~picked, "held": held & ~picked, "picked": picked}
+        stick_seg = None
+        if lab_idx is not None and len(lab_idx):
+            lab_xyz = np.asarray(f["labelled_xyz"], np.float32)
+            lab_seg = self._segment_of(lab_idx)
+            # tracks the labeller named are drawn as labelled markers, not twice
+            if len(xyz):
+                near = np.linalg.norm(xyz[:, None] - lab_xyz[None], axis=2).min(axis=1)
+                keep = near >= 1e-4
+                ids, xyz, held_by = ids[keep], xyz[keep], held_by[keep]
+            stick_seg = self._stick_segments(lab_idx, lab_xyz)
+        else:
+            lab_xyz, lab_seg = np.zeros((0, 3), np.float32), np.zeros(0, np.int64)
+        picked = np.isin(ids, list(self.picked))
+        n_free = len(xyz)
+        all_xyz = np.concatenate([xyz, lab_xyz]).astype(np.float32)
+        colours = marker_colours(len(all_xyz),
+                                 np.concatenate([held_by, np.full(len(lab_xyz), -1)]),
+                                 np.concatenate([picked, np.zeros(len(lab_xyz), bool)]),
+                                 np.concatenate([np.full(n_free, -1), lab_seg]))
+        big = np.concatenate([picked, np.zeros(len(lab_xyz), bool)])
+        segs = [draw.trail_segments(np.array([p for _, p in t])) for t in self.trails.values()]
+        segs = np.concatenate(segs) if segs else np.zeros((0, 2, 3), np.float32)
         with self.server.atomic():
-            if lab_idx is not None:
-                lab_xyz = f["labelled_xyz"]
-                self._cloud("labelled", lab_xyz)
-                near = np.linalg.norm(xyz[:, None] - lab_xyz[None], axis=2).min(axis=1) \
-                    if len(lab_xyz) and len(xyz) else np.zeros(len(ids))
-                labelled = near < 1e-4
-                self._sticks(lab_idx, lab_xyz)
-            for k, sel in groups.items():
-                self._cloud(k, xyz[sel & ~labelled])
-            valid = f["body_valid"]
-            for i, ok, p, q in zip(f["body_ids"].tolist(), valid.tolist(), f["body_position"],
-                                   f["body_quaternion"], strict=True):
-                h = self.body_frames.get(i)
-                if h is None:
-                    continue
-                h.visible = bool(ok)
-                if ok:
-                    h.position = p.astype(np.float64)
-                    h.wxyz = np.array([q[3], q[0], q[1], q[2]], np.float64)
-            segs = [draw.trail_segments(np.array([p for _, p in t]))
-                    for t in self.trails.values()]
-            segs = np.concatenate(segs) if segs else np.zeros((0, 2, 3), np.float32)
-            self.trail_lines.visible = len(segs) > 0
-            if len(segs):
-                self.trail_lines.points = segs
+            self.scene.draw_markers(all_xyz, colours, big)
+            self.scene.draw_sticks(stick_seg)
+            self.scene.draw_bodies(f["body_ids"].tolist(), f["body_valid"].tolist(),
+                                   f["body_position"], f["body_quaternion"])
+            self.scene.draw_trails(segs)
         self.frames_drawn += 1
 
-    def _cloud(self, kind: str, xyz: np.ndarray) -> None:
-        h = self.clouds[kind]
-        h.visible = len(xyz) > 0
-        if len(xyz):
-            h.points = np.asarray(xyz, np.float32)
-            h.colors = np.tile(np.array(COLOURS[kind], np.uint8), (len(xyz), 1))
+    def _segment_of(self, index: np.ndarray) -> np.ndarray:
+        """The segment of each of the marker set's markers (-1 for one the set lacks)."""
+        segment_of = np.asarray(self.desc.get("segment_of") or [], np.int64)
+        out = np.full(len(index), -1, np.int64)
+        ok = (index >= 0) & (index < len(segment_of))
+        out[ok] = segment_of[index[ok]]
+        return out
 
-    def _sticks(self, index: np.ndarray, xyz: np.ndarray) -> None:
-        pairs = self.desc.get("sticks") or []
-        where = {int(m): k for k, m in enumerate(index.tolist())}
-        seg = [(xyz[where[a]], xyz[where[b]]) for a, b in pairs if a in where and b in where]
-        self.sticks.visible = bool(seg)
-        if seg:
-            self.sticks.points = np.asarray(seg, np.float32)
+    def _stick_segments(self, index: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+        """(P, 2, 3): every stick of the set, in the set's order; a stick whose markers are
+        not both labelled this frame shrinks to nothing (at its marker that is, else at the
+        origin), so the page gets the same sticks every frame and only their ends move."""
+        pairs = self._pairs
+        where = np.full(max(int(index.max()) + 1, int(pairs.max(initial=-1)) + 1), -1)
+        where[index] = np.arange(len(index))
+        ends = where[pairs]  # (P, 2), -1 where not labelled
+        seg = np.zeros((len(pairs), 2, 3), np.float32)
+        ok = ends >= 0
+        seg[ok] = xyz[ends[ok]]
+        one = ok.any(axis=1) & ~ok.all(axis=1)  # a stick with one end: a point there
+        seg[one] = seg[one][np.arange(one.sum()), ok[one].argmax(axis=1)][:, None]
+        return seg
 
     def draw_thumbnails(self) -> None:
         rig = self.desc["rig"]
@@ -339,6 +319,7 @@ class LiveView:
 
     def draw_figures(self) -> None:
         st, f = self.status, self.frame
+        self.scene.draw_camera_states(st)
         if f is not None:
             valid = [self.names.get(i, str(i)) for i, ok in
                      zip(f["body_ids"].tolist(), f["body_valid"].tolist(), strict=True) if ok]
@@ -382,6 +363,7 @@ class LiveView:
 
     def _set_picked(self, picked: set) -> None:
         self.picked = set(picked)
+        self.dirty = True
         self.picked_md.content = ("picked: " + (", ".join(f"marker {i}" for i in
                                                           sorted(self.picked)) or "none"))
 

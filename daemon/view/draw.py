@@ -137,6 +137,16 @@ def markerset_sticks(ms) -> list[tuple[int, int]]:
     return sticks
 
 
+def markerset_segments(ms) -> list[int]:
+    """The segment of each of a marker set's markers (-1 for a marker on none): labelled
+    markers are coloured by it."""
+    out = [-1] * len(ms.labels)
+    for k, seg in enumerate(ms.segments):
+        for m in seg.markers:
+            out[int(m)] = k
+    return out
+
+
 def trail_segments(history: np.ndarray) -> np.ndarray:
     """(n, 3) positions over time -> (n-1, 2, 3) line segments, gaps (NaN) left out."""
     h = np.asarray(history, np.float32).reshape(-1, 3)

@@ -59,6 +59,7 @@ def pack(result) -> dict:
            "latency_ms": (result.done_ns - result.arrival_ns) * 1e-6, "cameras": cams,
            "track_ids": tr.ids.copy(), "track_xyz": tr.xyz.astype(np.float32),
            "track_seen": tr.seen.copy(), "track_held": result.held_by_bodies(),
+           "track_body": held_by(tr.ids, po.tracks),
            "body_ids": po.ids.copy(), "body_valid": po.valid.copy(),
            "body_position": po.position.astype(np.float32),
            "body_quaternion": po.quaternion.astype(np.float32)}
@@ -66,6 +67,23 @@ def pack(result) -> dict:
     if lab is not None and hasattr(lab, "index"):
         out["labelled_index"] = np.asarray(lab.index, np.int64)
         out["labelled_xyz"] = np.asarray(lab.xyz, np.float32)
+    return out
+
+
+def held_by(track_ids: np.ndarray, body_tracks: np.ndarray) -> np.ndarray:
+    """(T,) the row of the body holding each track this frame, -1 for none (a body's
+    markers are drawn in its colour)."""
+    out = np.full(len(track_ids), -1, np.int64)
+    bt = np.asarray(body_tracks).reshape(len(body_tracks), -1) if len(body_tracks) else \
+        np.zeros((0, 0), np.int64)
+    rows, _ = np.nonzero(bt >= 0)
+    taken = bt[bt >= 0]
+    if len(taken) and len(track_ids):
+        order = np.argsort(track_ids)
+        k = np.searchsorted(track_ids, taken, sorter=order)
+        k = np.minimum(k, len(track_ids) - 1)
+        hit = track_ids[order[k]] == taken
+        out[order[k[hit]]] = rows[hit]
     return out
 
 
@@ -77,12 +95,13 @@ def describe(daemon) -> dict:
 
     cfg = daemon.config
     ms = daemon._markerset() if hasattr(daemon, "_markerset") else None
-    sticks = None
+    sticks = segment_of = None
     if ms is not None:
         # deferred on purpose: loads OpenCV only where used
-        from daemon.view.draw import markerset_sticks
+        from daemon.view.draw import markerset_segments, markerset_sticks
 
         sticks = markerset_sticks(ms)
+        segment_of = markerset_segments(ms)
     return {"rig": daemon.rig,
             "bodies": [(int(b.id), b.name) for b in daemon.pipeline.rigid.bodies],
             "runtime_dir": str(cfg.runtime_dir or default_runtime_dir()),
@@ -91,7 +110,7 @@ def describe(daemon) -> dict:
                                  "max_area": c.max_area,
                                  "mask": None if c.mask is None else str(c.mask)}
                         for c in cfg.cameras},
-            "simulated": cfg.sim is not None, "sticks": sticks,
+            "simulated": cfg.sim is not None, "sticks": sticks, "segment_of": segment_of,
             "fps": cfg.sim.fps if cfg.sim is not None else cfg.fps}
 
 
