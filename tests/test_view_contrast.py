@@ -282,6 +282,9 @@ def test_markers_are_bright_spheres_in_their_colours_standing_out_from_a_light_f
     assert sum(found.values()) >= 0.85 * sum(seen.values()), (found, seen)
     # and they stand out from the floor: nearly all of them by far more than a just
     # noticeable difference
+    print(f"markers in sight {seen}, in their colour {found}; contrast to the floor "
+          f"(Lab difference) 10th percentile {np.percentile(contrast, 10):.1f}, median "
+          f"{np.median(contrast):.1f}; floor RGB {floor.round().astype(int).tolist()}")
     assert np.percentile(contrast, 10) >= CONTRAST_MIN, sorted(contrast)[:8]
 
 

@@ -198,15 +198,15 @@ class LiveView:
         rig = desc["rig"]
         tabs = gui.add_tab_group()
         cams = tabs.add_tab("Cameras", icon="camera")
-        with cams:
-            if desc["simulated"]:
-                gui.add_markdown("_Simulated cameras give blobs, not images: each thumbnail "
-                                 "is the blobs drawn on a dark frame of the camera's size._")
+        with cams:  # the thumbnails first: the panel is never text before pictures
             for cam in rig:
                 blank = draw.thumbnail(cam.size, np.zeros((0, 2)), np.zeros(0))
                 self.thumbs.append(gui.add_image(blank, label=cam.name, format="jpeg",
                                                  jpeg_quality=75))
                 self.cam_md.append(gui.add_markdown(f"`{cam.name}`: waiting"))
+            if desc["simulated"]:
+                gui.add_markdown("_Simulated cameras give blobs, not images: each thumbnail "
+                                 "is the blobs drawn on a dark frame of the camera's size._")
         with tabs.add_tab("Detection", icon="adjustments"):
             self.detection = DetectionPanel(gui, self)
         bodies = tabs.add_tab("Bodies", icon="cube")
