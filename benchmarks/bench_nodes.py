@@ -98,7 +98,16 @@ def wait_status(runtime, ok, timeout_s):
     return None, time.monotonic()
 
 
-def steady_sets(runtime, seconds: float) -> dict | None:
+def cpu_s(pid: int) -> float | None:
+    """A process's CPU time so far (user + system, all its threads), from /proc."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def steady_sets(runtime, seconds: float, pid: int | None = None) -> dict | None:
     """Frame sets over `seconds` once every camera is in and settled: from when no sample
     has been left out for its camera's clock settling for a second (a camera that has
     just joined is left out of the sets for its first ~0.1 s, local or remote alike; how
@@ -116,16 +125,25 @@ def steady_sets(runtime, seconds: float) -> dict | None:
         if st["multiplexer"]["settling_samples"] != last:
             last, since = st["multiplexer"]["settling_samples"], time.monotonic()
     settled = time.monotonic() - t0 - 1.0
+    cpu0 = cpu_s(pid) if pid is not None else None
+    st = status(runtime) or st
     time.sleep(seconds)
     st1 = status(runtime)
+    cpu1 = cpu_s(pid) if pid is not None else None
     if st1 is None:
         return None
+    # the daemon's CPU time over the camera-frames it took in the window (the window's
+    # two status requests are in it too: a few ms in seconds)
+    cam_frames = sum(c["frames"] for c in st1["cameras"]) - sum(c["frames"]
+                                                                for c in st["cameras"])
     m0, m1 = st["multiplexer"], st1["multiplexer"]
     made = (st1["frames"] - st["frames"]) + (m1["skipped_behind"] - m0["skipped_behind"])
     return {"sets": made, "settle_s": settled,
             "complete": 1 - (m1["incomplete_sets"] - m0["incomplete_sets"]) / max(made, 1),
             "late_samples": m1["late_samples"] - m0["late_samples"],
-            "skipped_behind": m1["skipped_behind"] - m0["skipped_behind"]}
+            "skipped_behind": m1["skipped_behind"] - m0["skipped_behind"],
+            "cpu_us_per_camera_frame": (cpu1 - cpu0) * 1e6 / cam_frames
+            if cpu0 is not None and cpu1 is not None and cam_frames > 0 else float("nan")}
 
 
 def stop(procs):
@@ -169,7 +187,7 @@ def run_local(tmp: Path, seconds: float, cameras: int) -> dict:
     sim_toml(conf, runtime, None, None, cameras)
     d = daemon(conf, seconds, out)
     try:
-        steady = steady_sets(runtime, seconds * 0.3)
+        steady = steady_sets(runtime, seconds * 0.3, d.pid)
         d.wait(seconds * 3 + 120)
     finally:
         stop([d])
@@ -196,7 +214,7 @@ def run_nodes(tmp: Path, seconds: float, cameras: int, publish: str = "cameras")
                             and len(s.get("nodes") or []) == 4, 120)
         if st is None:
             raise SystemExit(f"the {cameras} cameras never all came in")
-        before = steady_sets(runtime, seconds * 0.3)
+        before = steady_sets(runtime, seconds * 0.3, d.pid)
         victim = nodes[3]
         victim.send_signal(signal.SIGKILL)
         victim.wait(10)
@@ -314,7 +332,10 @@ def main() -> None:
              *(f"{steady(r, 'sets', 'd')}, {steady(r, 'late_samples', 'd')}"
                for r in runs.values()), "-"],
             ["  from all cameras in to settled (s)", steady(local, "settle_s", ".2f"),
-             *(steady(r, "settle_s", ".2f") for r in runs.values()), "-"]]
+             *(steady(r, "settle_s", ".2f") for r in runs.values()), "-"],
+            ["daemon CPU per camera-frame (us; local: with the simulated cameras)",
+             steady(local, "cpu_us_per_camera_frame", ".1f"),
+             *(steady(r, "cpu_us_per_camera_frame", ".1f") for r in runs.values()), "<= 50"]]
     for key in ("frames", "rate_hz", "sets_complete", "skipped_behind", "valid_fraction_min",
                 "position_error_mm_rms", "gross_error_frames", "latency_to_poses_ms_median",
                 "latency_to_poses_ms_p99"):
@@ -325,6 +346,7 @@ def main() -> None:
             cells.append(_cell(r[key]) + ("" if ratio is None else f" ({ratio:.2f})"))
         rows.append([key + (" (whole run)" if key == "sets_complete" else ""), _cell(lv),
                      *cells, "-"])
+    print(f"load {os.getloadavg()[0]:.1f} (1 min), {os.cpu_count()} cores")
     print_table(rows, [f"{a.cameras} cameras, 240 fps", "local", *(f"{n} (/local)"
                                                                    for n in names), "target"])
 
