@@ -30,6 +30,7 @@ import numpy as np
 from calibkit.core.assignment import linear_sum_assignment
 from daemon.labelling.body import BodyTerms
 from daemon.labelling.markerset import MarkerSet
+from daemon.labelling.modules import rigid_modules
 
 SUBJECT_REL = 0.12      # another body: a distance may differ by this fraction (1 SD)
 PLACEMENT_M = 0.012     # ... and by this much from markers stuck elsewhere (1 SD)
@@ -269,9 +270,61 @@ def module_moves(terms: BodyTerms) -> list[tuple[np.ndarray, int]]:
     return out
 
 
+def near_groups(ms: MarkerSet, size: int = 4, max_sd_m: float = 0.015) -> list[np.ndarray]:
+    """Groups of `size` markers that move together (each with its nearest neighbours by
+    the set's distance among those within `max_sd_m` spread of it) and that no rigid
+    module holds whole: a head's four markers, 12-20 cm apart and sliding on the scalp
+    by a centimetre, are no rigid module, and on a body built otherwise the set can
+    prefer them turned by one place in one window and not in the next. A turn is a cycle
+    of four labels no swap reaches one step at a time."""
+    mods = [set(m.tolist()) for m in rigid_modules(ms)]
+    out, seen = [], set()
+    for i in range(ms.n):
+        ok = np.nonzero(ms.sd_m[i] < max_sd_m)[0]
+        ok = ok[ok != i]
+        if len(ok) < size - 1:
+            continue
+        g = tuple(sorted([i, *ok[np.argsort(ms.mean_m[i, ok])[:size - 1]].tolist()]))
+        if g in seen or any(set(g) <= m for m in mods):
+            continue
+        if (ms.sd_m[np.ix_(g, g)] >= max_sd_m).any():
+            continue
+        seen.add(g)
+        out.append(np.array(g))
+    return out
+
+
+def group_moves(cp: Compat, G: np.ndarray, mt: np.ndarray, groups: list[np.ndarray]
+                ) -> list[tuple[float, np.ndarray]]:
+    """Every reordering of the labels inside each group of `groups` (near_groups) whose
+    tracks are labelled, with the compatibility's change (exact, batched per group;
+    G the gain at the labelling mt, marker -> track) where it is positive."""
+    C4 = cp.C.reshape(cp.T, cp.n, cp.T, cp.n)
+    out = []
+    for g in groups:
+        g = g[mt[g] >= 0]
+        k = len(g)
+        if k < 3:
+            continue
+        perms = np.array(list(permutations(range(k)))[1:])              # (P, k)
+        a = mt[g]                                                        # tracks
+        new = g[perms]                                                   # (P, k) markers
+        lin = G[a[None], new].sum(1) - G[a, g].sum()
+        aa = C4[a[None, :, None], new[:, :, None], a[None, None, :], new[:, None, :]]
+        ra = C4[a[None, :, None], g[None, :, None], a[None, None, :], new[:, None, :]]
+        rr = C4[a[:, None], g[:, None], a[None], g[None]].sum()
+        d = lin + 0.5 * (rr + aa.sum((1, 2)) - 2.0 * ra.sum((1, 2)))
+        for p in np.nonzero(d > 0)[0]:
+            m2 = mt.copy()
+            m2[new[p]] = a
+            out.append((float(d[p]), m2))
+    return out
+
+
 def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
            rounds: int = 30, near: float = 2.0, max_swaps: int = 60, allowed=None,
-           every_order: bool = False) -> tuple[np.ndarray, float]:
+           every_order: bool = False, groups: list[np.ndarray] = ()
+           ) -> tuple[np.ndarray, float]:
     """Local search on the whole-body score (compatibility, handedness and module
     shapes): swaps of two markers' tracks that the compatibility leaves within `near` of
     the best, mirror moves of a part of the body and reorderings inside a rigid module
@@ -342,6 +395,12 @@ def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
                 s = cur + dv + terms.change(m2)
                 if s > best + 1e-6:
                     best, arg = s, m2
+        for dv, m2 in group_moves(cp, G, mt, groups):
+            if cur + dv + terms.gain_bound(m2) <= best + 1e-6 or not ok(m2):
+                continue
+            s = cur + dv + terms.change(m2)
+            if s > best + 1e-6:
+                best, arg = s, m2
         for perm, k in moves:
             if k >= 0 and terms.cost[k] < len(terms.modules[k]) and not every_order:
                 continue                   # the module fits as it is: leave its order

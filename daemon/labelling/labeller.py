@@ -240,6 +240,12 @@ class Labeller(NeighbourEvidence, ModuleReidentification, StructureRepair):
         ok = np.isfinite(xyz).all(1)
         self._commit(np.where(ok[:, None], xyz, np.nan), ok)
 
+    def take_state(self, other: Labeller) -> None:
+        """Carry on as `other` (a tracker started again from a window that verification
+        relabelled): everything it knows replaces what this one knew."""
+        vars(self).clear()
+        vars(self).update(vars(other))
+
     def relabel(self, perm: np.ndarray) -> None:
         """Rename the tracked markers: marker i becomes perm[i] (-1: it is dropped), with
         everything the tracker learned about it (its motion, its snapshot, the take's

@@ -15,9 +15,20 @@ from daemon.labelling.labeller import Labeller
 from daemon.labelling.markerset import MarkerSet
 from daemon.labelling.markerset_fit import check_fit
 from daemon.labelling.start import window_start
-from daemon.labelling.verify import MARGIN, Verification, carry_back, improve, verify_labels
+from daemon.labelling.verify import (
+    MARGIN,
+    MIN_SEEN,
+    WINDOW,
+    Verification,
+    carry_back,
+    improve,
+    score_labels,
+    verify_labels,
+    window_labels,
+)
 
 KERNELS_FROM = 8000      # frames from which loading the compiled kernels pays off
+BETTER_PER_PAIR = 0.1    # a window explained this much better a pair is better evidence
 
 
 def label_take(points: Points, ms: MarkerSet, rate_hz: float = 120.0,
@@ -67,31 +78,75 @@ def _label_take(points, ms, rate_hz, start_labels, start_frames, progress, optio
         start = int(np.searchsorted(frames, s.first_frame + use))
         for f in range(start):
             labels_out.append(np.full(len(per_frame[f]), -2))
-    order = list(range(start, len(frames)))
     out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    order = list(range(start, len(frames)))
+    window = None
     if start == 0 and len(frames) and from_window:
         # from the marker set alone: one global assignment on a window of frames
-        # (daemon/labelling/start.py), handed to the tracker as labelled start frames, then
-        # tracked forward from the window's end and backward from its start
-        w0, wl, wx = window_start(per_frame, ms, noise_m=lab.noise_m,
-                                  merge_m=lab.merge_m)
-        # the tracker learns this body's distances and shapes from the whole window,
-        # then labels the window itself from its first two frames (markers the start
-        # left out, e.g. hidden for most of the window, are found on the way)
-        lab.start_from_labelled_frames(wx)
-        S = min(2, len(wl))
-        lab.start_from_labelled(wx[0])
-        if S > 1:
-            lab.update_labelled(wx[1])
-        for w in range(S):
-            out[w0 + w] = (wl[w], np.where(wl[w] >= 0, 0.5, 0.0))
-        order = list(range(w0 + S, len(frames)))
-        if w0 > 0:
-            back = Labeller(ms, rate_hz, **options)
-            back.start_from_labelled_frames(wx[::-1])
-            for i in range(w0 - 1, -1, -1):
-                out[i] = back.update(per_frame[i])
-    check = Verification(ms, per_frame, out, noise_m=lab.noise_m, own=own) if verify else None
+        # (daemon/labelling/start.py), handed to the tracker as labelled start frames
+        window = window_start(per_frame, ms, noise_m=lab.noise_m, merge_m=lab.merge_m)
+        order = _from_window(lab, per_frame, out, window, lambda: Labeller(ms, rate_hz, **options))
+    check = _track(lab, per_frame, out, order, start, ms, own, verify, progress,
+                   lambda: Labeller(ms, rate_hz, **options))
+    if window is not None and check is not None and check.fixed:
+        # verification had to relabel windows: the start's own window may have been
+        # labelled wrong (a marker hidden in it, its place taken by a neighbour, which
+        # the set scores higher on a body built otherwise). A window verification left
+        # holding more of the set's markers than the start did, or explained clearly
+        # better by the set, is better evidence:
+        # the take is labelled again from it, forward and backward
+        again = _better_window(per_frame, out, check, window, ms, lab.noise_m)
+        if again is not None:
+            out = {}
+            lab = Labeller(ms, rate_hz, **options)
+            order = _from_window(lab, per_frame, out, again,
+                                 lambda: Labeller(ms, rate_hz, **options))
+            _track(lab, per_frame, out, order, start, ms, own, verify, None,
+                   lambda: Labeller(ms, rate_hz, **options))
+    for i in range(start, len(frames)):
+        P = per_frame[i]
+        m, c = out[i]
+        fi = int(frames[i] - first)
+        got = m >= 0
+        xyz[fi, m[got][::-1]] = P[got][::-1]      # a duplicate: its first point
+        conf[fi] = float(c[got].mean()) if got.any() else 0.0
+        labels_out.append(m)
+    take = Take(list(ms.labels), xyz, rate_hz, first)
+    return take, conf, labels_out
+
+
+def _from_window(lab: Labeller, per_frame: list[np.ndarray], out: dict, window: tuple,
+                 new_tracker) -> list[int]:
+    """Start `lab` from a labelled window (first frame, its frames' labels, its labelled
+    positions (W, n, 3)): the tracker learns this body's distances and shapes from the
+    whole window, then labels the window itself from its first two frames (markers the
+    start left out, e.g. hidden for most of the window, are found on the way); the frames
+    before the window are labelled backward by a second tracker. Returns the frames left
+    to track forward."""
+    w0, wl, wx = window
+    lab.start_from_labelled_frames(wx)
+    S = min(2, len(wl))
+    lab.start_from_labelled(wx[0])
+    if S > 1:
+        lab.update_labelled(wx[1])
+    for w in range(S):
+        out[w0 + w] = (wl[w], np.where(wl[w] >= 0, 0.5, 0.0))
+    if w0 > 0:
+        back = new_tracker()
+        back.start_from_labelled_frames(wx[::-1])
+        for i in range(w0 - 1, -1, -1):
+            out[i] = back.update(per_frame[i])
+    return list(range(w0 + S, len(per_frame)))
+
+
+def _track(lab: Labeller, per_frame: list[np.ndarray], out: dict, order: list[int],
+           start: int, ms: MarkerSet, own, verify: bool, progress, new_tracker
+           ) -> Verification | None:
+    """Track `order` forward with `lab`, verifying window by window; then the frames
+    before the first of `order` (labelled backward) get the renamings verification
+    made and a check of their own. Returns the verification (None without)."""
+    check = Verification(ms, per_frame, out, noise_m=lab.noise_m, own=own,
+                         new_tracker=new_tracker) if verify else None
     for n_done, i in enumerate(order):
         out[i] = lab.update(per_frame[i])
         if check is not None:
@@ -106,16 +161,41 @@ def _label_take(points, ms, rate_hz, start_labels, start_frames, progress, optio
                 back = [ahead[j:j + check.width][::-1] for j in range(0, len(ahead), check.width)]
                 carry_back(per_frame, out, back, check.head, ms, check.head_ref, lab.noise_m)
             verify_labels(per_frame, out, range(start, order[0]), ms, noise_m=lab.noise_m)
-    for i in range(start, len(frames)):
-        P = per_frame[i]
-        m, c = out[i]
-        fi = int(frames[i] - first)
-        got = m >= 0
-        xyz[fi, m[got][::-1]] = P[got][::-1]      # a duplicate: its first point
-        conf[fi] = float(c[got].mean()) if got.any() else 0.0
-        labels_out.append(m)
-    take = Take(list(ms.labels), xyz, rate_hz, first)
-    return take, conf, labels_out
+    return check
+
+
+def _evidence(xyz: np.ndarray, ms: MarkerSet, noise_m: float) -> tuple[int, float]:
+    """What a labelled window (W, n, 3) says for its labels: the markers it holds (seen in
+    MIN_SEEN of its frames) and the set's whole-body score of them per pair of those."""
+    held = np.isfinite(xyz).all(2).sum(0) >= MIN_SEEN * len(xyz)
+    k = int(held.sum())
+    if k < 3:
+        return k, 0.0
+    X = np.ascontiguousarray(xyz[:, held].transpose(1, 0, 2))
+    return k, float(score_labels(X, ms, np.nonzero(held)[0], noise_m)) / (k * (k - 1) / 2)
+
+
+def _better_window(per_frame: list[np.ndarray], out: dict, check: Verification,
+                   start: tuple, ms: MarkerSet, noise_m: float) -> tuple | None:
+    """Among verification's windows (their final labels: the start's own frames tracked
+    on, windows relabelled), the one that is better evidence than the start's window
+    was: one holding more of the set's markers, or nearly as many
+    (90 %) with labels the set explains clearly better (BETTER_PER_PAIR a pair: a start
+    scrambled by the search on a crouched posture scored 0.52 a pair, the right labels
+    of a later window with one marker hidden 0.95). Returned as a start (first frame,
+    labels, labelled positions), else None."""
+    best = None
+    held0, per_pair0 = _evidence(start[2], ms, noise_m)
+    for win in check.windows:
+        if len(win) < WINDOW:
+            continue
+        xyz = window_labels(per_frame, out, win, ms.n, extra=False)[0]
+        held, per_pair = _evidence(xyz, ms, noise_m)
+        if held <= held0 and (per_pair < per_pair0 + BETTER_PER_PAIR or held < 0.9 * held0):
+            continue
+        if best is None or (held, per_pair) > best[0]:
+            best = ((held, per_pair), (win[0], [out[i][0] for i in win], xyz))
+    return None if best is None else best[1]
 
 
 def duplicate_trajectories(take: Take, within_m: float = 0.006, share: float = 0.9

@@ -31,6 +31,7 @@ from daemon.labelling.assign import (
     mirror_map,
     mirror_moves,
     module_moves,
+    near_groups,
     pair_stats,
     polish,
     to_marker_track,
@@ -198,7 +199,8 @@ def improve(X: np.ndarray, ms: MarkerSet, lab: np.ndarray, noise_m: float = 0.00
     got = np.nonzero(lab >= 0)[0]
     P[got, lab[got]] = 1.0
     before = judge.score(P) + terms(to_marker_track(P))
-    Q, after = polish(judge, P, terms, moves, allowed=allowed, every_order=True)
+    Q, after = polish(judge, P, terms, moves, allowed=allowed, every_order=True,
+                      groups=near_groups(ms))
     out = np.full(len(X), -1)
     r, c = np.nonzero(Q)
     out[r] = c
@@ -394,9 +396,10 @@ class Verification:
 
     def __init__(self, ms: MarkerSet, per_frame: list[np.ndarray], labels: dict,
                  width: int = WINDOW, stride: int = STRIDE, noise_m: float = 0.003,
-                 own: tuple | None = None) -> None:
+                 own: tuple | None = None, new_tracker=None) -> None:
         self.ms, self.per_frame, self.labels = ms, per_frame, labels
         self.own = own            # the body's distances from labelled start frames
+        self.new_tracker = new_tracker    # a fresh Labeller, to track again from a window
         self.width, self.stride, self.noise_m = width, stride, noise_m
         self.windows: list[list[int]] = []
         self.right: dict[int, bool] = {}
@@ -438,6 +441,8 @@ class Verification:
                 break
             perm, src = got[0], b
             b -= 1
+        if src < k:
+            self._retrack(lab, k)
         ref = own_distances(window_labels(self.per_frame, self.labels, self.windows[src],
                                           self.ms.n, extra=False)[0])
         if b < 0 or carry_back(self.per_frame, self.labels,
@@ -446,6 +451,43 @@ class Verification:
             self.head = compose(self.head, perm)
             self.head_ref = ref
 
+    def _retrack(self, lab, k: int) -> None:
+        """Window k and the one before it were both relabelled, each by its own search
+        from the set; where the two disagree (the same tracks renamed otherwise), the
+        window that saw more of the body decides. A body built otherwise than the set's
+        makes the set's choice close on a window with markers hidden: on one body
+        window k-1 (every marker seen) found the right leg, and window k (a hip marker
+        hidden) the leg's labels shifted by one marker, 5 units better by the set; the
+        tracker carried window k's on to the end. So when window k-1 holds more evidence
+        (its labels score higher against the set), window k is tracked again from
+        k-1's labels, checked with k-1's distances as this body's own (a label the set
+        proposes must agree with them), and the tracker goes on from there."""
+        if self.new_tracker is None or k < 1:
+            return
+        n = self.ms.n
+        prev = window_labels(self.per_frame, self.labels, self.windows[k - 1], n, extra=False)[0]
+        here = window_labels(self.per_frame, self.labels, self.windows[k], n, extra=False)[0]
+        if _evidence(prev, self.ms, self.noise_m) <= _evidence(here, self.ms, self.noise_m):
+            return
+        new = self.new_tracker()
+        new.start_from_labelled_frames(prev)
+        kept = {i: self.labels[i] for i in self.windows[k]}
+        for i in self.windows[k]:
+            self.labels[i] = new.update(self.per_frame[i])
+        if _agree(kept, self.labels, self.windows[k]):
+            self.labels.update(kept)
+            return
+        ref = own_distances(prev)
+        got = check_window(self.per_frame, self.labels, self.windows[k], self.ms,
+                           self.noise_m, self.own if self.own is not None else ref)
+        if got is not None:
+            perm, gained, X, _ = got
+            new.relabel(perm)
+            found = taken_up(gained, X, self.per_frame, self.labels, self.windows[k], n)
+            if found is not None:
+                new.found(*found)
+        lab.take_state(new)
+
     def finish(self, lab, order: list[int]) -> None:
         """The frames after the last full window, and a last check of the take's end."""
         tail = order[len(self.windows) * self.width:]
@@ -453,3 +495,19 @@ class Verification:
             self.windows.append(list(tail))
         if self.windows and (len(self.windows) - 1) not in self.right:
             self._check(lab, len(self.windows) - 1)
+
+
+def _evidence(xyz: np.ndarray, ms: MarkerSet, noise_m: float) -> float:
+    """How much a labelled window (W, n, 3) tells: the set's whole-body score of its
+    labels (markers seen in MIN_SEEN of it), which grows with the pairs it sees."""
+    count = np.isfinite(xyz).all(2).sum(0)
+    tracks = np.nonzero(count >= MIN_SEEN * len(xyz))[0]
+    if len(tracks) < 3:
+        return 0.0
+    X = np.ascontiguousarray(xyz[:, tracks].transpose(1, 0, 2))
+    return float(score_labels(X, ms, tracks, noise_m))
+
+
+def _agree(a: dict, b: dict, win: list[int]) -> bool:
+    """Whether two labellings of a window's frames name every point alike."""
+    return all(np.array_equal(a[i][0], b[i][0]) for i in win)
