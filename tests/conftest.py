@@ -47,12 +47,16 @@ ALL = "every test of the module"
 # 3 s or more (about half a second on a quiet machine) in a full run at load 10-35 on
 # 2026-11-27 (docs/testing.md; `-m "not slow" --durations=20` shows what else belongs
 # here). Kept in one table beside the live modules above rather than a decorator on each
-# of some 250 tests: one place to read and keep up; a name in it that its module no longer
+# of some 290 tests: one place to read and keep up; a name in it that its module no longer
 # defines is warned about. Newer modules mark their own with @pytest.mark.slow.
 SLOW: dict[str, str | set[str]] = {
     # whole modules: compiling, the demo, namespaces, a browser, a daemon per test
     "test_demo": ALL, "test_kernels_cache": ALL, "test_nodes_link": ALL, "test_reload": ALL,
     "test_view_browser": ALL, "test_view_detection": ALL,
+    "test_view_contrast": ALL,
+    "test_label_recording": ALL,
+    "test_wand_dots": ALL,
+    "test_wand_views": ALL,
     "test_boundary": {
         "test_importing_every_estimating_module_loads_no_simulator"},
     "test_cli_startup": {
@@ -140,22 +144,25 @@ SLOW: dict[str, str | set[str]] = {
         "test_start_from_the_marker_set_alone_with_occlusions",
         "test_verification_repairs_a_wrong_start",
         "test_wrist_markers_taken_for_each_other_are_set_right"},
-    "test_label_recording": {
-        "test_label_a_recording_against_the_truth"},
     "test_label_start": {
         "test_cmu_set_starts_right_on_a_walker_of_another_size",
-        "test_set_learned_on_another_subject_starts_right"},
+        "test_set_learned_on_another_subject_starts_right",
+        "test_window_start_with_hidden_markers_and_ghosts"},
     "test_label_subjects": {
-        "test_a_correct_start_never_ends_worse_on_another_body"},
+        "test_a_correct_start_never_ends_worse_on_another_body",
+        "test_another_body_from_the_set_alone"},
     "test_label_verify": {
         "test_verification_brings_in_points_tracking_left_out"},
     "test_layer_imports": {
         "test_calibration_and_vision_never_import_the_display",
+        "test_every_daemon_package_has_a_layer",
         "test_importing_the_calibration_modules_loads_no_display",
         "test_importing_the_core_and_the_cameras_loads_no_upper_layer",
+        "test_only_the_entry_point_imports_the_command_handlers",
         "test_our_packages_have_no_import_cycles",
         "test_the_core_and_the_cameras_import_no_upper_layer",
-        "test_the_daemon_never_imports_calibkit_commands"},
+        "test_the_daemon_never_imports_calibkit_commands",
+        "test_the_daemon_packages_import_only_lower_layers"},
     "test_live_label": {
         "test_mocapd_publishes_named_markers_over_udp_and_natnet_and_reloads_the_set",
         "test_stage_labels_the_person_inline_with_ghosts_and_gaps",
@@ -169,6 +176,7 @@ SLOW: dict[str, str | set[str]] = {
     "test_markerset": {
         "test_cli_learn",
         "test_cli_markerset_check",
+        "test_distances_match_the_take",
         "test_segments_group_markers_that_keep_their_shape"},
     "test_mavlink": {
         "test_a_rate_that_does_not_fit_refuses_to_start",
@@ -261,8 +269,6 @@ SLOW: dict[str, str | set[str]] = {
         "test_wand_sim_end_to_end",
         "test_wand_sim_starts_from_the_intrinsics_file",
         "test_wand_with_an_lframe_recording_sets_the_floor"},
-    "test_wand_dots": {
-        "test_dots_keep_the_tape_frame_and_the_wand_sharpens_the_rig"},
     "test_wand_pairing": {
         "test_dropped_frames_solve_as_well_as_none_dropped",
         "test_old_recordings_numbered_by_instant_are_read_as_they_are",
@@ -280,11 +286,24 @@ SLOW: dict[str, str | set[str]] = {
         "test_small_captures_start_from_pairwise_geometry_and_solve",
         "test_unknown_length_is_the_known_solve_scaled",
         "test_wrong_intrinsics_without_uncertainties_are_refined"},
-    "test_wand_views": {
-        "test_monitor_views_set_the_intrinsics_the_wand_alone_cannot",
-        "test_views_file_round_trip_merge_and_rebase"},
     "test_zenoh_auth": {
         "test_only_listed_users_deliver_on_loopback"},
+    "test_multiplexer_behind": {
+        "test_the_set_deadline_follows_the_waits_complete_sets_took_within_its_bounds"},
+    "test_wand_shape": {
+        "test_prediction_matches_the_error_against_the_truth",
+        "test_report_says_what_the_capture_cannot_rule_out"},
+    "test_soak_stop": {
+        "test_a_run_to_its_end_prints_and_writes_its_figures",
+        "test_sigterm_leaves_the_recording_whole_and_the_figures_written"},
+    "test_assignment": {
+        "test_labelling_does_not_load_scipy_optimize"},
+    "test_camera": {
+        "test_undistort_matches_opencv_over_whole_image"},
+    "test_board": {
+        "test_real_chessboard_matches_qualisys"},
+    "test_bundle": {
+        "test_outliers_are_dropped_and_the_solve_holds"},
 }
 
 
