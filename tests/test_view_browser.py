@@ -117,7 +117,7 @@ def test_page_shows_every_camera_and_the_3d_scene(live):
     b = live["browser"]
     t0 = time.monotonic_ns()
     b.open(live["url"])
-    assert b.wait_for("document.body && document.body.innerText.includes('frame')", 20)
+    assert b.wait_for("document.body && document.body.innerText.includes('frame')", 120)
     # the page was up within 2 s of READY: it served before the daemon tracked at all
     up_s = (time.monotonic_ns() - max(t0, live["ready"]["frames_ns"])) * 1e-9
     text = b.text()
@@ -130,10 +130,13 @@ def test_page_shows_every_camera_and_the_3d_scene(live):
         .filter(i => i.complete && i.naturalWidth === 240)
         .map(i => [i.naturalWidth, i.naturalHeight]); return s.length >= 8 ? s : null; })()""")
     assert sizes and len(sizes) == 8 and all(h == 180 for _, h in sizes)
-    # the frusta are drawn (pale yellow), and the markers (white: on no body)
-    assert _scene_pixels(b, (147, 204, 205), 30, 500, path=IMAGES / "view-cameras.png") \
-        >= 500
-    assert _scene_pixels(b, (235, 235, 235), 20, 20) >= 20
+    # the frusta are drawn (green: connected), and the markers (orange: on no body)
+    from daemon.view.scene import CAMERA_RGB, FREE_RGB
+
+    # (thin lines of a camera's size: tests/test_view_contrast.py checks each one's place)
+    assert _scene_pixels(b, CAMERA_RGB["connected"][::-1], 70, 60,
+                         path=IMAGES / "view-cameras.png") >= 60
+    assert _scene_pixels(b, FREE_RGB[::-1], 70, 20) >= 20
     assert up_s < 20
 
 

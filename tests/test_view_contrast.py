@@ -310,15 +310,18 @@ def test_world_and_body_axes_are_red_green_blue(page):
     frames = [(np.eye(3), np.zeros(3), size["world_axes_m"], "world")]
     frames += [(b.poses[k, :3, :3], b.poses[k, :3, 3], size["body_axes_m"], b.name)
                for b in truth["bodies"]]
-    missing = []
+    missing, checked = [], 0
     for R, t, length, name in frames:
         for axis in range(3):
             # along the axis, past the body's own markers, short of its tip
-            pts = t + np.outer([0.55, 0.7, 0.85], R[:, axis] * length)
+            pts = t + np.outer([0.0, 0.55, 0.7, 0.85], R[:, axis] * length)
             uv, _ = _project(pts, view, img.shape[1], img.shape[0])
-            if not any(_axis_colour_near(img, p, axis) for p in uv):
+            if np.linalg.norm(uv[-1] - uv[0]) < 20:
+                continue  # pointing at or away from the page: too short to be seen
+            checked += 1
+            if not any(_axis_colour_near(img, p, axis) for p in uv[1:]):
                 missing.append((name, "xyz"[axis]))
-    assert not missing, missing
+    assert checked >= 7 and not missing, (checked, missing)
 
 
 def test_cameras_are_drawn_in_their_state_colours(page):

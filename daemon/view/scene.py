@@ -58,12 +58,12 @@ def initial_view(rig) -> dict:
     c = rig.centres()
     between = (c[0] + c[1 % len(c)]) / 2 - target
     away = between[:2] / max(np.linalg.norm(between[:2]), 1e-9)
-    position = target + np.array([*(0.62 * side * away), 0.36 * side])
+    position = target + np.array([*(0.7 * side * away), 0.4 * side])
     # the page's panel covers its right third: look a little right of the volume's centre
     # so that the volume sits in the part left free
     fwd = (target - position) / np.linalg.norm(target - position)
     right = np.cross(fwd, [0.0, 0.0, 1.0])
-    look_at = target + 0.07 * side * right / np.linalg.norm(right)
+    look_at = target + 0.1 * side * right / np.linalg.norm(right)
     return {"position": position, "look_at": look_at,
             "up": np.array([0.0, 0.0, 1.0]), "fov_rad": float(VIEW_FOV_RAD)}
 
