@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import signal
 from dataclasses import replace
 from pathlib import Path
 from typing import Annotated
@@ -52,12 +51,10 @@ def register(app: typer.Typer) -> None:
         = False,
     ) -> None:
         """Open cameras, detect blobs and publish them over Zenoh to a mocapd elsewhere."""
-        from daemon.config.mocapd import SimConfig
-        from daemon.nodes.node import Node, NodeTime, live_sources
-        from daemon.nodes.settings import PUBLISH, load_node_config, parse_camera_list
+        from daemon.commands.node_run import run_node
+        from daemon.nodes.settings import PUBLISH, load_node_config
         from daemon.process.logs import setup_logging
         from daemon.publish.zenoh_session import check_endpoint, check_name
-        from daemon.synthetic.node_sim import sim_capture, sim_sources
 
         setup_logging(verbose)
         cfg = load_node_config(config)
@@ -83,30 +80,5 @@ def register(app: typer.Typer) -> None:
             cfg = replace(cfg, session=s)
         except ValueError as exc:
             raise UserError(str(exc)) from None
-        clock, capture = NodeTime(), None
-        if sim:
-            sc = cfg.sim or SimConfig()
-            sc = replace(sc, **{k: v for k, v in (("cameras", sim_cameras), ("fps", sim_fps),
-                                                  ("bodies", sim_bodies), ("seed", seed))
-                                if v is not None})
-            if not 2 <= sc.cameras <= 32:
-                raise UserError(f"--sim-cameras must be between 2 and 32, got {sc.cameras}")
-            cfg = replace(cfg, sim=sc)
-            if cameras is not None:
-                try:
-                    cfg = replace(cfg, sim_cameras=parse_camera_list(
-                        cameras, [f"cam{i}" for i in range(sc.cameras)]))
-                except ValueError as exc:
-                    raise UserError(f"--cameras: {exc}") from None
-            offset = cfg.clock_offset_ms if clock_offset_ms is None else clock_offset_ms
-            drift = cfg.clock_drift_ppm if clock_drift_ppm is None else clock_drift_ppm
-            if abs(drift) > 1000:
-                raise UserError(f"--clock-drift-ppm must be within +-1000, got {drift}")
-            clock = NodeTime(round(offset * 1e6), drift)
-            sources, capture = sim_sources(cfg), sim_capture
-        else:
-            sources = live_sources(cfg)
-        n = Node(cfg, sources, clock, capture)
-        signal.signal(signal.SIGTERM, lambda *_: n.stop_event.set())
-        signal.signal(signal.SIGINT, lambda *_: n.stop_event.set())
-        n.run(duration)
+        run_node(cfg, sim, cameras, sim_cameras, sim_fps, sim_bodies, seed, clock_offset_ms,
+                 clock_drift_ppm, duration)
