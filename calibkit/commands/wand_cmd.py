@@ -1,5 +1,7 @@
 """`calibkit wand`: capture a wand dance (live, from a recording, or simulated) and bundle-adjust
-the whole rig with it."""
+the whole rig with it.
+
+The handler checks the options; the run is calibkit/commands/wand_run.py."""
 
 from __future__ import annotations
 
@@ -9,7 +11,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from calibkit.clitools import Progress, parse_floats, parse_view, print_table, write_json
+from calibkit.clitools import parse_floats, parse_view
 from calibkit.core.errors import UserError
 
 if TYPE_CHECKING:
@@ -51,12 +53,6 @@ def _wand_spec(spacing: str, wand_length: str | None) -> tuple[WandSpec, bool]:
                         f"of a wand of 2 or 3 markers, got {wand_length!r}")
     s = spec.spacing_m
     return WandSpec(tuple((v - s[0]) * length_m / spec.length_m for v in s)), True
-
-
-def _print_capture(monitor, capture_path: Path) -> None:
-    print_table(monitor.rows(), ["camera", "wand samples", "coverage %", "enough"])
-    typer.echo("\nimage cells the wand reached (#):\n" + monitor.grid_text() + "\n")
-    typer.echo(f"capture saved to {capture_path}")
 
 
 def register(app: typer.Typer) -> None:
@@ -147,10 +143,6 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Calibrate every camera at once from a wand waved through the volume."""
         from calibkit.calibrate import wand_pipeline as pipeline
-        from calibkit.commands import coverage_view
-        from calibkit.core.camera import Rig
-        from calibkit.core.easywand import read_easywand_profile
-        from calibkit.synthetic.runs import truth_rig_path
 
         spec, length_known = _wand_spec(spacing, wand_length)
         if not 0 <= holdout < 0.9:
@@ -164,129 +156,13 @@ def register(app: typer.Typer) -> None:
         page = report_path or out.with_name(out.stem + ".report.html")
         if not page.resolve().parent.is_dir():
             raise UserError(f"--report: the folder {page.parent} does not exist")
-        extra = pipeline.dots_extra(dots) if dots is not None else None
-        initial = Rig.load(rig_path) if rig_path is not None else None
-        intr = initial or (Rig.load(intrinsics) if intrinsics is not None else None)
-        intr_path = rig_path or intrinsics
-        if profile is not None:  # an easyWand camera profile in place of --intrinsics
-            if intr is not None or source is None:
-                raise UserError("--profile (an easyWand camera profile) goes with --from "
-                                "XYPTS.csv, in place of --intrinsics and --rig")
-            intr = read_easywand_profile(profile)
-        world, run, coverage = None, None, None
-        if use_sim:
-            from calibkit.synthetic import wand_sim
+        from calibkit.commands.wand_run import run_wand
 
-            run = wand_sim.setup(intr, intr_path, "--rig" if rig_path else "--intrinsics",
-                                 sim_rig, cameras, volume, frames, spec.spacing_m, noise_px,
-                                 ghosts, seed, with_lframe=dots is None)
-            intr, world, batches = run.intrinsics, run.world, run.batches()
-            initial = intr if initial is not None else None
-        elif camera:
-            if intr is None:
-                raise UserError("live capture needs --intrinsics RIG.toml (or --rig)")
-            batches = pipeline.live_batches(list(camera), intr)
-        if intr is None:
-            raise UserError("--intrinsics RIG.toml (or --rig) is required")
-        if source is not None:
-            obs = pipeline.load_capture(source, intr)
-        else:
-            capture_path = save_capture or out.with_name(out.stem + ".capture.mcrec")
-            monitor = pipeline.new_monitor(intr, targets)
-            progress = Progress("capture", frames if run else None)
-            if view_at is not None:
-                coverage = coverage_view.CoverageView(*view_at, monitor)
-                typer.echo(f"coverage at {coverage.url}", err=True)
-                progress = coverage_view.ViewProgress(progress, coverage, monitor)
-            obs, monitor = pipeline.record_capture(
-                batches, spec, intr, targets, capture_path, wand_sim.FPS if run else None,
-                progress, monitor)
-            _print_capture(monitor, capture_path)
-        scale_from = None
-        if floor_rec is not None:
-            world = pipeline.world_from_floor(floor_rec, intr, floor_kind, spec)
-            if not length_known and floor_kind == "lframe":  # the L-frame's arms: metres
-                floor_obs = pipeline.load_capture(floor_rec, intr)
-
-                def scale_from(rig):
-                    from calibkit.calibrate.wand_scale import lframe_scale
-
-                    return lframe_scale(rig, floor_obs)
-        views = None
-        if refine_intrinsics is not False and monitor_views:
-            views = pipeline.monitor_views(intr, intr_path)
-            if views is not None:
-                typer.echo(f"intrinsics refined with the intrinsic step's {len(views)} "
-                           f"monitor dots in {len(views.view_camera)} views")
-        from calibkit.calibrate.wand_solve import calibrate
-
-        progress = Progress("wand solve, iterations")
-        cal = calibrate(obs, intr, spec.spacing_m, initial, refine_intrinsics, holdout, seed,
-                        world, progress=lambda text: progress.update(progress.done + 1, text),
-                        extra=extra, target_views=views, length_known=length_known,
-                        scale_from=scale_from)
-        progress.finish(f"{cal.report['solve']['time_s']:.1f} s in the solver")
-        pipeline.write_outputs(cal, out, plots)
-        from calibkit.calibrate.html_report import write_wand_report
-
-        write_wand_report(page, cal, out, plots)
-        if run is not None:
-            run.truth.save(truth_rig_path(out))
-        _print(cal.report)
-        if json_path is not None:
-            write_json(json_path, cal.report)
-        typer.echo(f"wrote {out}" + (f" (true rig in {truth_rig_path(out)})" if run else "")
-                   + f" and the report {page}")
-        if coverage is not None:
-            coverage.close()
-
-
-def _print(report: dict) -> None:
-    rows = [[c["name"], c["observations"], round(100 * c["coverage"], 1),
-             c["reprojection_rms_px"], c["held_out_rms_px"],
-             c.get("position_std_mm", math.nan), c.get("orientation_std_deg", math.nan)]
-            for c in report["cameras"]]
-    print_table(rows, ["camera", "obs", "coverage_%", "rms_px", "held_out_px", "pos_sd_mm",
-                       "rot_sd_deg"])
-    s, h = report["solve"], report["held_out"]
-    typer.echo("")
-    print_table([
-        ["reprojection RMS (px)", s["reprojection_rms_px"], h["reprojection_rms_px"]],
-        ["wand length variation, SD/mean (%)", s["wand_length_variation_pct"],
-         h["wand_length_variation_pct"]],
-        ["wand length error, mean (mm)", s["wand_length_error_mean_mm"],
-         h["wand_length_error_mean_mm"]],
-        ["wand length error, SD (mm)", s["wand_length_error_sd_mm"],
-         h["wand_length_error_sd_mm"]],
-        ["mean ray distance (mm)", s["mean_ray_distance_mm"], h["mean_ray_distance_mm"]],
-        ["frames", s["frames"], h["frames"]],
-    ], ["figure", "solved", "held out"])
-    for part, figs in (("solved", s), ("held out", h)):
-        for key in ("reason", "wand_length_variation_reason"):
-            if key in figs:
-                typer.echo(f"{part}: not computable: {figs[key]}")
-    sy = report.get("systematic") or {}
-    typer.echo("")
-    print_table([[what, sy.get(f"{key}_mm", math.nan), sy.get(f"{key}_pct", math.nan),
-                  sy.get(f"{key}_reason", "")]
-                 for key, what in (("volume", "across the volume"),
-                                   ("radius", "image centre to edges"),
-                                   ("region", "held-out regions"),
-                                   ("trend", "trend with position"))],
-                ["systematic length error", "mm", "%", "not computable because"])
-    typer.echo("")
-    for c in report["intrinsics"]["cameras"]:
-        typer.echo(f"intrinsics {c['name']}: {c['chosen']} ({c['why']})")
-    scale = report["scale"]
-    typer.echo(f"\nsolve: {s['iterations']} iterations, {s['time_s']:.1f} s, noise "
-               f"{s['noise_px']:.3f} px, {s['outliers']} outliers dropped; world frame: "
-               f"{report['world_frame']}; scale: "
-               + ("from the " + scale["source"] if scale["known"] else
-                  "unknown, " + scale["unit"]))
-    det = report.get("position_ppm") or {}
-    if det.get("camera") is not None:
-        typer.echo(f"least determined camera: {det['camera']}, position SD {det['ppm']:.0f} "
-                   "ppm of its distance from the reference camera")
-    for w in report["warnings"]:
-        typer.echo(f"warning: {w}")
-    typer.echo(f"grade: {report['grade']} ({report['grade_reason']})")
+        run_wand(out=out, source=source, profile=profile, use_sim=use_sim, sim_rig=sim_rig,
+                 camera=camera, intrinsics=intrinsics, rig_path=rig_path, dots=dots,
+                 spec=spec, length_known=length_known, refine_intrinsics=refine_intrinsics,
+                 monitor_views=monitor_views, holdout=holdout, floor_rec=floor_rec,
+                 floor_kind=floor_kind, targets=targets, save_capture=save_capture,
+                 json_path=json_path, plots=plots, view_at=view_at, page=page,
+                 cameras=cameras, frames=frames, noise_px=noise_px, ghosts=ghosts,
+                 volume=volume, seed=seed)
