@@ -1,4 +1,7 @@
-"""`calibkit triangulate`: 3D markers per frame from a recording's unlabelled blobs."""
+"""`calibkit triangulate`: 3D markers per frame from a recording's unlabelled blobs.
+
+The handler checks the options and reads the capture; the run is
+calibkit/commands/triangulate_run.py."""
 
 from __future__ import annotations
 
@@ -7,7 +10,6 @@ from typing import Annotated
 
 import typer
 
-from calibkit.clitools import Progress, print_table, write_json
 from calibkit.core.errors import UserError
 
 
@@ -76,9 +78,6 @@ def register(app: typer.Typer) -> None:
         recording carries the simulator's truth)."""
         from calibkit.core.camera import Rig
         from calibkit.core.recording import load_observations
-        from calibkit.synthetic.truthcheck import score_points, stands_for
-        from calibkit.vision.correspondence import CorrespondenceConfig
-        from calibkit.vision.reconstruct import reconstruct, write_points_csv
 
         for name, value in (("--epipolar-px", epipolar_px), ("--max-reproj-px", max_reproj_px)):
             if value is not None and not value > 0:
@@ -98,58 +97,11 @@ def register(app: typer.Typer) -> None:
                 raise UserError(f"--out {out} is the input file; give another path")
             rig = Rig.load(rig_path)
             obs, truth = load_observations(src, rig)
-        if len(obs) == 0:
-            raise UserError(f"{src}: holds no blobs")
-        from calibkit.core.pairing import pair_frames
+        from calibkit.commands.triangulate_run import run_triangulate
 
-        paired = pair_frames(obs)  # cameras counting their own frames: paired by time
-        if paired.method == "time":
-            obs, truth = paired.obs, None  # the truth's frame numbers are the recording's
-            typer.echo(f"frames paired by capture time: {len(obs.frames())} instants",
-                       err=True)
-        given = {k: v for k, v in (("epipolar_px", epipolar_px),
-                                   ("max_reproj_px", max_reproj_px)) if v is not None}
-        base = CorrespondenceConfig(min_cameras=min_cameras, two_camera=two_camera, **given)
-        fixed = {"epipolar_px", "max_reproj_px"} if fixed_gates else set(given)
-        n_frames = len(obs.frames())
-        progress = Progress("triangulate", n_frames)
-        try:
-            run = reconstruct(rig, obs, base, residual_px, estimate_residual, fixed,
-                              progress.update, say=lambda line: typer.echo(line, err=True))
-        except UserError as exc:
-            raise UserError(f"{rig_path or 'the rig'}: {exc}" if str(exc).startswith("quality.")
-                            else str(exc)) from None
-        points, cfg, residual, figures = run.points, run.config, run.residual, run.figures
-        progress.finish(f"{len(points.frame)} points")
-        error_mm = None
-        if truth is not None:
-            score = score_points(points.frame, points.xyz, truth, obs, rows=points.rows)
-            figures["truth"] = score.as_dict()
-            error_mm = stands_for(points.frame, points.xyz, truth, obs, points.rows)[1] * 1e3
-        write_points_csv(out, points, rig.names, error_mm)
-        if json_path is not None:
-            write_json(json_path, figures)
-
-        rows = [["frames", n_frames], ["3D points", int(len(points.frame))],
-                ["points per frame", round(figures["points_per_frame"], 2)],
-                ["residual px", residual.px if residual is not None else "none"],
-                ["residual from", residual.source if residual is not None else "-"],
-                ["epipolar gate px", cfg.epipolar_px],
-                ["reprojection gate px", cfg.max_reproj_px],
-                ["reprojection px (median)", figures["reproj_px_median"]],
-                ["ray distance mm (median)", figures["ray_mm_median"]],
-                ["frames per second", round(figures["frames_per_s"] or 0.0, 1)]]
-        if truth is not None:
-            t = figures["truth"]
-            rows += [["3D error mm RMS, all matched points (vs truth)", t["error_mm_rms"]],
-                     [f"gross errors (> {t['tolerance_mm']:g} mm) of "
-                      f"{t['matched']} matched points", t["gross_errors"]],
-                     ["recall of markers seen by >= 3 cameras", t["recall_3"]],
-                     ["ghost points", t["ghosts"]],
-                     ["ghost points (fraction)", t["ghost_fraction"]]]
-        print_table(rows, ["what", "value"])
-        typer.echo(f"wrote {out}")
-
+        run_triangulate(rig, obs, truth, src, rig_path, out, json_path, epipolar_px,
+                        max_reproj_px, min_cameras, two_camera, residual_px,
+                        estimate_residual, fixed_gates)
 
 def _sim_capture(src: Path | None, rig_path: Path | None, sim_rig: Path | None, cameras: int,
                  volume: float, frames: int, bodies: int, noise_px: float, ghosts: float,
