@@ -26,6 +26,11 @@ if TYPE_CHECKING:
 
 EXIT_USER_ERROR = 2
 
+# Help and usage errors are drawn by click's plain formatter, not typer's rich panels: rich's
+# help renderer imports markdown, syntax highlighting and emoji tables, about 0.15 s of every
+# `--help` on a small machine (issue 31's target is 0.3 s for the whole command).
+HELP_MARKUP = None
+
 
 class LazyGroup(TyperGroup):
     """The top-level command group, loading a command's module only when that command runs
@@ -55,7 +60,7 @@ class LazyGroup(TyperGroup):
         if cmd_name not in self._loaded:
             module_name = self.table[cmd_name][0]
             module = importlib.import_module(f"{self.package}.{module_name}")
-            holder = typer.Typer(add_completion=False)
+            holder = typer.Typer(add_completion=False, rich_markup_mode=HELP_MARKUP)
             holder.callback()(_no_options)
             module.register(holder)
             commands = typer.main.get_group(holder).commands
@@ -81,7 +86,8 @@ def build_app(name: str, help_text: str, version: str, package: str,
     group_class = type(f"{name.title()}Commands", (LazyGroup,),
                        {"package": package, "table": dict(commands)})
     app = typer.Typer(name=name, help=help_text, no_args_is_help=True, add_completion=False,
-                      pretty_exceptions_enable=False, cls=group_class)
+                      pretty_exceptions_enable=False, cls=group_class,
+                      rich_markup_mode=HELP_MARKUP)
 
     def show_version(value: bool) -> None:
         if value:

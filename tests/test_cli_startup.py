@@ -15,7 +15,9 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-HEAVY = ("numpy", "cv2", "scipy", "gtsam", "numba", "matplotlib", "viser", "zenoh")
+# rich too: help is drawn by click's plain formatter (calibkit.clitools.HELP_MARKUP), and rich's
+# help renderer alone costs more than half of the 0.3 s a --help may take
+HEAVY = ("numpy", "cv2", "scipy", "gtsam", "numba", "matplotlib", "viser", "zenoh", "rich")
 APPS = {"calibkit": "calibkit.cli", "mocapd": "daemon.cli"}
 
 # Runs in a fresh interpreter: lists every command path of the app from the app itself, then

@@ -7,11 +7,11 @@ from typing import Annotated
 
 import typer
 
-from calibkit.clitools import print_table, write_json
+from calibkit.clitools import HELP_MARKUP, print_table, write_json
 from calibkit.core.errors import UserError
 
 rig_app = typer.Typer(help="Show rig files; import and export other tools' calibrations.",
-                      no_args_is_help=True)
+                      no_args_is_help=True, rich_markup_mode=HELP_MARKUP)
 
 
 def _distinct(src: Path, out: Path) -> None:

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from calibkit.clitools import load_rig_option, parse_floats, parse_size
+from calibkit.clitools import HELP_MARKUP, load_rig_option, parse_floats, parse_size
 from calibkit.core.errors import UserError
 
 
@@ -21,7 +21,7 @@ def _distortions() -> dict[str, tuple[float, ...]]:
 
 
 sim_app = typer.Typer(help="Simulated rigs and captures with ground truth.",
-                      no_args_is_help=True)
+                      no_args_is_help=True, rich_markup_mode=HELP_MARKUP)
 
 Out = Annotated[Path, typer.Option("--out", help="Recording (.mcrec) or plain CSV (.csv).")]
 RigOpt = Annotated[Path | None, typer.Option(

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from calibkit.clitools import print_table, write_json
+from calibkit.clitools import HELP_MARKUP, print_table, write_json
 from calibkit.core.errors import UserError
 from daemon.commands.points_input import read_points_for_command
 
@@ -38,7 +38,7 @@ def _csv_columns(path: Path) -> list[str]:
 
 def register(app: typer.Typer) -> None:
     ms_app = typer.Typer(help="Marker sets: learn one from labelled takes; check one on a take.",
-                         no_args_is_help=True)
+                         no_args_is_help=True, rich_markup_mode=HELP_MARKUP)
     app.add_typer(ms_app, name="markerset")
 
     @ms_app.command("learn")

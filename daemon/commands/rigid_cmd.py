@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from calibkit.clitools import parse_floats
+from calibkit.clitools import HELP_MARKUP, parse_floats
 from calibkit.core.errors import UserError
 from daemon.service.live_bodies import append_body, body_from_markers, capture_snapshots
 
@@ -17,7 +17,7 @@ from daemon.service.live_bodies import append_body, body_from_markers, capture_s
 # work the live view shares (defining a body, appending it) is in daemon.service.live_bodies.
 
 rigid_app = typer.Typer(help="Rigid-body definitions in the configuration.",
-                        no_args_is_help=True)
+                        no_args_is_help=True, rich_markup_mode=HELP_MARKUP)
 ConfigOpt = Annotated[Path, typer.Option("--config", help="The mocapd.toml to edit.")]
 
 
