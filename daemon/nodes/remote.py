@@ -3,7 +3,7 @@
 One NodeHub per daemon holds the Zenoh session: it pings the nodes for their clocks
 (daemon.nodes.clock), hears their announcements, and hands every frame of a message (a
 node's set of one trigger, or one camera's frame), its times mapped to the daemon's clock,
-to its camera's capture (RemoteCapture), which pushes it to
+to its camera's capture (RemoteCapture, daemon/nodes/remote_capture.py), which pushes it to
 the multiplexer as a local camera's capture thread does: the multiplexer pairs, drops and
 re-joins it unchanged. A camera whose node has died goes silent and the hub's watchdog
 drops it after `timeout_ms`; a node that restarts (a new boot id) ends the camera's
@@ -34,6 +34,7 @@ from calibkit.core.errors import UserError
 from daemon.capture.sources import CameraSample
 from daemon.config.zenoh import DaemonZenoh, is_remote
 from daemon.nodes.clock import NodeClock
+from daemon.nodes.remote_capture import RemoteCapture
 from daemon.publish import zenoh_wire as wire
 from daemon.publish.bad_input import BadInput
 from daemon.publish.zenoh_session import all_blobs_key, all_sets_key, check_name, ping_key
@@ -394,110 +395,3 @@ def make_hub(cfg, rig_names: list[str]) -> NodeHub | None:
         configured |= set(remote.values())
         remote.update({n: n for n in rig_names if n not in configured})
     return NodeHub(cfg.zenoh, rig_names, remote)
-
-
-class _HubAlive:
-    """What the frame loop asks of a capture's thread: alive while the hub runs."""
-
-    def __init__(self, hub: NodeHub) -> None:
-        self.hub = hub
-
-    def is_alive(self) -> bool:
-        return not self.hub._stop.is_set()
-
-
-class RemoteCapture:
-    """A camera served by a node, in the daemon's capture-thread shape (see the module).
-
-    It has no thread of its own: a second thread per camera, woken for every frame, cost
-    the daemon's interpreter as much as the rest of a sample's way and added its wake-up
-    to every frame's latency. Zenoh's callback hands each sample to the multiplexer
-    itself, and the hub's watchdog drops a camera that has gone silent. To the daemon it
-    looks like daemon.capture.pipeline.CaptureThread: `push` and `on_open` (called before the
-    first sample of every session, so the multiplexer starts the camera's clock afresh),
-    `connected`, `frames`, `failures`, `rate_hz()`."""
-
-    def __init__(self, hub: NodeHub, key: str) -> None:
-        self.hub, self.key = hub, key
-        self.cam = hub.cameras[key]
-        self.name, self.camera = self.cam.name, self.cam.index
-        self.source = self  # the daemon finds a capture's camera as capture.source.camera
-        self.thread = _HubAlive(hub)
-        self.timeout_ns = int(hub.settings.timeout_ms * 1e6)
-        self.max_lag_ns = int(hub.settings.max_lag_ms * 1e6)
-        self.push = None
-        self.on_open = None
-        self.connected = False
-        self.frames = 0
-        self.failures = 0
-        self.last_error = ""
-        self.times: deque = deque(maxlen=256)
-        self._boot: int | None = None  # the node process of the current session
-        self._last_good = 0
-        self._lock = threading.Lock()
-
-    # ---- the capture-thread interface ---------------------------------------------------------
-
-    def start(self) -> None:
-        self.cam.capture = self
-
-    def stop(self) -> None:
-        self.cam.capture = None
-
-    def join(self, timeout: float = 1.0) -> None:
-        pass
-
-    def rate_hz(self) -> float:
-        t = list(self.times)
-        if len(t) < 2 or time.monotonic_ns() - t[-1] > 1e9:
-            return 0.0
-        return (len(t) - 1) / max((t[-1] - t[0]) * 1e-9, 1e-9)
-
-    # ---- driven by the hub --------------------------------------------------------------------
-
-    def deliver(self, s: CameraSample, node: _Node, has: int) -> None:
-        """One sample the daemon has had since `has`, on Zenoh's thread: to the multiplexer
-        unless late."""
-        if self.accept(s, node, has):
-            self.push(s)
-
-    def accept(self, s: CameraSample, node: _Node, has: int) -> bool:
-        """The checks and counts of deliver, without the push: whether `s` goes on to the
-        multiplexer (the hub pushes a node's accepted samples together)."""
-        lag = has - s.arrival_ns
-        node.lag_ns = lag
-        with self._lock:
-            if self._boot is not None and node.boot != self._boot:
-                self._drop(f"node {node.name} restarted")
-            if lag > self.max_lag_ns:
-                node.late += 1
-                self.last_error = f"{node.name} is {lag * 1e-6:.0f} ms behind"
-                return False
-            if self._boot is None:  # a new session: the camera's clock starts again
-                self._boot = node.boot
-                self.cam.node, self.cam.boot = node.name, node.boot
-                if self.on_open is not None:
-                    self.on_open(self.camera)
-                if self.failures:
-                    log.warning("%s: reconnected (%s)", self.name, node.name)
-            self.connected = True
-            self._last_good = has
-            self.frames += 1
-            self.times.append(s.arrival_ns)
-        return True
-
-    def check(self, now_ns: int) -> None:
-        """The watchdog: a camera with nothing on time for timeout_ms is dropped."""
-        with self._lock:
-            if self.connected and now_ns - self._last_good >= self.timeout_ns:
-                late = self.last_error if "behind" in self.last_error else ""
-                self._drop(late or f"no blobs from {self.cam.node or 'its node'} for "
-                                   f"{(now_ns - self._last_good) * 1e-6:.0f} ms")
-
-    def _drop(self, why: str) -> None:
-        if self.connected:
-            log.warning("%s: %s; dropped until it delivers again", self.name, why)
-            self.failures += 1
-        self.connected = False
-        self.last_error = why
-        self._boot = None
