@@ -273,14 +273,16 @@ def test_goto_point_c_decodes_the_serial_line_as_python_does_and_drives(tmp_path
         # driving first: it waits for the robot to be tracked, so the poses read next are
         drive = subprocess.run([str(exe), modem.b, "115200", "0", "2", str(port), *targets],
                                capture_output=True, text=True, timeout=600)
-        run = subprocess.run([str(exe), modem.b, "115200", "300"], capture_output=True,
+        # 100 packets: every field of every row is compared exactly, so 200 rows check the
+        # decoding as well as 600 did (and take 1 s of the line, not 3)
+        run = subprocess.run([str(exe), modem.b, "115200", "100"], capture_output=True,
                              text=True, timeout=300)
     finally:
         stop_daemon(daemon)
         modem.close()
     assert run.returncode == 0, run.stderr
     rows = [ln.split() for ln in run.stdout.splitlines()]
-    assert len(rows) == 600  # 300 packets of 2 bodies
+    assert len(rows) == 200  # 100 packets of 2 bodies
     wire = bytearray((tmp_path / "wire.bin").read_bytes())
     by_frame = {p.frame: p for p in mocap_serial.packets(mocap_serial.frames_in(wire))}
     valid = 0
@@ -296,7 +298,7 @@ def test_goto_point_c_decodes_the_serial_line_as_python_does_and_drives(tmp_path
             valid += 1
             pose = mocap_serial.body_pose(p, int(r[2]), 0)
             assert float(r[11]) == pytest.approx(pose.yaw, abs=1e-6)
-    assert valid > 500
+    assert valid > 166  # a body tracked in over 5/6 of the rows, as before (500 of 600)
     # driving: the C controller takes the robot to each point, scored on its true path
     assert drive.returncode == 0, drive.stdout + drive.stderr
     lines = drive.stdout.splitlines()
