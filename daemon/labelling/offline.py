@@ -19,13 +19,11 @@ from daemon.labelling.verify import (
     MARGIN,
     MIN_SEEN,
     WINDOW,
-    Verification,
-    carry_back,
     improve,
     score_labels,
-    verify_labels,
     window_labels,
 )
+from daemon.labelling.verify_take import Verification, carry_back, verify_labels
 
 KERNELS_FROM = 8000      # frames from which loading the compiled kernels pays off
 BETTER_PER_PAIR = 0.1    # a window explained this much better a pair is better evidence
