@@ -228,7 +228,11 @@ def true_errors(lines, truth):
     return errors
 
 
-def test_goto_point_reaches_ten_targets_within_2_cm_of_the_truth(tmp_path):
+def test_goto_point_reaches_five_targets_within_2_cm_of_the_truth(tmp_path):
+    """Five random targets, one in each quadrant and 0.9-1.75 m apart (seed 27, picked for
+    that spread; seed 4's first five all lie at x > 0.17): each is a full drive, settle and
+    true-error check, and a broken controller, pose or time stamp shows on every one; ten
+    took twice the time to check the same."""
     port = free_port()
     modem = NullModem()
     daemon = start_daemon(tmp_path, f'port = {port}\ntruth = "{tmp_path / "truth.csv"}"',
@@ -236,7 +240,7 @@ def test_goto_point_reaches_ten_targets_within_2_cm_of_the_truth(tmp_path):
     try:
         run = subprocess.run([sys.executable, str(ROOT / "examples" / "goto_point.py"),
                               "--serial", modem.b, "--body", "2", "--command-port", str(port),
-                              "--random", "10", "--area", "0.8", "--seed", "4",
+                              "--random", "5", "--area", "0.8", "--seed", "27",
                               "--timeout", "60", "--wait", "120"],
                              capture_output=True, text=True, env=ENV, timeout=900)
     finally:
@@ -244,7 +248,7 @@ def test_goto_point_reaches_ten_targets_within_2_cm_of_the_truth(tmp_path):
         modem.close()
     assert run.returncode == 0, run.stdout + run.stderr + log[-2000:]
     lines = [ln for ln in run.stdout.splitlines() if ln.startswith("target ")]
-    assert len(lines) == 10 and all("reached in" in ln for ln in lines)
+    assert len(lines) == 5 and all("reached in" in ln for ln in lines)
     errors = true_errors(lines, read_truth(tmp_path / "truth.csv"))
     fig = json.loads((tmp_path / "figures.json").read_text())["truth"]["bodies"]["robot"]
     took = [float(ln.split("reached in ")[1].split(" s")[0]) for ln in lines]
@@ -256,7 +260,7 @@ def test_goto_point_reaches_ten_targets_within_2_cm_of_the_truth(tmp_path):
     # tracked in 0.80-0.99 of the frames in runs on the loaded machine (as the flying body:
     # a set missing a camera's frame leaves it short of markers now and then)
     assert fig["valid_fraction"] > 0.7 and fig["position_error_mm_rms"] < 2.0
-    assert "10 of 10 targets reached" in run.stdout
+    assert "5 of 5 targets reached" in run.stdout
 
 
 @pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler on this machine")
