@@ -177,12 +177,14 @@ def test_the_cameras_see_the_robot_where_its_truth_says(tmp_path):
 
 def test_sysid_recovers_the_delay_and_time_constant_of_a_simulated_response():
     cfg = SimRobot(port=1, delay_s=0.065, tau_s=0.14)
-    t_s, v, w = sysid.step_sequence(8.0, 50.0, 0.2, 1.5, seed=3)
+    # 5 s of steps (was 8): the fit's cost grows with the length; seeds 3-6 at 5 s land
+    # within 0.9 ms and 0.7 % of the truth, far inside the bounds below
+    t_s, v, w = sysid.step_sequence(5.0, 50.0, 0.2, 1.5, seed=3)
     dyn = Dynamics(cfg, 0)
     rng = np.random.default_rng(0)
     send = np.round(t_s * 1e9 + rng.uniform(0, 2 * MS, len(t_s))).astype(np.int64)
     poses, k = [], 0
-    for g in range(1, 850):  # poses at 100 fps with 0.3 mm and 0.1 degree of noise
+    for g in range(1, 550):  # poses at 100 fps with 0.3 mm and 0.1 degree of noise
         at = g * 10 * MS
         while k < len(send) and send[k] <= at:
             dyn.command(int(send[k]), v[k], w[k])
