@@ -7,7 +7,6 @@ import contextlib
 import json
 import re
 import socket
-import threading
 import time
 
 import numpy as np
@@ -50,29 +49,28 @@ def test_the_page_fills_in_as_the_wand_is_waved():
     monitor = CaptureMonitor(rig.names, [c.size for c in rig], 400, 0.5)
     port = _free_port()
     view = CoverageView("127.0.0.1", port, monitor)
-    batches = [obs.select(obs.frame // 20 == k) for k in range(30)]
-    fed = threading.Event()
-
-    def wave():  # the wand waved: a batch of 20 frames every 0.25 s
-        for k, batch in enumerate(batches):
-            monitor.add(identify(batch, spec, rig))
-            view.update(monitor, 20 * (k + 1), final=k == len(batches) - 1)
-            time.sleep(0.25)
-        fed.set()
+    # the wand waved in 10 batches of 60 frames; after each, the page is read once it shows
+    # that batch (the view redraws at most REDRAW_HZ times a second, so the batch is offered
+    # again until it is drawn): each state the page showed is the monitor's at that batch
+    batches = [obs.select(obs.frame // 60 == k) for k in range(10)]
 
     b = Browser(1200, 1400)
     try:
         b.open(f"http://127.0.0.1:{port}")
-        assert b.wait_for("document.body && document.body.innerText.includes('cam3')", 30)
-        thread = threading.Thread(target=wave, daemon=True)
-        thread.start()
+        assert b.wait_for("document.body && document.body.innerText.includes('cam3')", 60)
         seen = []
-        while not fed.is_set():
+        for k, batch in enumerate(batches):
+            monitor.add(identify(batch, spec, rig))
+            frames, final = 60 * (k + 1), k == len(batches) - 1
+            shown = f"): {frames} frames"  # the head line: "(capturing): N frames"
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline:
+                view.update(monitor, frames, final=final)
+                if b.wait_for(f"document.body.innerText.includes({shown!r})", 0.3, 0.05):
+                    break
             m = re.search(r"cam0: (\d+) sightings", b.text())
-            if m:
-                seen.append(int(m.group(1)))
-            time.sleep(0.3)
-        thread.join()
+            assert m and int(m.group(1)) == int(monitor.samples[0]), (k, b.text())
+            seen.append(int(m.group(1)))
         assert len(set(seen)) >= 3 and seen == sorted(seen), seen  # it filled in, live
         assert b.wait_for("document.body.innerText.includes('(captured)')", 10)
         text = b.text()
