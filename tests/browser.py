@@ -83,7 +83,12 @@ class Browser:
         deadline = time.monotonic() + timeout_s
         value = None
         while time.monotonic() < deadline:
-            value = self.js(expression)
+            try:
+                value = self.js(expression)
+            except RuntimeError as exc:  # the page being swapped under a navigation
+                if "navigated or closed" not in str(exc) and "context" not in str(exc):
+                    raise
+                value = None
             if value:
                 return value
             time.sleep(poll_s)
