@@ -79,6 +79,12 @@ def grid_points(rig: Rig, steps: int = GRID_STEPS) -> np.ndarray:
         lo = mid + 0.6 * (c.min(axis=0) - mid)
         hi = mid + 0.6 * (c.max(axis=0) - mid)
         lo[2], hi[2] = min(0.0, c[:, 2].min()), max(c[:, 2].mean(), 1e-3)
+    return seen_by_two(rig, lo, hi, steps)
+
+
+def seen_by_two(rig: Rig, lo: np.ndarray, hi: np.ndarray, steps: int) -> np.ndarray:
+    """The points of a steps^3 grid over the box lo..hi that two or more cameras of `rig`
+    see: the space a calibration can vouch for (compare's grid, the wand's shape figure)."""
     axes = [np.linspace(lo[k], hi[k], steps) for k in range(3)]
     pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     seen = np.zeros(len(pts), dtype=int)

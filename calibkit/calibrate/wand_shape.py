@@ -32,6 +32,7 @@ import gtsam
 import numpy as np
 
 from calibkit.calibrate import bundle
+from calibkit.calibrate.compare import seen_by_two
 from calibkit.core.camera import Camera, Rig, rotation_from_rvec
 from calibkit.core.geometry import triangulate
 
@@ -57,13 +58,7 @@ def wand_grid(rig: Rig, xyz: np.ndarray, steps: int = GRID_STEPS) -> np.ndarray:
     if len(pts) < 2:
         return np.zeros((0, 3))
     lo, hi = np.percentile(pts, BOX_PERCENTILES, axis=0)
-    axes = [np.linspace(lo[k], hi[k], steps) for k in range(3)]
-    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    seen = np.zeros(len(grid), dtype=int)
-    for cam in rig:
-        uv, front = cam.project(grid)
-        seen += front & cam.in_image(uv)
-    return grid[seen >= 2]
+    return seen_by_two(rig, lo, hi, steps)
 
 
 def _views(rig: Rig, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
