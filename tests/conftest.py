@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import fcntl
 import os
 import signal
 import subprocess
@@ -345,9 +346,14 @@ def _daemon_kernels_compiled(request):
     live = {Path(str(item.fspath)).stem for item in request.session.items
             if item.get_closest_marker("slow") is not None}  # the fast set runs none live
     if live & LIVE_DAEMON_MODULES:
-        subprocess.run([sys.executable, "-m", "daemon.cli", "build-kernels", "--quiet"],
-                       cwd=ROOT, capture_output=True, timeout=900, check=True,
-                       env=dict(os.environ, PYTHONPATH=str(ROOT)))
+        # one build at a time: with `-n 2` each worker runs this fixture, and two compiles of
+        # the same kernels at once would only double the CPU; the second finds them cached
+        lock = Path(tempfile.gettempdir()) / f"calibkit-tests-kernels-{os.getuid()}.lock"
+        with open(lock, "w") as held:
+            fcntl.flock(held, fcntl.LOCK_EX)
+            subprocess.run([sys.executable, "-m", "daemon.cli", "build-kernels", "--quiet"],
+                           cwd=ROOT, capture_output=True, timeout=900, check=True,
+                           env=dict(os.environ, PYTHONPATH=str(ROOT)))
 
 
 @pytest.fixture(autouse=True)

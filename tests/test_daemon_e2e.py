@@ -422,7 +422,11 @@ def test_greedy_multiplexer_live(tmp_path, mocapd_cli):
                    "--json", tmp_path / "g.json", "--runtime-dir", tmp_path / "rt")
     assert r.code == 0, r.err
     fig = json.loads((tmp_path / "g.json").read_text())
-    assert fig["frames"] > 60 * 1.5 * 1.5  # more sets than frames: one per camera report
+    # more sets than any camera has frames: one per camera report (counted against the
+    # frames the cameras gave, not the clock: a loaded machine gives fewer of both)
+    reports = max(c["frames"] for c in fig["cameras"])
+    sets = fig["frames"] + fig["multiplexer"]["skipped_behind"]
+    assert reports > 10 and sets > 1.5 * reports, (sets, reports)
     t = fig["truth"]
     assert t["track_swaps"] == 0 and t["body_swaps"] == 0
     for b in t["bodies"].values():  # four cameras only: bodies are sometimes unseen
