@@ -205,30 +205,10 @@ def write_c3d(path: str | Path, take: Take) -> None:
     Measured samples get residual 1 (the residual is unknown here), filled ones 0: the
     C3D convention for interpolated samples, which read_c3d turns back into `filled`.
     """
-    # deferred on purpose: loads c3d only where used
-    import c3d
+    # deferred on purpose: loads c3d only where used; the frames written in one block
+    from daemon.formats.c3d_write import c3d_bytes
 
-    writer = c3d.Writer(point_rate=float(take.rate_hz), analog_rate=0.0, point_scale=-1.0)
-    writer.set_point_labels(take.labels)
-    writer.set_start_frame(max(int(take.first_frame), 1))
-    n = len(take.labels)
-    no_analog = np.zeros((0, 0), dtype=np.float32)
-    frames = []
-    mm = take.xyz_m * 1000.0
-    for f in range(take.n_frames):
-        pts = np.zeros((n, 5), dtype=np.float32)
-        ok = np.isfinite(mm[f]).all(axis=1)
-        pts[ok, :3] = mm[f, ok]
-        pts[ok, 3] = np.where(take.filled[f, ok], 0.0, 1.0)
-        pts[~ok, 3] = -1.0
-        pts[~ok, 4] = -1.0
-        frames.append((pts, no_analog))
-    writer.add_frames(frames)
-    buf = io.BytesIO()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        writer.write(buf)
-    write_bytes_atomic(path, buf.getvalue())
+    write_bytes_atomic(path, c3d_bytes(take))
 
 
 # ---------------------------------------------------------------------------------- CSV
