@@ -337,6 +337,8 @@ def test_the_view_feed_restarts(monkeypatch):
     view = link.ViewLink.__new__(link.ViewLink)
     view.__dict__.update(_conn=ours, _latest=None, _stop=threading.Event(), _thread=None,
                          _described=None, sent=0, supervised=[], url="http://test",
+                         _lock=threading.Lock(), _lost=False, restarts=0, last_exit=None,
+                         _said_restart=-1e18,
                          host="127.0.0.1", process=SimpleNamespace(is_alive=lambda: True))
     monkeypatch.setattr(link, "describe", lambda d: {"cameras": []})
     monkeypatch.setattr(link, "pack", once(lambda res: {"n": res.frame}, Boom("view pack")))

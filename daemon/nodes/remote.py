@@ -35,6 +35,7 @@ from daemon.capture.sources import CameraSample
 from daemon.config.zenoh import DaemonZenoh, is_remote
 from daemon.nodes.clock import NodeClock
 from daemon.nodes.remote_capture import RemoteCapture
+from daemon.process.supervise import Supervised
 from daemon.publish import zenoh_wire as wire
 from daemon.publish.bad_input import BadInput
 from daemon.publish.zenoh_session import all_blobs_key, all_sets_key, check_name, ping_key
@@ -44,6 +45,12 @@ PING_HZ = 20.0
 WATCH_HZ = 100.0  # how often silent cameras are looked for
 NODE_SILENT_S = 3.0  # a node not heard (announcements, pongs) for this long is gone
 MAX_NODES = 64  # nodes remembered before the silent ones are forgotten
+SESSION_CHECK_S = 0.2  # how often the session is looked at (closed under the daemon?)
+REOPEN_MAX_WAIT_S = 30.0  # the back-off's ceiling between attempts to reopen it
+
+
+class SessionLost(RuntimeError):
+    """The daemon's Zenoh session closed while the daemon runs (its watcher reopens it)."""
 
 
 class _Camera:
@@ -95,37 +102,80 @@ class NodeHub:
         self._seq = 0
         self._captures: list[RemoteCapture] | None = None
         self._warned: set = set()
+        self.supervised: list[Supervised] = []  # the pinger and the session's watcher
+        self.reopened = 0  # times the session was opened again after it closed
+        self._said_reopen = -1e18  # when a reopening was last logged
 
     # ---- lifecycle ---------------------------------------------------------------------------
 
     def start(self) -> None:
-        # deferred on purpose: loads Zenoh only where used
-        import zenoh
-
         # a clock exchange is stamped by Python on both ends: a thread stamping t1 or t4
         # that then waits out the interpreter's 5 ms switch interval behind the frame loop
         # makes one leg of the exchange longer than the other (an offset error of tens of
         # us on a busy daemon); a short interval keeps the wait to a fraction of that
         sys.setswitchinterval(min(sys.getswitchinterval(), 1e-4))
         s = self.settings.session
-        self.session = s.open()
-        self._ping = self.session.declare_publisher(
-            ping_key(self.rig), express=True, congestion_control=zenoh.CongestionControl.DROP,
-            priority=zenoh.Priority.REAL_TIME)
-        self._subs = [
-            self.session.declare_subscriber(all_blobs_key(self.rig), self._on_blobs),
-            self.session.declare_subscriber(all_sets_key(self.rig), self._on_sets),
-            self.session.declare_subscriber(f"mocap/{self.rig}/_nodes/*/clock", self._on_pong),
-            self.session.declare_subscriber(f"mocap/{self.rig}/_nodes/*/announce",
-                                            self._on_announce)]
-        self._pinger = threading.Thread(target=self._ping_loop, name="node-clocks",
-                                        daemon=True)
-        self._pinger.start()
+        self._open()
+        # supervised (daemon.process.supervise): a pinger that raises is restarted, and a
+        # session that closes under the daemon is reopened, with a back-off while that fails
+        self._pinger = Supervised("node-clocks", self._ping_loop, stopping=self._stop.is_set)
+        self._watch = Supervised("zenoh-session", self._watch_session,
+                                 stopping=self._stop.is_set, reset=self._reopen,
+                                 max_wait_s=REOPEN_MAX_WAIT_S, expected=(SessionLost,))
+        self.supervised = [self._pinger, self._watch]
+        for sup in self.supervised:
+            sup.start()
         log.info("zenoh: %d remote cameras on mocap/%s/ (%s)", len(self.cameras), self.rig,
                  ", ".join(s.listen + s.connect))
 
+    def _open(self) -> None:
+        """Open the session and declare the clock pings and the four subscriptions."""
+        # deferred on purpose: loads Zenoh only where used
+        import zenoh
+
+        session = self.settings.session.open()
+        try:
+            self._ping = session.declare_publisher(
+                ping_key(self.rig), express=True,
+                congestion_control=zenoh.CongestionControl.DROP,
+                priority=zenoh.Priority.REAL_TIME)
+            self._subs = [
+                session.declare_subscriber(all_blobs_key(self.rig), self._on_blobs),
+                session.declare_subscriber(all_sets_key(self.rig), self._on_sets),
+                session.declare_subscriber(f"mocap/{self.rig}/_nodes/*/clock", self._on_pong),
+                session.declare_subscriber(f"mocap/{self.rig}/_nodes/*/announce",
+                                           self._on_announce)]
+        except Exception:
+            session.close()
+            raise
+        self.session = session
+
+    def _watch_session(self) -> None:
+        """Return at the stop; raise SessionLost when the session closed under the daemon
+        (Zenoh closed it, or a bug did): the supervisor then reopens it (`_reopen`)."""
+        while not self._stop.wait(SESSION_CHECK_S):
+            session = self.session
+            if session is not None and session.is_closed() and not self._stop.is_set():
+                raise SessionLost("the Zenoh session closed")
+
+    def _reopen(self) -> None:
+        """A new session in place of the closed one; the Zenoh output finds it when its own
+        publishers fail (its worker reopens against `self.session`). A failure (the port
+        still taken) raises: the supervisor counts it and tries again after its back-off."""
+        old = self.session
+        if old is not None and not old.is_closed():
+            return  # not lost after all (a failure of the watcher itself)
+        self._open()
+        self.reopened += 1
+        now = time.monotonic()
+        if now - self._said_reopen >= 60.0:  # a session closing over and over: once a minute
+            self._said_reopen = now
+            log.warning("zenoh: session reopened (%d times so far)", self.reopened)
+
     def close(self) -> None:
         self._stop.set()
+        for sup in self.supervised:
+            sup.join(2.0)
         if self.session is not None:
             self.session.close()
             self.session = None

@@ -67,7 +67,9 @@ def status(daemon) -> dict:
         "nodes": daemon.hub.status() if daemon.hub is not None else None,
         # every supervised thread (daemon.process.supervise): state and restarts
         "threads": threads_status(*daemon.captures, daemon.control,
-                                  *daemon.pipeline.publishers, daemon.recorder, daemon.view),
+                                  *daemon.pipeline.publishers, daemon.recorder, daemon.view,
+                                  daemon.hub),
+        "view": daemon.view.status() if daemon.view is not None else None,
     }
 
 

@@ -6,6 +6,12 @@ result into a few small arrays and sends them down a pipe to the view process, w
 everything else (the web server, thumbnails, the 3D scene) under its own interpreter
 lock. A slow view blocks the feeder on the pipe, never the frame loop, and the frames in
 between are dropped for the view: the queue is the one newest result.
+
+A view process that ends (killed, out of memory, a bug in the web server) takes nothing
+of tracking with it, and it comes back: the feed thread notices (its pipe breaks, or the
+process is no longer alive), and its supervisor starts a new process on the same address
+and hands it the rig again, with a back-off while that fails (the port still taken).
+`mocapd status` shows the process (`view`: alive, restarts, how the last one ended).
 """
 
 from __future__ import annotations
@@ -25,6 +31,11 @@ from daemon.process.supervise import Supervised
 log = logging.getLogger("mocapd.view")
 FEED_HZ = 30.0  # frames a second the view gets (its 3D view redraws at this rate)
 READY_TIMEOUT_S = 20.0  # the view process importing viser and binding its port
+RESTART_MAX_WAIT_S = 30.0  # the back-off's ceiling between attempts to restart the view
+
+
+class ViewEnded(RuntimeError):
+    """The view process has ended while the daemon runs (its supervisor starts another)."""
 
 
 def next_due(due: float, period: float, now: float) -> float:
@@ -132,23 +143,38 @@ class ViewLink:
 
     def __init__(self, host: str, port: int) -> None:
         check_port_free(host, port)
-        # deferred on purpose: loads OpenCV only where used
-        from daemon.view.app import main
-
         self.host, self.port = host, port
-        ctx = mp.get_context("spawn")  # a fresh interpreter: nothing of the daemon's state
-        self._conn, child = ctx.Pipe()
-        self.process = ctx.Process(target=main, args=(child, host, port), name="mocapd-view",
-                                   daemon=True)
-        self.process.start()
-        child.close()
+        self._lock = threading.Lock()  # the process and its pipe are swapped under it
         self._latest = None
         self._stop = threading.Event()
         self._thread = None  # the feed (daemon.process.supervise.Supervised)
         self.supervised: list = []
         self._described: tuple | None = None
         self.sent = 0
+        self.restarts = 0  # view processes started after the first one ended
+        self.last_exit = None  # how the last one ended (its exit code; -N: signal N)
+        self._lost = False  # the feed found the process ended: the next reset replaces it
+        self._said_restart = -1e18  # when a restart was last logged
         self.url = f"http://{host if ':' not in host else f'[{host}]'}:{port}"
+        self._spawn()
+
+    def _spawn(self) -> None:
+        """Start a view process and its pipe (it says ready, or why not, down the pipe)."""
+        # deferred on purpose: loads OpenCV only where used
+        from daemon.view.app import main
+
+        ctx = mp.get_context("spawn")  # a fresh interpreter: nothing of the daemon's state
+        self._conn, child = ctx.Pipe()
+        self.process = ctx.Process(target=main, args=(child, self.host, self.port),
+                                   name="mocapd-view", daemon=True)
+        self.process.start()
+        child.close()
+
+    def status(self) -> dict:
+        """The view process for `mocapd status`: where, alive, restarts, the last exit."""
+        return {"url": self.url, "alive": bool(self.process.is_alive()),
+                "pid": self.process.pid, "restarts": self.restarts,
+                "last_exit": self.last_exit}
 
     def submit(self, result) -> None:
         """The per-frame hook: the newest result replaces the one before, nothing else."""
@@ -165,21 +191,63 @@ class ViewLink:
         self._daemon = daemon
         self._send({"setup": describe(daemon)})
         daemon.pipeline.hooks.append(self.submit)
-        self._thread = Supervised("view-feed", self._feed, stopping=self._stop.is_set).start()
+        self._thread = Supervised("view-feed", self._feed, stopping=self._stop.is_set,
+                                  reset=self._respawn, max_wait_s=RESTART_MAX_WAIT_S,
+                                  expected=(ViewEnded,)).start()
         self.supervised = [self._thread]
         where = "" if is_loopback(self.host) else " (not loopback: anyone who can reach " \
                                                    "this address can see and change the rig)"
         log.info("live view at %s%s", self.url, where)
 
     def _send(self, obj) -> bool:
+        """Send to the view; False once the process has ended (the feed then says so)."""
         try:
             self._conn.send(obj)
             return True
         except (BrokenPipeError, ConnectionResetError, OSError, EOFError):
-            if not self._stop.is_set():
-                log.warning("the live view process has ended; tracking goes on without it")
-            self._stop.set()
             return False
+
+    def _ended(self) -> ViewEnded:
+        """The view process has ended (or no longer reads its pipe): the feed's failure."""
+        self._lost = True
+        self.process.join(1.0)  # a broken pipe comes a moment before the exit code
+        self.last_exit = self.process.exitcode
+        how = ("still running, its pipe broken" if self.last_exit is None
+               else f"exit code {self.last_exit}")
+        return ViewEnded(f"the live view process has ended ({how}); tracking goes on, "
+                         "the view is restarted")
+
+    def _respawn(self) -> None:
+        """The supervisor's reset: a new view process in place of one that ended, given the
+        rig again. A failure (the port still taken, no ready) raises: counted, and tried
+        again after the back-off. A feed that failed with its process alive keeps it."""
+        if not self._lost:
+            return
+        with self._lock:
+            if self._stop.is_set():
+                return
+            if self.process.is_alive():
+                self.process.terminate()
+                self.process.join(2.0)
+            self._conn.close()
+            self._spawn()
+        deadline = time.monotonic() + READY_TIMEOUT_S
+        while not self._conn.poll(0.1):
+            if self._stop.is_set():
+                return
+            if time.monotonic() > deadline or not self.process.is_alive():
+                raise ViewEnded("a new view process did not start (see the log)")
+        msg = self._conn.recv()
+        if "error" in msg:
+            raise ViewEnded(f"a new view process did not start: {msg['error']}")
+        self._described = None  # the feed sends the rig first
+        self._lost = False
+        self.restarts += 1
+        now = time.monotonic()
+        if now - self._said_restart >= 60.0:  # a view killed over and over: a line a minute
+            self._said_restart = now
+            log.warning("live view restarted at %s (%d restarts so far)", self.url,
+                        self.restarts)
 
     def _feed(self) -> None:
         period = 1.0 / FEED_HZ
@@ -195,14 +263,16 @@ class ViewLink:
             if key != self._described:  # a reload changed bodies or detection: tell the view
                 self._described = key
                 if not self._send({"setup": describe(d)}):
-                    return
+                    raise self._ended()
             res = self._latest
             if res is None or res is last:
+                if not self.process.is_alive():  # no frame to send, and no one to send it
+                    raise self._ended()
                 continue
             last = res
             t0 = time.perf_counter()
             if not self._send({"frame": pack(res)}):
-                return
+                raise self._ended()
             self.sent += 1
             if time.perf_counter() - t0 > 0.5:
                 log.debug("the view took %.1f s to take a frame", time.perf_counter() - t0)
@@ -211,6 +281,10 @@ class ViewLink:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(1.0)
+        with self._lock:  # a restart under way has its process in place, or none
+            self._close_process()
+
+    def _close_process(self) -> None:
         if self._thread is None or not self._thread.is_alive():  # else stuck on a full pipe
             try:
                 self._conn.send({"stop": True})
