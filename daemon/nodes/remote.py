@@ -170,7 +170,7 @@ class NodeHub:
         now = time.monotonic()
         if now - self._said_reopen >= 60.0:  # a session closing over and over: once a minute
             self._said_reopen = now
-            log.warning("zenoh: session reopened (%d times so far)", self.reopened)
+            log.warning("zenoh: session reopened (%d so far)", self.reopened)
 
     def close(self) -> None:
         self._stop.set()
