@@ -139,6 +139,7 @@ class RigidTracker:
         self.prev_t = np.zeros((n, 3))
         # the last fit belongs to the old definitions: its shapes no longer match
         self._last = (None, None, None)
+        self._last_rows = None  # (tracks, their rows per marker slot) of the last update
 
     def update(self, tracks: TrackFrame, uv: np.ndarray | None = None,
                cameras=None) -> BodyPoses:
@@ -156,6 +157,9 @@ class RigidTracker:
         row = self._rows(tracks, self.assigned)
         self.assigned[row < 0] = -1
         R, t, err, valid, used = self._fit(tracks, row)
+        # a fit only releases slots (id -> -1): the rows of the rest stand, so they are
+        # not searched for again (issue 33: _rows ran five times a frame)
+        row = np.where(self.assigned >= 0, row, -1)
         before = self.assigned.copy()
         self._extend(tracks, R, t, valid)
         if (~valid).any() and self.frame % cfg.search_every == 0:
@@ -163,8 +167,9 @@ class RigidTracker:
         if not np.array_equal(before, self.assigned):
             row = self._rows(tracks, self.assigned)
             R, t, err, valid, used = self._fit(tracks, row)
+            row = np.where(self.assigned >= 0, row, -1)
+        self._last_rows = (tracks, row)  # what hidden_markers needs, for these tracks
         if uv is not None and cameras is not None and cfg.refine and np.any(valid):
-            row = self._rows(tracks, self.assigned)
             obs = np.where((row >= 0)[..., None] & self._seen[..., None],
                            tracks.blobs[np.maximum(row, 0)], -1)  # (B, K, C)
             if cfg.compiled:
@@ -192,7 +197,9 @@ class RigidTracker:
         R, t, valid = self._last
         if R is None or not np.any(valid) or not len(tracks):
             return np.zeros(0, np.int64), np.zeros((0, 3))
-        row = self._rows(tracks, self.assigned)
+        last = self._last_rows
+        row = last[1] if last is not None and last[0] is tracks else self._rows(
+            tracks, self.assigned)
         hidden = valid[:, None] & (row >= 0) & ~tracks.seen[np.maximum(row, 0)]
         b, k = np.nonzero(hidden)
         where = np.einsum("nij,nj->ni", R[b], self.markers[b, k]) + t[b]
