@@ -10,6 +10,10 @@ least disturbed by the machine's other work), on the takes' points written as CS
 one untimed run that caches the bytecode of every module the command loads.
 --subjects SEEDS (with --command): each take also performed by those other bodies
 (daemon/synthetic/subjects.py: segments re-proportioned +-15 %, markers 10 mm off).
+With --command each take's row also gives the fixed part: the same command on the take's
+first 10 frames (start-up, imports, the marker set, the start window's assignment), and
+the per-frame rate of the rest ((frames - 10) / (CPU - fixed)); and the table ends with
+the start-up alone (`python -c "import numpy"`, `mocapd label --help`), same conditions.
 
 To compare with another version of the labeller, run the same script
 with PYTHONPATH at that version's tree (e.g. `git archive REV daemon calibkit projector
@@ -75,14 +79,13 @@ def main() -> None:
 def command_table(cmu, repeats: int, subjects: list[int] | None = None) -> None:
     """The whole command, start-up included, from the set alone, in child processes."""
     import os
-    import resource
-    import subprocess
     import tempfile
 
     from calibkit.clitools import print_table
     from daemon.formats.c3dio import write_points_csv
 
     rows = []
+    short_frames = 10
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     # bytecode cached as on any installed machine (pip compiles it; an editable install
     # writes it on the first run): a shell that sets PYTHONDONTWRITEBYTECODE would
@@ -96,21 +99,42 @@ def command_table(cmu, repeats: int, subjects: list[int] | None = None) -> None:
                 take = reproportion(take, random_subject(subject))
                 name = f"{name} subject {subject}"
             csv = Path(tmp) / "points.csv"
-            write_points_csv(csv, Points.from_take(take, seed=1))
-            cpu = []
-            for _ in range(repeats + 1):              # the first run caches bytecode
-                before = resource.getrusage(resource.RUSAGE_CHILDREN)
-                subprocess.run([sys.executable, "-m", "daemon.cli", "label", str(csv),
-                                "--markerset", "cmu41", "--out", str(Path(tmp) / "out.c3d")],
-                               check=True, env=env, capture_output=True)
-                after = resource.getrusage(resource.RUSAGE_CHILDREN)
-                cpu.append(after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime)
-            cpu = cpu[1:]
+            pts = Points.from_take(take, seed=1)
+            write_points_csv(csv, pts)
+            short = Path(tmp) / "short.csv"
+            first = pts.frame < pts.frame.min() + short_frames
+            write_points_csv(short, Points(pts.frame[first], pts.xyz_m[first]))
+            label = [sys.executable, "-m", "daemon.cli", "label", "--markerset", "cmu41",
+                     "--out", str(Path(tmp) / "out.c3d")]
+            cpu = _cpu_best(label + [str(csv)], env, repeats)
+            fixed = _cpu_best(label + [str(short)], env, repeats)
+            rest = (take.n_frames - short_frames) / max(min(cpu) - min(fixed), 1e-3)
             rows.append([name, take.n_frames, round(min(cpu), 2), round(take.n_frames / min(cpu)),
-                         round(take.n_frames / float(np.median(cpu)))])
+                         round(take.n_frames / float(np.median(cpu))), round(min(fixed), 2),
+                         round(rest)])
             print(*rows[-1], flush=True, file=sys.stderr)
+    for what, cmd in (("python + numpy", [sys.executable, "-c", "import numpy"]),
+                      ("label --help", [sys.executable, "-m", "daemon.cli", "label", "--help"])):
+        cpu = _cpu_best(cmd, env, repeats)
+        rows.append([what, "", "", "", "", round(min(cpu), 2), ""])
     print("mocapd label, cmu41, clean takes from the set alone, whole command")
-    print_table(rows, ["take", "frames", "cpu_s_best", "fps_best", "fps_median"])
+    print_table(rows, ["take", "frames", "cpu_s_best", "fps_best", "fps_median",
+                       f"fixed_s ({short_frames} frames)", "fps_rest"])
+
+
+def _cpu_best(cmd: list[str], env: dict, repeats: int) -> list[float]:
+    """User + system CPU seconds of each of `repeats` runs of a child command, after one
+    untimed run (which caches the bytecode)."""
+    import resource
+    import subprocess
+
+    cpu = []
+    for _ in range(repeats + 1):
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
+        subprocess.run(cmd, check=True, env=env, capture_output=True)
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu.append(after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime)
+    return cpu[1:]
 
 
 if __name__ == "__main__":
