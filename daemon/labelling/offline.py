@@ -93,7 +93,8 @@ def _label_take(points, ms, rate_hz, start_labels, start_frames, progress, optio
         # holding more of the set's markers than the start did, or explained clearly
         # better by the set, is better evidence:
         # the take is labelled again from it, forward and backward
-        again = _better_window(per_frame, out, check, window, ms, lab.noise_m)
+        again = _better_window(per_frame, out, range(start, len(frames)), window, ms,
+                               lab.noise_m)
         if again is not None:
             out = {}
             lab = Labeller(ms, rate_hz, **options)
@@ -158,7 +159,9 @@ def _track(lab: Labeller, per_frame: list[np.ndarray], out: dict, order: list[in
                 ahead = list(range(start, order[0]))[::-1]
                 back = [ahead[j:j + check.width][::-1] for j in range(0, len(ahead), check.width)]
                 carry_back(per_frame, out, back, check.head, ms, check.head_ref, lab.noise_m)
-            verify_labels(per_frame, out, range(start, order[0]), ms, noise_m=lab.noise_m)
+            # (windows relabelled there count as verification's too: see _better_window)
+            check.fixed += verify_labels(per_frame, out, range(start, order[0]), ms,
+                                         noise_m=lab.noise_m)
     return check
 
 
@@ -173,20 +176,23 @@ def _evidence(xyz: np.ndarray, ms: MarkerSet, noise_m: float) -> tuple[int, floa
     return k, float(score_labels(X, ms, np.nonzero(held)[0], noise_m)) / (k * (k - 1) / 2)
 
 
-def _better_window(per_frame: list[np.ndarray], out: dict, check: Verification,
+def _better_window(per_frame: list[np.ndarray], out: dict, frames: range,
                    start: tuple, ms: MarkerSet, noise_m: float) -> tuple | None:
-    """Among verification's windows (their final labels: the start's own frames tracked
-    on, windows relabelled), the one that is better evidence than the start's window
-    was: one holding more of the set's markers, or nearly as many
-    (90 %) with labels the set explains clearly better (BETTER_PER_PAIR a pair: a start
-    scrambled by the search on a crouched posture scored 0.52 a pair, the right labels
-    of a later window with one marker hidden 0.95). Returned as a start (first frame,
-    labels, labelled positions), else None."""
+    """Among the take's windows of WINDOW frames over `frames` (their final labels: the
+    start's own frames tracked on, the frames before the start tracked backward,
+    windows relabelled by verification on either side), the one that is better evidence
+    than the start's window was: one holding more of the set's markers, or nearly as
+    many (90 %) with labels the set explains clearly better (BETTER_PER_PAIR a pair: a
+    start scrambled by the search on a crouched posture scored 0.52 a pair, the right
+    labels of a later window with one marker hidden 0.95). The frames before the start
+    count as much as those after it: two bodies' starts (frames 600-719 of 85_02, the
+    crouch) came out scrambled, and the windows verification put right were before
+    them. Returned as a start (first frame, labels, labelled positions), else None."""
     best = None
     held0, per_pair0 = _evidence(start[2], ms, noise_m)
-    for win in check.windows:
-        if len(win) < WINDOW:
-            continue
+    idx = list(frames)
+    for a in range(0, len(idx) - WINDOW + 1, WINDOW):
+        win = idx[a:a + WINDOW]
         xyz = window_labels(per_frame, out, win, ms.n, extra=False)[0]
         held, per_pair = _evidence(xyz, ms, noise_m)
         if held <= held0 and (per_pair < per_pair0 + BETTER_PER_PAIR or held < 0.9 * held0):
