@@ -65,7 +65,7 @@ SLOW: dict[str, str | set[str]] = {
     "test_daemon_e2e": {
         "test_camera_dropout_and_a_consumer_that_stops_reading",
         "test_fast_sim_run_writes_pose_errors",
-        "test_greedy_multiplexer_live",
+        "test_greedy_multiplexer",
         "test_greedy_multiplexer_with_unsynchronised_cameras",
         "test_install_unit",
         "test_late_opener_and_a_reconnecting_camera_live",

@@ -413,20 +413,21 @@ def test_live_cameras_with_a_missing_plugin(tmp_path, mocapd_cli):
     assert "every source has ended" in r.err  # it stopped by itself, long before 60 s
 
 
-def test_greedy_multiplexer_live(tmp_path, mocapd_cli):
+def test_greedy_multiplexer(tmp_path, mocapd_cli):
     """Greedy mode: a frame set per camera report, the other cameras' blobs moved to its
-    time. The bodies stay tracked, within a few millimetres, without swaps."""
+    time. The bodies stay tracked, within a few millimetres, without swaps. Run with
+    --fast: the simulated cameras in virtual time through the same multiplexer, so what is
+    checked is the pairing and the tracking, not how fast this machine is (a loaded
+    machine's frame loop skips sets: docs/daemon.md)."""
     cfg = tmp_path / "mocapd.toml"
     cfg.write_text(_sim_toml(cameras=4, bodies=2, fps=60.0))
-    r = mocapd_cli("start", "--config", cfg, "--mode", "greedy", "--duration", 1.5,
+    r = mocapd_cli("start", "--config", cfg, "--mode", "greedy", "--fast", "--duration", 1.5,
                    "--json", tmp_path / "g.json", "--runtime-dir", tmp_path / "rt")
     assert r.code == 0, r.err
     fig = json.loads((tmp_path / "g.json").read_text())
-    # more sets than any camera has frames: one per camera report (counted against the
-    # frames the cameras gave, not the clock: a loaded machine gives fewer of both)
-    reports = max(c["frames"] for c in fig["cameras"])
-    sets = fig["frames"] + fig["multiplexer"]["skipped_behind"]
-    assert reports > 10 and sets > 1.5 * reports, (sets, reports)
+    # more sets than frames in 1.5 s of the cameras' time: one per camera report
+    assert fig["frames"] > 60 * 1.5 * 1.5
+    assert fig["multiplexer"]["incomplete_sets"] == 0  # greedy sets hold every camera
     t = fig["truth"]
     assert t["track_swaps"] == 0 and t["body_swaps"] == 0
     for b in t["bodies"].values():  # four cameras only: bodies are sometimes unseen
@@ -443,7 +444,7 @@ def test_greedy_multiplexer_with_unsynchronised_cameras(tmp_path, mocapd_cli):
     the few gross errors; over every pose, with the cameras' own clocks, 1.1-1.6 mm."""
     cfg = tmp_path / "mocapd.toml"
     cfg.write_text(_sim_toml(cameras=4, bodies=2, fps=60.0, unsync_ms=8.0))
-    r = mocapd_cli("start", "--config", cfg, "--mode", "greedy", "--duration", 2.0,
+    r = mocapd_cli("start", "--config", cfg, "--mode", "greedy", "--fast", "--duration", 2.0,
                    "--json", tmp_path / "g.json", "--runtime-dir", tmp_path / "rt")
     assert r.code == 0, r.err
     t = json.loads((tmp_path / "g.json").read_text())["truth"]

@@ -139,8 +139,7 @@ class Daemon:
             # greedy sets mix instants by design (moved to one time): not checked
             # (the ledger of cameras served by nodes is in the nodes: instants not checked)
             self.evaluator = Evaluator(self.scene, bodies=bodies,
-                                       check_instants=(cfg.mode == "triggered"
-                                                       or not cfg.sim.realtime)
+                                       check_instants=cfg.mode == "triggered"
                                        and not (self.hub and self.hub.cameras))
         self.labelling, self._markerset_key = self._labeller(cfg), self._set_key(cfg)
         # with the simulated person: the labelled markers scored against its truth
@@ -336,8 +335,8 @@ class Daemon:
     def _run_fast(self, frames, duration_s, progress) -> None:
         """A simulation or replay as fast as the tracker goes: one loop, no threads. The
         simulated cameras run in virtual time (daemon.synthetic.virtual): each opens, counts,
-        stamps and drops frames on its own, and their samples go through the triggered
-        multiplexer as a live run's do; fast means no sleeping, not no pairing. A replay's
+        stamps and drops frames on its own, and their samples go through the multiplexer
+        (the configured mode) as a live run's do; fast means no sleeping, not no pairing. A replay's
         frames are already paired: frame i of every camera makes set i."""
         scene = self.scene
         period = 1e9 / scene.fps
@@ -352,12 +351,15 @@ class Daemon:
         else:
             cfg = self.config
 
-            def make_mux(n, mode, fps, timeout_frames, **kw):
-                self.mux = Multiplexer(n, mode, fps, cfg.timeout_frames,
+            def make_mux(n, mode, fps, timeout_frames, **kw):  # the configured mode
+                self.mux = Multiplexer(n, cfg.mode, fps, cfg.timeout_frames,
                                        tolerance_frames=cfg.pair_tolerance, **kw)
                 return self.mux
 
-            sets = virtual.frame_sets(scene, make_mux=make_mux)
+            seconds = None
+            if cfg.mode == "greedy" and not frames and duration_s:  # a set per camera report:
+                seconds, total = duration_s, None  # the duration is the cameras' time
+            sets = virtual.frame_sets(scene, seconds, make_mux=make_mux)
         sd_notify("READY=1")
         log.info("tracking %d cameras (%s, as fast as possible)", len(self.rig),
                  "replay" if replay else "simulated, paired by the multiplexer")
