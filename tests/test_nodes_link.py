@@ -113,9 +113,10 @@ def test_a_node_behind_a_slow_link_is_reported_late_and_nothing_else_stalls(tmp_
         assert d.wait_for(lambda dm: cameras_live(dm, names[:4]), WAIT_S)
         assert d.wait_for(lambda dm: {n["name"]: n for n in dm.hub.status()}.get("b", {})
                           .get("late", 0) > 200, WAIT_S), "node b's frames never came late"
-        i0, t0 = d.daemon.mux.last_index, time.monotonic()
-        time.sleep(2.0)
-        rate = (d.daemon.mux.last_index - i0) / (time.monotonic() - t0)
+        # not stalled behind b (a stall: no set at all): 240 more sets come, however long
+        # a loaded machine takes to them (a quiet one: 1 s; the rate is a benchmark's)
+        i0 = d.daemon.mux.last_index
+        went_on = d.wait_for(lambda dm: dm.mux.last_index > i0 + 240, WAIT_S)
         st = {n["name"]: n for n in d.daemon.hub.status()}
         caps = {c.name: c for c in d.daemon.captures}
         d.daemon.stop_event.set()
@@ -129,9 +130,7 @@ def test_a_node_behind_a_slow_link_is_reported_late_and_nothing_else_stalls(tmp_
     assert st["a"]["late"] < 0.5 * st["a"]["samples"], st["a"]
     assert not any(caps[n].connected for n in names[4:])
     assert all(caps[n].connected for n in names[:4])
-    # not stalled behind b (a stall: no set at all); how many a loaded machine makes is a
-    # speed, not tested here (240 a second on a quiet one)
-    assert rate > 24, f"the frame loop made {rate:.0f} sets a second"
+    assert went_on, "the frame loop stalled behind node b"
 
 
 # ---- network namespaces --------------------------------------------------------------------
