@@ -301,9 +301,11 @@ class Multiplexer:
         return FrameSet(self.last_index, t, newest.arrival_ns, out)
 
     @staticmethod
-    def _rate_hz(times: deque) -> float:
-        if len(times) < 2 or times[-1] <= times[0]:
-            return 0.0
+    def _rate_hz(times: deque) -> float | None:
+        """Events a second over the times kept; None until they span a quarter second (at
+        start-up a burst of sets made within microseconds would read as 40,000 a second)."""
+        if len(times) < 2 or times[-1] - times[0] < 250_000_000:
+            return None
         return (len(times) - 1) * 1e9 / (times[-1] - times[0])
 
     def _say_behind(self, now_ns: int) -> None:
@@ -311,10 +313,14 @@ class Multiplexer:
         lock held). Whole sets are dropped, the oldest waiting, so the sets kept are
         spread over time as the loop's pace allows, never a set missing cameras."""
         self._skip_ns = now_ns
-        self._behind = (f"the frame loop is behind: it takes {self._rate_hz(self._taken):.0f} "
-                        f"frame sets a second of the {self._rate_hz(self._made):.0f} made; "
-                        f"the oldest waiting are skipped whole ({self.skipped} so far)")
-        if now_ns - self._said_ns >= BEHIND_SAY_S * 1e9:
+        taken, made = self._rate_hz(self._taken), self._rate_hz(self._made)
+        pace = (f"it takes {taken:.0f} frame sets a second of the {made:.0f} made"
+                if taken is not None and made is not None
+                else "its rate is not measured yet (it has just started)")
+        self._behind = (f"the frame loop is behind: {pace}; the oldest waiting are skipped "
+                        f"whole ({self.skipped} so far)")
+        # logged once the rates are measured (a quarter second in): the line says how far
+        if taken is not None and made is not None and now_ns - self._said_ns >= BEHIND_SAY_S * 1e9:
             self._said_ns = now_ns
             log.warning("%s", self._behind)
 
