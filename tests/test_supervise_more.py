@@ -155,6 +155,8 @@ def test_a_killed_view_process_is_restarted_and_status_says_so(tmp_path, caplog,
         st = json.loads((tmp_path / "status.json").read_text())
         assert st["view"]["alive"] and st["view"]["restarts"] == 1
         assert st["view"]["last_exit"] == -signal.SIGKILL and st["view"]["pid"] != first
+        # and the plain status says it in one line
+        assert f"view: {st['view']['url']} serving, started again 1 time (last exit -9)" in r.out
         feed = _thread(st, "view-feed")
         assert feed["state"] == "running" and feed["restarts"] == 1
         assert feed["last_error"].startswith("ViewEnded: the live view process has ended")

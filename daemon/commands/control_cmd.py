@@ -22,6 +22,15 @@ def request(runtime_dir: Path | None, message: dict) -> dict:
     return ask(runtime_dir, message)
 
 
+def view_line(view: dict) -> str:
+    """The live view's process in one line: where, and whether it had to be started again."""
+    state = "serving" if view.get("alive") else "NOT RUNNING"
+    n = view.get("restarts") or 0
+    again = (f", started again {n} time{'s' if n > 1 else ''} (last exit {view.get('last_exit')})"
+             if n else "")
+    return f"view: {view.get('url')} {state}{again}"
+
+
 def register(app: typer.Typer) -> None:
     @app.command("status")
     def status(runtime_dir: RuntimeDir = None,
@@ -75,6 +84,8 @@ def register(app: typer.Typer) -> None:
             typer.echo(f"recording to {st['recording']}: {rec.get('sent', 0)} frames"
                        + (f"; STOPPED: {rec['failed']} ({rec['lost']} frames not recorded)"
                           if rec.get("failed") else ""))
+        if st.get("view"):
+            typer.echo(view_line(st["view"]))
         if json_path is not None:
             write_json(json_path, st)
 
