@@ -294,6 +294,29 @@ def near_groups(ms: MarkerSet, size: int = 4, max_sd_m: float = 0.015) -> list[n
     return out
 
 
+def chain_groups(ms: MarkerSet, max_sd_m: float = RIGID_SD_M) -> list[np.ndarray]:
+    """Each marker with its two steadiest neighbours by the set (spread under
+    `max_sd_m`: the joint's markers of a limb, thigh-knee-shank), as groups for
+    `group_moves`, where no rigid module holds them whole. On a body built otherwise
+    than the set's the three labels can come out turned by one place along the chain
+    (a cycle of three no swap reaches one step at a time); their markers are 20-40 cm
+    apart, so `near_groups` does not hold them."""
+    mods = [set(m.tolist()) for m in rigid_modules(ms)]
+    out, seen = [], set()
+    for i in range(ms.n):
+        sd = ms.sd_m[i].copy()
+        sd[i] = np.inf
+        two = np.argsort(sd)[:2]
+        if not (sd[two] < max_sd_m).all():
+            continue
+        g = tuple(sorted([i, *two.tolist()]))
+        if g in seen or any(set(g) <= m for m in mods):
+            continue
+        seen.add(g)
+        out.append(np.array(g))
+    return out
+
+
 def group_moves(cp: Compat, G: np.ndarray, mt: np.ndarray, groups: list[np.ndarray]
                 ) -> list[tuple[float, np.ndarray]]:
     """Every reordering of the labels inside each group of `groups` (near_groups) whose

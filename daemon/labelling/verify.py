@@ -31,6 +31,7 @@ from daemon.labelling.assign import (
     Compat,
     assign,
     body_scale,
+    chain_groups,
     mirror_map,
     mirror_moves,
     module_moves,
@@ -203,7 +204,7 @@ def improve(X: np.ndarray, ms: MarkerSet, lab: np.ndarray, noise_m: float = 0.00
     P[got, lab[got]] = 1.0
     before = judge.score(P) + terms(to_marker_track(P))
     Q, after = polish(judge, P, terms, moves, allowed=allowed, every_order=True,
-                      groups=near_groups(ms))
+                      groups=near_groups(ms) + chain_groups(ms))
     out = np.full(len(X), -1)
     r, c = np.nonzero(Q)
     out[r] = c
