@@ -12,11 +12,13 @@ from __future__ import annotations
 
 import io
 import warnings
+from typing import TYPE_CHECKING
 
 import c3d
 import numpy as np
 
-from daemon.formats.c3dio import Take
+if TYPE_CHECKING:  # c3dio imports this module to write: the type only, no cycle
+    from daemon.formats.c3dio import Take
 
 
 def c3d_bytes(take: Take) -> bytes:
