@@ -110,6 +110,58 @@ def mavlink():
     return good, lambda rng: _junk(rng, good, 64), link.receive
 
 
+class _FeedSocket:
+    """A client's socket for the VRPN server's reader: recv gives the fuzzed bytes once
+    (then b"": the client closed), send takes everything."""
+
+    def __init__(self) -> None:
+        self.data = b""
+
+    def recv(self, n: int) -> bytes:
+        data, self.data = self.data[:n], b""
+        return data
+
+    def send(self, data) -> int:
+        return len(data)
+
+
+def vrpn():
+    """The VRPN server's two inputs: a UDP datagram asking to be called back ("ADDRESS
+    PORT"), and a TCP client's stream (its cookie, then messages: sender and type
+    descriptions, a UDP description, pings), handled as the server thread handles them
+    (daemon.publish.vrpn.VrpnPublisher._serve_once: an OSError, ValueError or struct.error
+    drops that client with one line; anything else would be a bug that escapes)."""
+    from daemon.publish import vrpn as vr
+    from daemon.publish import vrpn_wire as vw
+    from daemon.tracking.rigid import BodyDef
+
+    pub = vr.VrpnPublisher([BodyDef("b", 1, np.eye(3) * 0.05, np.zeros(3))], port=0)
+    stream = (vw.describe(vw.SENDER_DESCRIPTION, 0, "b")
+              + vw.describe(vw.TYPE_DESCRIPTION, 0, vw.PING) + vw.pack(0, 0)
+              + vw.pack(40001, vw.UDP_DESCRIPTION, b"127.0.0.1\0"))
+    lobs = [b"127.0.0.1 40000\0", b"10.0.0.9 3883\0"]
+    good = lobs + [vw.cookie() + stream, stream]
+    feed = _FeedSocket()
+    k = [0]
+
+    def call(data):
+        k[0] += 1
+        if k[0] % 3 == 0:  # a datagram at the UDP port
+            if vr._lob_port(data) is None:
+                pub._bad_input("a UDP datagram from 127.0.0.1:5000 that is not 'ADDRESS PORT'")
+            return
+        c = vr._Client(feed, ("127.0.0.1", 40000))
+        c.connected = k[0] % 3 == 2  # past the cookie: messages only
+        feed.data = data
+        try:
+            pub._read(c)
+        except (OSError, ValueError, struct.error) as exc:
+            if not isinstance(exc, ConnectionError):
+                pub._bad_input(f"client 127.0.0.1:40000: {exc}")
+
+    return good, lambda rng: _junk(rng, good, 160), call
+
+
 def zenoh():
     import json as js
 
@@ -214,8 +266,8 @@ def config():
     return good, junk, call
 
 
-PARSERS = {"natnet": natnet, "mavlink": mavlink, "zenoh": zenoh, "mcrec": mcrec,
-           "csv": csv_obs, "c3d": c3d, "config": config}
+PARSERS = {"natnet": natnet, "vrpn": vrpn, "mavlink": mavlink, "zenoh": zenoh,
+           "mcrec": mcrec, "csv": csv_obs, "c3d": c3d, "config": config}
 
 
 def run_parser(name: str, n: int, repeats: int, seed: int) -> dict:
