@@ -317,9 +317,9 @@ def _slow_names(module) -> set[str] | None:
 
 @pytest.hookimpl(tryfirst=True)  # before -m reads the marks
 def pytest_collection_modifyitems(config, items):
-    """Marks the tests SLOW names; a name its module does not define (a test renamed or
-    removed) is a warning in the run's summary, not an error that would stop everyone's
-    runs for a table entry."""
+    """Marks the tests SLOW names (a name its module does not define, a test renamed or
+    removed, is a warning in the run's summary, not an error that would stop everyone's
+    runs for a table entry), then puts the LONGEST_FIRST modules first."""
     checked = set()
     for item in items:
         module = getattr(item, "module", None)
@@ -335,6 +335,18 @@ def pytest_collection_modifyitems(config, items):
                     f"{', '.join(gone)}"), stacklevel=1)
         if getattr(item, "originalname", item.name) in names:
             item.add_marker(pytest.mark.slow)
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}  # stable: modules stay whole
+    items.sort(key=lambda item: rank.get(Path(str(item.fspath)).stem, len(rank)))
+
+
+# The longest modules first (each tens of seconds on a quiet machine: namespaces, the robot
+# examples, the kernel cache, labelling, nodes, the browser pages), the rest in their
+# order: on two workers (-n 2 --dist loadfile) a long module handed out last would leave
+# one worker running alone at the end. Longest first keeps the two ending together.
+LONGEST_FIRST = ("test_nodes_link", "test_robot_example", "test_kernels_cache", "test_label",
+                 "test_nodes", "test_view_report", "test_view_coverage", "test_view_browser",
+                 "test_label_subjects", "test_wand_small", "test_demo", "test_natnet_protocol")
+
 
 
 @pytest.fixture(scope="session", autouse=True)

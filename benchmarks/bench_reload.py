@@ -1,0 +1,198 @@
+"""How much a reload delays the stream: the frames around each `mocapd reload`, against
+frames with no reload near them, in the same run.
+
+Why: a reload (SIGHUP or `mocapd reload`) reads and checks the new configuration beside
+the frame loop, then swaps bodies, outputs and, when the tracker's table changed, a new
+tracker in between two frames (docs/daemon.md). Issue 30's target: the swap delays the
+stream by at most one frame. Measured from the daemon's own pose datagrams (UDP to a
+reader of ours on loopback): each datagram's delay is its arrival here minus its frame's
+capture time (both on the machine's monotonic clock), and its frame number shows frames
+skipped. For every reload: the worst delay in the `--window-s` after the request, above
+the run's median delay, and the frames missing there; the baseline is the same figures in
+windows of the same length halfway between reloads. Reloads rotate: a rigid body removed,
+added back, a second UDP output added, removed, a `[tracker]` gate changed (a new tracker).
+
+    python benchmarks/bench_reload.py [--reloads 20] [--every-s 3] [--window-s 0.5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from soak import MOCAPD, free_port, proc_figures  # noqa: E402
+
+from calibkit.clitools import print_table, write_json  # noqa: E402
+from daemon.publish.packet import HEADER, MAGIC  # noqa: E402
+
+KINDS = ("body removed", "body added", "output added", "output removed", "new tracker")
+
+
+class Stamps:
+    """Every pose datagram's arrival (monotonic ns), capture time and frame number."""
+
+    def __init__(self) -> None:
+        import socket
+
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.2)
+        self.port = self.sock.getsockname()[1]
+        self.rows: list[tuple[int, int, int]] = []
+        self._stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data = self.sock.recv(65536)
+            except OSError:
+                continue
+            now = time.monotonic_ns()
+            if len(data) >= HEADER.itemsize:
+                head = np.frombuffer(data, HEADER, 1)[0]
+                if head["magic"] == MAGIC:
+                    self.rows.append((now, int(head["t_ns"]), int(head["frame"])))
+
+    def close(self) -> None:
+        self._stop.set()
+        self.thread.join(2)
+        self.sock.close()
+
+
+def config(rt: Path, port: int, extra: int | None, bodies: str, gate_mm: float | None) -> str:
+    lines = [f'runtime_dir = "{rt}"', "", "[sim]", "", "[[udp]]", f'address = "127.0.0.1:{port}"']
+    if extra is not None:
+        lines += ["", "[[udp]]", f'address = "127.0.0.1:{extra}"']
+    if gate_mm is not None:
+        lines += ["", "[tracker]", f"gate_mm = {gate_mm}"]
+    return "\n".join(lines) + "\n\n" + bodies
+
+
+def window_figures(rows: np.ndarray, t0: int, t1: int, median_delay: float) -> tuple:
+    """(worst delay above the median in ms, frames missing) of the datagrams in [t0, t1)."""
+    sel = rows[(rows[:, 0] >= t0) & (rows[:, 0] < t1)]
+    if len(sel) < 2:
+        return float("nan"), -1
+    delay = (sel[:, 0] - sel[:, 1]).max() - median_delay
+    frames = np.sort(sel[:, 2])
+    return delay * 1e-6, int((np.diff(frames) - 1).clip(0).sum())
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--reloads", type=int, default=20)
+    ap.add_argument("--every-s", type=float, default=3.0)
+    ap.add_argument("--window-s", type=float, default=0.5)
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+    from daemon.service.control import request
+
+    stamps = Stamps()
+    load0 = os.getloadavg()[0]
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        rt, cfg = folder / "rt", folder / "mocapd.toml"
+        cfg.write_text(config(rt, stamps.port, None, "", None))
+        log = open(folder / "mocapd.log", "w")  # noqa: SIM115 (the daemon's whole run)
+        proc = subprocess.Popen([*MOCAPD, "start", "--sim", "--config", str(cfg)], stdout=log,
+                                stderr=subprocess.STDOUT, start_new_session=True)
+        reloads: list[tuple[str, int, bool]] = []
+        try:
+            deadline = time.monotonic() + 600
+            while len(stamps.rows) < 480:  # 2 s of poses: started and tracking
+                if proc.poll() is not None or time.monotonic() > deadline:
+                    raise SystemExit("bench_reload: mocapd did not start:\n"
+                                     + (folder / "mocapd.log").read_text())
+                time.sleep(0.2)
+            learned = rt / "sim-bodies.toml"
+            all_bodies = learned.read_text() if learned.exists() else ""
+            # the last [[rigid_body]] table of the learned file, removed and added back
+            cut = all_bodies.rfind("[[rigid_body]]")
+            fewer = all_bodies[:cut] if cut > 0 else all_bodies
+            extra = free_port()
+            rss_before = proc_figures(proc.pid)["rss_mb"]
+            state = {"bodies": all_bodies, "extra": None, "gate": None}
+            for k in range(args.reloads):
+                time.sleep(args.every_s)
+                kind = KINDS[k % len(KINDS)]
+                if kind == "body removed":
+                    state["bodies"] = fewer
+                elif kind == "body added":
+                    state["bodies"] = all_bodies
+                elif kind == "output added":
+                    state["extra"] = extra
+                elif kind == "output removed":
+                    state["extra"] = None
+                else:
+                    state["gate"] = 40.0 if state["gate"] is None else None
+                cfg.write_text(config(rt, stamps.port, state["extra"], state["bodies"],
+                                      state["gate"]))
+                at = time.monotonic_ns()
+                answer = request(rt, {"cmd": "reload"}, timeout_s=30.0)
+                reloads.append((kind, at, bool(answer.get("ok"))))
+                print(f"reload {k + 1}/{args.reloads}: {kind}"
+                      f"{'' if answer.get('ok') else ' REFUSED: ' + str(answer)}",
+                      file=sys.stderr)
+            time.sleep(args.every_s)
+            rss_after = proc_figures(proc.pid)["rss_mb"]
+        finally:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(60)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+            log.close()
+            stamps.close()
+    rows = np.array(stamps.rows, dtype=np.int64)
+    period_ms = float(np.median(np.diff(np.unique(rows[:, 1])))) * 1e-6  # capture times
+    median_delay = float(np.median(rows[:, 0] - rows[:, 1]))
+    win = int(args.window_s * 1e9)
+    per_kind: dict[str, list] = {kind: [] for kind in KINDS}
+    base = []
+    for kind, at, _ok in reloads:
+        per_kind[kind].append(window_figures(rows, at, at + win, median_delay))
+        mid = at + int(args.every_s * 0.5e9)
+        base.append(window_figures(rows, mid, mid + win, median_delay))
+    table = []
+    for kind in KINDS:
+        if per_kind[kind]:
+            d = np.array([x[0] for x in per_kind[kind]])
+            m = np.array([x[1] for x in per_kind[kind]])
+            table.append([kind, len(d), f"{np.median(d):.2f}", f"{d.max():.2f}", int(m.sum())])
+    d = np.array([x[0] for x in base])
+    m = np.array([x[1] for x in base])
+    table.append(["baseline: no reload", len(d), f"{np.median(d):.2f}", f"{d.max():.2f}",
+                  int(m.sum())])
+    print_table(table, ["reload", "n", "extra delay ms, median", "worst", "frames missing"])
+    worst = max(max(x[0] for x in v) for v in per_kind.values() if v)
+    missing = sum(x[1] for v in per_kind.values() for x in v)
+    refused = [k for k, _a, ok in reloads if not ok]
+    print(f"frame period {period_ms:.2f} ms; median delay capture -> here "
+          f"{median_delay * 1e-6:.2f} ms; load average {load0:.1f} -> {os.getloadavg()[0]:.1f}")
+    print(f"RSS {rss_before:.1f} -> {rss_after:.1f} MB over {len(reloads)} reloads "
+          f"({(rss_after - rss_before) / max(len(reloads), 1):.2f} MB a reload)")
+    ok = worst <= period_ms and missing == 0 and not refused
+    print(f"{'PASS' if ok else 'FAIL'}  a reload delays the stream by <= 1 frame "
+          f"(worst {worst:.2f} ms above the median, a frame is {period_ms:.2f} ms; "
+          f"{missing} frames missing; {len(refused)} reloads refused)")
+    if args.json:
+        write_json(args.json, {"reloads": len(reloads), "worst_extra_delay_ms": worst,
+                               "frames_missing": missing, "refused": refused,
+                               "period_ms": period_ms, "table": table})
+
+
+if __name__ == "__main__":
+    main()
