@@ -12,7 +12,7 @@ the run's median delay, and the frames missing there; the baseline is the same f
 windows of the same length halfway between reloads. Reloads rotate: a rigid body removed,
 added back, a second UDP output added, removed, a `[tracker]` gate changed (a new tracker).
 
-    python benchmarks/bench_reload.py [--reloads 20] [--every-s 3] [--window-s 0.5]
+    python benchmarks/bench_reload.py [--reloads 20] [--every-s 3] [--window-s 0.5] [--fps 120]
 """
 
 from __future__ import annotations
@@ -72,8 +72,12 @@ class Stamps:
         self.sock.close()
 
 
+FPS = [240.0]  # the simulated cameras' rate (--fps)
+
+
 def config(rt: Path, port: int, extra: int | None, bodies: str, gate_mm: float | None) -> str:
-    lines = [f'runtime_dir = "{rt}"', "", "[sim]", "", "[[udp]]", f'address = "127.0.0.1:{port}"']
+    lines = [f'runtime_dir = "{rt}"', "", "[sim]", f"fps = {FPS[0]}", "", "[[udp]]",
+             f'address = "127.0.0.1:{port}"']
     if extra is not None:
         lines += ["", "[[udp]]", f'address = "127.0.0.1:{extra}"']
     if gate_mm is not None:
@@ -96,8 +100,12 @@ def main() -> None:
     ap.add_argument("--reloads", type=int, default=20)
     ap.add_argument("--every-s", type=float, default=3.0)
     ap.add_argument("--window-s", type=float, default=0.5)
+    ap.add_argument("--fps", type=float, default=240.0,
+                    help="the simulated cameras' rate; 240 with the simulator in the daemon's "
+                         "process saturates 2 cores, so that frames are late with no reload")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
+    FPS[0] = args.fps
     from daemon.service.control import request
 
     stamps = Stamps()
