@@ -23,14 +23,13 @@ import signal
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from soak import MOCAPD, free_port, proc_figures  # noqa: E402
+from soak import MOCAPD, UdpReader, free_port, proc_figures  # noqa: E402
 
 from calibkit.clitools import print_table, write_json  # noqa: E402
 from daemon.publish.packet import HEADER, MAGIC  # noqa: E402
@@ -38,21 +37,13 @@ from daemon.publish.packet import HEADER, MAGIC  # noqa: E402
 KINDS = ("body removed", "body added", "output added", "output removed", "new tracker")
 
 
-class Stamps:
-    """Every pose datagram's arrival (monotonic ns), capture time and frame number."""
+class Stamps(UdpReader):
+    """Every pose datagram's arrival (monotonic ns), capture time and frame number (the
+    soak's reader, keeping each datagram's stamps instead of counts)."""
 
     def __init__(self) -> None:
-        import socket
-
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
-        self.sock.bind(("127.0.0.1", 0))
-        self.sock.settimeout(0.2)
-        self.port = self.sock.getsockname()[1]
         self.rows: list[tuple[int, int, int]] = []
-        self._stop = threading.Event()
-        self.thread = threading.Thread(target=self._run, daemon=True)
-        self.thread.start()
+        super().__init__()
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -65,11 +56,6 @@ class Stamps:
                 head = np.frombuffer(data, HEADER, 1)[0]
                 if head["magic"] == MAGIC:
                     self.rows.append((now, int(head["t_ns"]), int(head["frame"])))
-
-    def close(self) -> None:
-        self._stop.set()
-        self.thread.join(2)
-        self.sock.close()
 
 
 FPS = [240.0]  # the simulated cameras' rate (--fps)
