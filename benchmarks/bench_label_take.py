@@ -85,6 +85,23 @@ def main() -> None:
     print_table(rows, ["take", "frames", "start_frames", "fps_median", "fps_worst"])
 
 
+def _take_files(cmu, subjects, folder: Path):
+    """The shared takes, and each as performed by the given subjects: (name, its points
+    written to folder/points.csv, the points)."""
+    from daemon.formats.c3dio import write_points_csv
+
+    for name, subject in [(n, s) for n in ("85_02", "01_01") for s in [None, *subjects]]:
+        take = read_c3d(DATA / f"{name}.c3d").select(cmu.labels)
+        if subject is not None:
+            from daemon.synthetic.subjects import random_subject, reproportion
+            take = reproportion(take, random_subject(subject))
+            name = f"{name} subject {subject}"
+        csv = folder / "points.csv"
+        pts = Points.from_take(take, seed=1)
+        write_points_csv(csv, pts)
+        yield name, take, csv, pts
+
+
 def command_table(cmu, repeats: int, subjects: list[int] | None = None,
                   against: Path | None = None) -> None:
     """The whole command, start-up included, from the set alone, in child processes. With
@@ -104,15 +121,7 @@ def command_table(cmu, repeats: int, subjects: list[int] | None = None,
     # otherwise have every timed run compile the labeller from source (about 45 ms)
     env.pop("PYTHONDONTWRITEBYTECODE", None)
     with tempfile.TemporaryDirectory() as tmp:
-        for name, subject in [(n, s) for n in ("85_02", "01_01") for s in [None, *subjects]]:
-            take = read_c3d(DATA / f"{name}.c3d").select(cmu.labels)
-            if subject is not None:
-                from daemon.synthetic.subjects import random_subject, reproportion
-                take = reproportion(take, random_subject(subject))
-                name = f"{name} subject {subject}"
-            csv = Path(tmp) / "points.csv"
-            pts = Points.from_take(take, seed=1)
-            write_points_csv(csv, pts)
+        for name, take, csv, pts in _take_files(cmu, subjects, Path(tmp)):
             short = Path(tmp) / "short.csv"
             first = pts.frame < pts.frame.min() + short_frames
             write_points_csv(short, Points(pts.frame[first], pts.xyz_m[first]))
@@ -145,7 +154,7 @@ def breakdown_table(cmu, repeats: int, subjects: list[int]) -> None:
     import daemon.labelling.offline as offline
     from calibkit.clitools import print_table
     from daemon.commands.points_input import read_points_for_command
-    from daemon.formats.c3dio import write_points_csv, write_take
+    from daemon.formats.c3dio import write_take
 
     spent = {"start": 0.0}
     start_fn = offline.window_start
@@ -160,14 +169,7 @@ def breakdown_table(cmu, repeats: int, subjects: list[int]) -> None:
     offline.window_start = timed_start
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for name, subject in [(n, s) for n in ("85_02", "01_01") for s in [None, *subjects]]:
-            take = read_c3d(DATA / f"{name}.c3d").select(cmu.labels)
-            if subject is not None:
-                from daemon.synthetic.subjects import random_subject, reproportion
-                take = reproportion(take, random_subject(subject))
-                name = f"{name} subject {subject}"
-            csv = Path(tmp) / "points.csv"
-            write_points_csv(csv, Points.from_take(take, seed=1))
+        for name, take, csv, _pts in _take_files(cmu, subjects, Path(tmp)):
             runs = []
             for _ in range(repeats):
                 c = [time.process_time()]

@@ -45,17 +45,12 @@ class Stamps(UdpReader):
         self.rows: list[tuple[int, int, int]] = []
         super().__init__()
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data = self.sock.recv(65536)
-            except OSError:
-                continue
-            now = time.monotonic_ns()
-            if len(data) >= HEADER.itemsize:
-                head = np.frombuffer(data, HEADER, 1)[0]
-                if head["magic"] == MAGIC:
-                    self.rows.append((now, int(head["t_ns"]), int(head["frame"])))
+    def take(self, data: bytes, arrival_ns: int) -> None:
+        super().take(data, arrival_ns)
+        if len(data) >= HEADER.itemsize:
+            head = np.frombuffer(data, HEADER, 1)[0]
+            if head["magic"] == MAGIC:
+                self.rows.append((arrival_ns, int(head["t_ns"]), int(head["frame"])))
 
 
 FPS = [240.0]  # the simulated cameras' rate (--fps)

@@ -100,17 +100,21 @@ class UdpReader:
                 data = self.sock.recv(65536)
             except OSError:
                 continue
-            if len(data) < HEADER.itemsize:
-                self.bad += 1
-                continue
-            head = np.frombuffer(data, HEADER, 1)[0]
-            n = int(head["count"])
-            if head["magic"] != MAGIC or len(data) < HEADER.itemsize + n * BODY.itemsize:
-                self.bad += 1
-                continue
-            bodies = np.frombuffer(data, BODY, n, HEADER.itemsize)
-            self.datagrams += 1
-            self.poses += int(np.count_nonzero(bodies["flags"] & 1))
+            self.take(data, time.monotonic_ns())
+
+    def take(self, data: bytes, arrival_ns: int) -> None:
+        """One datagram: counted, or counted bad (a subclass may keep more of it)."""
+        if len(data) < HEADER.itemsize:
+            self.bad += 1
+            return
+        head = np.frombuffer(data, HEADER, 1)[0]
+        n = int(head["count"])
+        if head["magic"] != MAGIC or len(data) < HEADER.itemsize + n * BODY.itemsize:
+            self.bad += 1
+            return
+        bodies = np.frombuffer(data, BODY, n, HEADER.itemsize)
+        self.datagrams += 1
+        self.poses += int(np.count_nonzero(bodies["flags"] & 1))
 
     def close(self) -> None:
         self._stop.set()
