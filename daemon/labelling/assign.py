@@ -23,14 +23,21 @@ linked over time, daemon/labelling/start.py) are assigned all at once:
 
 from __future__ import annotations
 
-from itertools import permutations
-
 import numpy as np
 
 from calibkit.core.assignment import linear_sum_assignment
 from daemon.labelling.body import BodyTerms
 from daemon.labelling.markerset import MarkerSet
 from daemon.labelling.modules import rigid_modules
+from daemon.labelling.moves import (  # noqa: F401  (near_groups: the tests' name for it)
+    SLACK,
+    MoveTable,
+    changed_bounds,
+    group_moves,
+    mirror_moves,
+    module_moves,
+    near_groups,
+)
 
 SUBJECT_REL = 0.12      # another body: a distance may differ by this fraction (1 SD)
 PLACEMENT_M = 0.012     # ... and by this much from markers stuck elsewhere (1 SD)
@@ -223,77 +230,6 @@ def to_marker_track(P: np.ndarray) -> np.ndarray:
     return mt
 
 
-def mirror_moves(ms: MarkerSet, twin: np.ndarray) -> list[np.ndarray]:
-    """Marker permutations that turn one part of the body into its mirror image: each
-    segment, and each segment with its descendants in the set's tree, together with its
-    left/right twins, each marker taken for its twin."""
-    segs = ms.segments
-    children: dict[int, list[int]] = {k: [] for k in range(len(segs))}
-    for k, sg in enumerate(segs):
-        if sg.parent >= 0:
-            children[sg.parent].append(k)
-
-    def subtree(k: int) -> list[int]:
-        out, todo = [], [k]
-        while todo:
-            s = todo.pop()
-            out += list(segs[s].markers)
-            todo += children[s]
-        return out
-
-    moves, seen = [], set()
-    for k in range(len(segs)):
-        for members in (list(segs[k].markers), subtree(k)):
-            S = np.unique(np.concatenate([members, twin[members]]))
-            if (twin[S] == S).all():
-                continue
-            perm = np.arange(ms.n)
-            perm[S] = twin[S]
-            key = perm.tobytes()
-            if key not in seen:
-                seen.add(key)
-                moves.append(perm)
-    return moves
-
-
-def module_moves(terms: BodyTerms) -> list[tuple[np.ndarray, int]]:
-    """Reorderings inside each rigid module of 4-5 markers (all its permutations), with
-    the module's index in `terms`."""
-    out = []
-    for k, m in enumerate(terms.modules):
-        if len(m) <= 5:
-            for p in permutations(range(len(m))):
-                if p != tuple(range(len(m))):
-                    perm = np.arange(terms.ms.n)
-                    perm[m] = m[list(p)]
-                    out.append((perm, k))
-    return out
-
-
-def near_groups(ms: MarkerSet, size: int = 4, max_sd_m: float = 0.015) -> list[np.ndarray]:
-    """Groups of `size` markers that move together (each with its nearest neighbours by
-    the set's distance among those within `max_sd_m` spread of it) and that no rigid
-    module holds whole: a head's four markers, 12-20 cm apart and sliding on the scalp
-    by a centimetre, are no rigid module, and on a body built otherwise the set can
-    prefer them turned by one place in one window and not in the next. A turn is a cycle
-    of four labels no swap reaches one step at a time."""
-    mods = [set(m.tolist()) for m in rigid_modules(ms)]
-    out, seen = [], set()
-    for i in range(ms.n):
-        ok = np.nonzero(ms.sd_m[i] < max_sd_m)[0]
-        ok = ok[ok != i]
-        if len(ok) < size - 1:
-            continue
-        g = tuple(sorted([i, *ok[np.argsort(ms.mean_m[i, ok])[:size - 1]].tolist()]))
-        if g in seen or any(set(g) <= m for m in mods):
-            continue
-        if (ms.sd_m[np.ix_(g, g)] >= max_sd_m).any():
-            continue
-        seen.add(g)
-        out.append(np.array(g))
-    return out
-
-
 def chain_groups(ms: MarkerSet, max_sd_m: float = RIGID_SD_M) -> list[np.ndarray]:
     """Each marker with its two steadiest neighbours by the set (spread under
     `max_sd_m`: the joint's markers of a limb, thigh-knee-shank), as groups for
@@ -317,33 +253,6 @@ def chain_groups(ms: MarkerSet, max_sd_m: float = RIGID_SD_M) -> list[np.ndarray
     return out
 
 
-def group_moves(cp: Compat, G: np.ndarray, mt: np.ndarray, groups: list[np.ndarray]
-                ) -> list[tuple[float, np.ndarray]]:
-    """Every reordering of the labels inside each group of `groups` (near_groups) whose
-    tracks are labelled, with the compatibility's change (exact, batched per group;
-    G the gain at the labelling mt, marker -> track) where it is positive."""
-    C4 = cp.C.reshape(cp.T, cp.n, cp.T, cp.n)
-    out = []
-    for g in groups:
-        g = g[mt[g] >= 0]
-        k = len(g)
-        if k < 3:
-            continue
-        perms = np.array(list(permutations(range(k)))[1:])              # (P, k)
-        a = mt[g]                                                        # tracks
-        new = g[perms]                                                   # (P, k) markers
-        lin = G[a[None], new].sum(1) - G[a, g].sum()
-        aa = C4[a[None, :, None], new[:, :, None], a[None, None, :], new[:, None, :]]
-        ra = C4[a[None, :, None], g[None, :, None], a[None, None, :], new[:, None, :]]
-        rr = C4[a[:, None], g[:, None], a[None], g[None]].sum()
-        d = lin + 0.5 * (rr + aa.sum((1, 2)) - 2.0 * ra.sum((1, 2)))
-        for p in np.nonzero(d > 0)[0]:
-            m2 = mt.copy()
-            m2[new[p]] = a
-            out.append((float(d[p]), m2))
-    return out
-
-
 def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
            rounds: int = 30, near: float = 2.0, max_swaps: int = 60, allowed=None,
            every_order: bool = False, groups: list[np.ndarray] = ()
@@ -361,6 +270,7 @@ def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
     base = cp.score(P)
     mt = to_marker_track(P)
     cur = base + terms(mt)
+    table = MoveTable(moves, n)
     for _ in range(rounds):
         G = cp.gain(P)
         a, i = np.nonzero(P)
@@ -372,7 +282,10 @@ def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
         best, arg = cur, None
         xs, ys = np.nonzero(np.triu(d > -near, 1))
         top = np.argsort(-d[xs, ys])[:max_swaps]
-        for x, y in zip(xs[top], ys[top], strict=True):
+        bound = changed_bounds(terms, i[xs[top]], i[ys[top]])   # (gain_bound, batched)
+        for x, y, b in zip(xs[top], ys[top], bound, strict=True):
+            if cur + d[x, y] + b <= best + 1e-6 - SLACK:
+                continue
             m2 = mt.copy()
             m2[i[x]], m2[i[y]] = mt[i[y]], mt[i[x]]
             if cur + d[x, y] + terms.gain_bound(m2) <= best + 1e-6 or not ok(m2):
@@ -385,7 +298,10 @@ def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
         if len(free):
             d1 = G[a[:, None], free[None]] - G[a, i][:, None]
             xs, ks = np.nonzero(np.isfinite(d1))
-            for x, k in zip(xs, ks, strict=True):
+            bound = changed_bounds(terms, i[xs], free[ks])
+            for x, k, b in zip(xs, ks, bound, strict=True):
+                if cur + d1[x, k] + b <= best + 1e-6 - SLACK:
+                    continue
                 m2 = mt.copy()
                 m2[i[x]], m2[free[k]] = -1, a[x]
                 if cur + d1[x, k] + terms.gain_bound(m2) <= best + 1e-6 or not ok(m2):
@@ -407,7 +323,11 @@ def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
             top = np.argsort(-d2[us, xs, fs])[:max_swaps]
             cands += [(d2[u, x, f], un[u], x, free[f])
                       for u, x, f in zip(us[top], xs[top], fs[top], strict=True)]
-            for dv, u, x, f in cands:
+            bound = changed_bounds(terms, np.array([c[3] for c in cands], int),
+                                   np.array([i[c[2]] if c[2] >= 0 else -1 for c in cands], int))
+            for (dv, u, x, f), b in zip(cands, bound, strict=True):
+                if cur + dv + b <= best + 1e-6 - SLACK:
+                    continue
                 m2 = mt.copy()
                 if x < 0:
                     m2[f] = u
@@ -424,7 +344,8 @@ def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
             s = cur + dv + terms.change(m2)
             if s > best + 1e-6:
                 best, arg = s, m2
-        for perm, k in moves:
+        for j in table.candidates(cp.C, G, mt, terms, cur, best, every_order):
+            perm, k = moves[j]      # (only those that can still win; each scored exactly)
             if k >= 0 and terms.cost[k] < len(terms.modules[k]) and not every_order:
                 continue                   # the module fits as it is: leave its order
             m2 = mt[perm]

@@ -33,9 +33,6 @@ from daemon.labelling.assign import (
     body_scale,
     chain_groups,
     mirror_map,
-    mirror_moves,
-    module_moves,
-    near_groups,
     pair_stats,
     polish,
     to_marker_track,
@@ -43,6 +40,7 @@ from daemon.labelling.assign import (
 from daemon.labelling.body import BodyTerms
 from daemon.labelling.markerset import MarkerSet, signed_volume
 from daemon.labelling.markerset_fit import check_fit
+from daemon.labelling.moves import mirror_moves, module_moves, near_groups
 from daemon.labelling.own import own_agrees
 from daemon.labelling.start import link_window
 
