@@ -229,6 +229,27 @@ def test_new_definitions_between_frames_never_mix_with_the_old_fit(keep):
     assert set(hid.tolist()) <= {4, 8}
 
 
+def test_a_body_defined_as_before_keeps_its_markers_through_new_definitions():
+    """A reload's new definitions: a body defined exactly as before keeps its markers'
+    tracks and its last pose (no search, no gap); a changed one is identified afresh."""
+    rng = np.random.default_rng(5)
+    shapes = [rng.uniform(-0.1, 0.1, (4, 3)) for _ in range(3)]
+    bodies = [BodyDef(f"b{i}", i + 1, m, np.zeros(3), 3, 3) for i, m in enumerate(shapes)]
+    rt = RigidTracker(bodies[:2], RigidConfig(refine=False))
+    ids = np.arange(1, 13)
+    xyz = np.concatenate([m + [i, 0, 1] for i, m in enumerate(shapes)])
+    rt.update(_frame(ids, xyz))
+    held = rt.assigned.copy()
+    assert (held >= 0).all()
+    moved = BodyDef("b0", 1, shapes[0] * 1.01, np.zeros(3), 3, 3)  # b0 remeasured
+    rt.set_bodies([bodies[1], moved, bodies[2]])  # order changed, one added
+    np.testing.assert_array_equal(rt.assigned[0], held[1])  # b1 as it was
+    assert rt.prev_valid[0] and not rt.prev_valid[1:].any()
+    assert (rt.assigned[1:] == -1).all()  # b0 changed, b2 new: searched for
+    poses = rt.update(_frame(ids, xyz))
+    assert poses.valid[[0, 2]].all()
+
+
 def test_compiled_fit_matches_numpy_with_releases():
     """The compiled body fit (daemon.tracking.rigid_kernel) against the numpy path: weights from
     the tracks' sigma, a marker knocked 3 cm off (released), a body with nothing seen."""

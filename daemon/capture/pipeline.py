@@ -224,6 +224,22 @@ def latency_figures(latency_ns) -> dict:
             "max_ms": float(a.max()), "count": int(len(a))}
 
 
+class _IdleCall:
+    """A call queued among the idle path's results (Pipeline.replace's idle_call)."""
+
+    def __init__(self, call) -> None:
+        self.call = call
+
+
+def retire(parts: list) -> None:
+    """Stop what a reload replaced (outputs flush and close; a labelling stage closes)."""
+    for part in parts:
+        try:
+            part.stop() if hasattr(part, "stop") else part.close()
+        except Exception:  # noqa: BLE001 - one output failing to stop must not keep the rest
+            log.exception("stopping a replaced output")
+
+
 class Pipeline:
     """The tracker and rigid bodies over frame sets; results to hooks and publishers."""
 
@@ -245,43 +261,95 @@ class Pipeline:
         self._pending_publishers = None
         self._pending_labeller = None
         self._pending_tracker = None
+        self._pending_idle_call = None
+        self._retired: list = []  # outputs and labelling stages a swap replaced, to stop
+        self.swapped = threading.Event()  # set once the frame loop has applied a replace()
         self._period_anchor: tuple[int, int] | None = None  # (index, t_ns) of a set
         self.last_result: FrameResult | None = None
 
-    def replace(self, bodies=None, publishers=None, labeller=..., tracker=None) -> None:
+    def replace(self, bodies=None, publishers=None, labeller=..., tracker=None,
+                idle_call=None) -> None:
         """New rigid bodies, publishers, labelling stage (None: labelling off) and/or tracker
         (a new rig or gates) from a reload; applied between two frames by the frame loop, so
-        the stream never stops."""
+        the stream never stops. `idle_call()` runs on the idle path once every result
+        tracked before the swap has been there (a scorer switching to the new bodies)."""
         with self._lock:
             if tracker is not None:
                 self._pending_tracker = tracker
             if labeller is not ...:
+                self._supersede(self._pending_labeller, [labeller])
                 self._pending_labeller = (labeller,)
             if bodies is not None:
                 self._pending_bodies = list(bodies)
             if publishers is not None:
+                self._supersede(self._pending_publishers, publishers)
                 self._pending_publishers = list(publishers)
+            if idle_call is not None:
+                self._pending_idle_call = idle_call
+            self.swapped.clear()
+
+    def _supersede(self, pending, now) -> None:
+        """A replace() not swapped in yet, replaced by another: what it built and the new
+        one does not keep is stopped too."""
+        if pending is not None:
+            keep = {id(x) for x in (*now, *self.publishers, self.labeller)}
+            self._retired += [x for x in pending if x is not None and id(x) not in keep]
+
+    @property
+    def swap_pending(self) -> bool:
+        return (self._pending_bodies is not None or self._pending_publishers is not None
+                or self._pending_labeller is not None or self._pending_tracker is not None)
 
     def _apply_pending(self) -> None:
+        """The swap, on the frame loop's thread. Only what is quick happens here: a new
+        server that takes over its predecessor's sockets starts (every other new output was
+        started beside the stream), and what was replaced is left for the reload's thread to
+        stop (`take_retired`): an output's stop waits for its worker to flush."""
         with self._lock:
             bodies, pubs = self._pending_bodies, self._pending_publishers
             labeller, tracker = self._pending_labeller, self._pending_tracker
+            idle_call = self._pending_idle_call
             self._pending_bodies = self._pending_publishers = self._pending_labeller = None
-            self._pending_tracker = None
+            self._pending_tracker = self._pending_idle_call = None
+        retired: list = []
         if tracker is not None:
+            if getattr(tracker, "carry", False):  # same rig, new gates: the tracks go on
+                tracker.carry_tracks(self.tracker)
             tracker.period_s = self.tracker.period_s
             self.tracker, self.rig = tracker, tracker.rig
         if labeller is not None:
+            if labeller[0] is not self.labeller and hasattr(self.labeller, "close"):
+                retired.append(self.labeller)  # a start still searching on its thread stops
             self.labeller = labeller[0]
         if bodies is not None:
             self.rigid.set_bodies(bodies)
         if pubs is not None:
-            old = self.publishers
             for p in pubs:
-                p.start()
+                if not p.started:  # a server taking over its predecessor's sockets
+                    p.start()
+            now = {id(p) for p in pubs}
+            retired += [p for p in self.publishers if id(p) not in now]
             self.publishers = pubs
-            for p in old:
-                p.stop()
+        if idle_call is not None:
+            if self.idle_hooks:
+                self._idle.append(_IdleCall(idle_call))
+            else:
+                idle_call()
+        with self._lock:
+            self._retired += retired
+        self.swapped.set()
+
+    def take_retired(self) -> list:
+        """What swaps replaced and nobody has stopped yet (the reload that asked stops it)."""
+        with self._lock:
+            parts, self._retired = self._retired, []
+        return parts
+
+    def apply_pending(self) -> None:
+        """A waiting swap applied now: the frame loop calls it while no frames come (every
+        camera gone), so a reload still takes effect; only from the frame loop's thread."""
+        if self.swap_pending:
+            self._apply_pending()
 
     def _learn_period(self, fs: FrameSet) -> None:
         """The frame period from the sets' indices and times (what the tracker needs to
@@ -298,8 +366,7 @@ class Pipeline:
 
     def process(self, fs: FrameSet) -> FrameResult:
         pickup_ns = time.monotonic_ns()
-        if (self._pending_bodies is not None or self._pending_publishers is not None
-                or self._pending_labeller is not None):
+        if self.swap_pending:
             self._apply_pending()
         samples = fs.samples
         if samples:
@@ -345,5 +412,8 @@ class Pipeline:
         k = len(self._idle) if n is None else min(n, len(self._idle))
         for _ in range(k):
             result = self._idle.popleft()
+            if isinstance(result, _IdleCall):
+                result.call()
+                continue
             for hook in self.idle_hooks:
                 hook(result)

@@ -104,8 +104,9 @@ def register(app: typer.Typer) -> None:
 
         Reads a running daemon's control socket (`mocapd start --sim` runs one on a simulated
         rig)."""
-        request(runtime_dir, {"cmd": "reload"})
-        typer.echo("mocapd: reloading")
+        answer = request(runtime_dir, {"cmd": "reload"})
+        typer.echo("mocapd: still reloading (see the log)" if answer.get("pending")
+                   else "mocapd: configuration reloaded")
 
     @app.command("record")
     def record(path: Annotated[Path | None, typer.Argument(

@@ -78,8 +78,9 @@ def register(app: typer.Typer) -> None:
         append_body(config, name, body_id, body_from_markers(free))
         typer.echo(f"added rigid body {name!r} (id {body_id}, {len(free)} markers) to {config}")
         if reload:
-            request(runtime_dir, {"cmd": "reload"})
-            typer.echo("mocapd: reloading")
+            answer = request(runtime_dir, {"cmd": "reload"})
+            typer.echo("mocapd: still reloading (see the log)" if answer.get("pending")
+                       else "mocapd: configuration reloaded")
 
     @rigid_app.command("list")
     def list_bodies(config: ConfigOpt) -> None:

@@ -30,6 +30,9 @@ class Publisher:
 
     name = "publisher"
     inline = False  # send on the caller's thread while healthy (only for sends that never block)
+    # a server that takes over its predecessor's sockets as it starts: a reload starts it at
+    # the swap, on the frame loop; every other output is started before, beside the stream
+    takes_over = False
 
     def __init__(self, rate_hz: float = 0.0, queue_size: int = 8, retry_s: float = 1.0) -> None:
         self.rate_hz = float(rate_hz)
@@ -62,6 +65,10 @@ class Publisher:
         """Release the port or socket; called on errors (before a retry) and at stop."""
 
     # ---- the machinery -------------------------------------------------------------------
+
+    @property
+    def started(self) -> bool:
+        return self._worker is not None
 
     def start(self) -> None:
         self._worker = Supervised(f"pub-{self.name}", self._run, stopping=lambda: self._stop)

@@ -97,6 +97,8 @@ DIRECT_GRACE_S = 3.0  # a keep-alive-less unicast client has this long to open i
 class NatNetPublisher(Publisher):
     """Serves NatNet: answers the command port, sends frames by multicast and unicast."""
 
+    takes_over = True  # its command port (and clients) pass from the server it replaces
+
     # open servers by (interface, command port). A reload starts the new publisher while
     # the old one still runs (daemon.capture.pipeline): the new one takes over the old one's command
     # socket and clients, so no request goes unanswered and no client has to connect again

@@ -109,6 +109,8 @@ class _Client:
 class VrpnPublisher(Publisher):
     """A VRPN server with one tracker per rigid body."""
 
+    takes_over = True  # its command port (and clients) pass from the server it replaces
+
     # open servers by (host, port): a reload's new server takes over the old one's sockets
     # and connected clients (daemon.capture.pipeline starts it before stopping the old one), so
     # clients stay connected instead of reconnecting seconds later

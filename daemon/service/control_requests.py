@@ -13,6 +13,8 @@ from calibkit.core.errors import UserError
 from daemon.publish.mcap_recorder import McapRecorderPublisher
 from daemon.publish.recorder import RecorderPublisher
 
+RELOAD_ANSWER_S = 4.0  # a reload still running then is answered 'pending' (clients wait 5 s)
+
 
 def handle(daemon, req: dict) -> dict:
     """One control request's answer (daemon.service.control calls it on its thread)."""
@@ -22,8 +24,12 @@ def handle(daemon, req: dict) -> dict:
     if cmd == "stop":
         daemon.stop_event.set()
         return {"ok": True}
-    if cmd == "reload":
-        daemon.reload_event.set()
+    if cmd == "reload":  # answered once the new configuration took (or why it did not)
+        outcome = daemon.reloads.wait(daemon.reloads.ask(), RELOAD_ANSWER_S)
+        if outcome is None:
+            return {"ok": True, "pending": True}
+        if not outcome[0]:
+            raise UserError(f"reload failed, keeping the running configuration: {outcome[1]}")
         return {"ok": True}
     if cmd == "record":
         return record(daemon, req.get("path"), bool(req.get("overwrite")))

@@ -32,6 +32,7 @@ from daemon.capture.pipeline import (
     Multiplexer,
     Pipeline,
     latency_figures,
+    retire,
 )
 from daemon.capture.sources import DetectCamera, ReplayCamera, ReplayScene
 from daemon.config.mocapd import Config, default_runtime_dir
@@ -44,7 +45,7 @@ from daemon.publish.recorder import RecorderPublisher
 from daemon.service import control_requests, report, sim_bodies
 from daemon.service.control import ControlServer
 from daemon.service.outputs import make_publishers
-from daemon.service.reload import read_bytes
+from daemon.service.reload import Reloads, read_bytes
 from daemon.service.reload import reload as reload_config
 from daemon.synthetic import virtual
 from daemon.synthetic.evaluator import Evaluator
@@ -80,7 +81,9 @@ class Daemon:
         self.config = config
         self.extend = extend or (lambda c: c)
         self.stop_event = threading.Event()
-        self.reload_event = threading.Event()
+        self.reload_event = threading.Event()  # SIGHUP's: the frame loop asks for the reload
+        self.reloads = Reloads(self)
+        self.reload_error: str | None = None  # why the last reload failed
         self.recorder: RecorderPublisher | None = None
         self.started_ns = time.monotonic_ns()
         self.scene: SimScene | None = None
@@ -454,9 +457,10 @@ class Daemon:
             sd_notify(f"STATUS={self.pipeline.stats.rate_hz():.0f} fps, latency "
                       f"{med:.2f} ms, {self.pipeline.stats.valid_bodies} bodies")
             self._next_status = now + 1.0
-        if self.reload_event.is_set():
+        if self.reload_event.is_set():  # read and checked beside the frame loop
             self.reload_event.clear()
-            self.reload()
+            self.reloads.ask()
+        self.pipeline.apply_pending()  # a reload's swap, also while no frames come
         if progress is not None:
             progress(self.pipeline.stats.frames)
 
@@ -471,10 +475,12 @@ class Daemon:
             cap.join(1.0)
         if isinstance(self.scene, SimScene):
             self.scene.close()  # a live robot's command socket and truth file
+        self.reloads.join(10.0)  # a reload half-built would start outputs nobody stops
         if hasattr(self, "pipeline"):
-            self.pipeline._apply_pending()
+            self.pipeline.apply_pending()
             for p in self.pipeline.publishers:
                 p.stop()
+            retire(self.pipeline.take_retired())
         if self.recorder is not None:
             self.recorder.stop()
         if self.labelling is not None:

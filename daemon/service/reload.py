@@ -9,22 +9,87 @@ a bad file is logged and the running configuration kept.
 from __future__ import annotations
 
 import logging
+import sys
+import threading
 from pathlib import Path
 
 from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
+from daemon.capture.pipeline import retire
 from daemon.config.mocapd import Config, load_config
 from daemon.process.notify import sd_notify
 from daemon.service.outputs import make_publishers
 from daemon.tracking.tracker import Tracker
 
 log = logging.getLogger("mocapd")
+SWAP_WAIT_S = 2.0  # the longest a reload waits for the frame loop to swap
+RELOAD_SWITCH_S = 0.0005  # the interpreter's switch interval while a reload is built
+
+
+class Reloads:
+    """Reloads run one at a time on a thread beside the frame loop, which only swaps what
+    they built: reading and checking a configuration, building a labeller or a tracker
+    takes milliseconds to seconds that the stream must not wait for. Asking while one runs
+    makes one more run after it (the file may have changed again); `wait` gives a ticket's
+    outcome, for `mocapd reload` to say whether the new configuration took."""
+
+    def __init__(self, daemon) -> None:
+        self.daemon = daemon
+        self._cond = threading.Condition()
+        self.asked = self.done = 0
+        self.outcome: tuple[bool, str | None] = (True, None)  # of the newest finished
+        self._thread: threading.Thread | None = None
+
+    def ask(self) -> int:
+        """A reload is wanted: its ticket (never from a signal handler: it takes a lock)."""
+        with self._cond:
+            self.asked += 1
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, name="reload", daemon=True)
+                self._thread.start()
+            return self.asked
+
+    def wait(self, ticket: int, timeout_s: float) -> tuple[bool, str | None] | None:
+        """(ok, why not) of the reload that began after `ticket` was given; None: not done."""
+        with self._cond:
+            if not self._cond.wait_for(lambda: self.done >= ticket, timeout_s):
+                return None
+            return self.outcome
+
+    def join(self, timeout_s: float) -> None:
+        thread = self._thread
+        if thread is not None:
+            thread.join(timeout_s)
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                if self.done >= self.asked:
+                    self._thread = None
+                    return
+                upto = self.asked
+            # while this thread works the frame loop waits for the interpreter at most this
+            # long each time it asks (5 ms by default: more than half a frame at 120 fps)
+            interval = sys.getswitchinterval()
+            sys.setswitchinterval(min(interval, RELOAD_SWITCH_S))
+            try:
+                ok = reload(self.daemon)
+            except Exception:  # noqa: BLE001 - a bug must not end reloading for good
+                log.exception("reload failed, keeping the running configuration")
+                ok, self.daemon.reload_error = False, "internal error (see the log)"
+            finally:
+                sys.setswitchinterval(interval)
+            with self._cond:
+                self.done, self.outcome = upto, (ok, self.daemon.reload_error)
+                self._cond.notify_all()
 
 
 def reload(daemon) -> bool:
     """Re-read the configuration: rigid bodies and outputs change, the stream goes on.
-    A bad file is logged and the running configuration kept."""
+    A bad file is logged and the running configuration kept. Runs beside the frame loop
+    (daemon.service.daemon starts it on a thread of its own); the frame loop only swaps."""
     sd_notify("RELOADING=1")
+    daemon.reload_error = None
     try:
         path = daemon.config.path
         new = daemon.extend(load_config(path)) if path else daemon.config
@@ -34,40 +99,51 @@ def reload(daemon) -> bool:
         rig = reload_rig(daemon, new)
         tracker_config = daemon._tracker_config(new, rig or daemon.rig)
     except UserError as exc:
-        log.error("reload failed, keeping the running configuration: %s", exc)
-        sd_notify("READY=1")
-        return False
+        return _failed(daemon, exc)
     bodies = daemon._bodies(new)
     daemon._warn_alike(bodies)
-    if daemon.evaluator is not None:
-        daemon.pipeline.run_idle()  # frames tracked so far are scored against the old
-        daemon.evaluator.set_bodies(bodies)
     try:
         publishers = make_publishers(new, bodies, labelling.ms if labelling else None,
-                                     daemon.handle, daemon.hub)
+                                     daemon.handle, daemon.hub,
+                                     running=daemon.pipeline.publishers)
     except UserError as exc:
-        log.error("reload failed, keeping the running configuration: %s", exc)
         if labelling is not daemon.labelling and labelling is not None:
             labelling.close()
-        sd_notify("READY=1")
-        return False
+        return _failed(daemon, exc)
     changes = {} if labelling is daemon.labelling else {"labeller": labelling}
-    if changes and daemon.labelling is not None:
-        daemon.labelling.close()  # a start still searching on its thread stops
     daemon.labelling, daemon._markerset_key = labelling, key
     if rig is not None or tracker_config != daemon.tracker_config:
-        # tracks start afresh on the new rig or gates, between two frames
-        changes["tracker"] = Tracker(rig or daemon.rig, tracker_config)
+        # a new rig: tracks start afresh on it; new gates only: the tracks go on
+        tracker = Tracker(rig or daemon.rig, tracker_config)
+        tracker.carry = rig is None  # the frame loop hands the tracks over as it swaps
+        changes["tracker"] = tracker
         daemon.rig, daemon.tracker_config = rig or daemon.rig, tracker_config
+    if daemon.evaluator is not None:  # scored against the new bodies from the swap on
+        evaluator = daemon.evaluator
+        changes["idle_call"] = lambda: evaluator.set_bodies(bodies)
+    for p in publishers:  # a thread's start waits for it to run: not on the frame loop
+        if not p.started and not p.takes_over:
+            p.start()
     daemon.pipeline.replace(bodies=bodies, publishers=publishers, **changes)
     for src, det in detectors:
         src.detector = det
     daemon.config = new
+    # done once the frame loop has swapped (within a frame; it swaps while idle too), so
+    # that `mocapd reload` answers with the new configuration running
+    daemon.pipeline.swapped.wait(SWAP_WAIT_S)
+    retire(daemon.pipeline.take_retired())  # the replaced outputs flush and close here
     log.info("configuration reloaded: %d rigid bodies, %d outputs%s", len(bodies),
              len(new.udp) + len(new.serial) + len(new.mavlink),
              "" if labelling is None else f", marker set {labelling.set_name}")
     sd_notify("READY=1")
     return True
+
+
+def _failed(daemon, exc: UserError) -> bool:
+    log.error("reload failed, keeping the running configuration: %s", exc)
+    daemon.reload_error = str(exc)
+    sd_notify("READY=1")
+    return False
 
 
 def reload_rig(daemon, new: Config) -> Rig | None:

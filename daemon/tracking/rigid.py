@@ -110,6 +110,13 @@ def kabsch_batch(src: np.ndarray, dst: np.ndarray, w: np.ndarray):
     return R, t
 
 
+def _definition(b: BodyDef) -> tuple:
+    """What makes two definitions the same body (a reload keeps such a body tracked)."""
+    return (b.name, b.id, np.asarray(b.markers, np.float64).tobytes(),
+            np.asarray(b.pivot, np.float64).tobytes(), b.min_markers_start,
+            b.min_markers_keep, b.smoothing)
+
+
 class RigidTracker:
     """Finds the defined bodies among the tracks and poses them every frame."""
 
@@ -119,7 +126,11 @@ class RigidTracker:
         self.set_bodies(bodies)
 
     def set_bodies(self, bodies: list[BodyDef]) -> None:
-        """New definitions (a reload): every body is identified afresh."""
+        """New definitions (a reload). A body defined exactly as before keeps its markers'
+        tracks and last pose, so it stays tracked through the swap (adding a body does not
+        make the others search again); a new or changed one is identified afresh."""
+        old = {_definition(b): i for i, b in enumerate(getattr(self, "bodies", []))}
+        kept = (self.assigned, self.prev_valid, self.prev_R, self.prev_t) if old else None
         self.bodies = list(bodies)
         n = len(self.bodies)
         k = max((len(b.markers) for b in self.bodies), default=1)
@@ -137,6 +148,13 @@ class RigidTracker:
         self.prev_valid = np.zeros(n, dtype=bool)
         self.prev_R = np.tile(np.eye(3), (n, 1, 1))
         self.prev_t = np.zeros((n, 3))
+        for i, b in enumerate(self.bodies):
+            j = old.get(_definition(b))
+            if j is not None:
+                m = len(b.markers)
+                self.assigned[i, :m] = kept[0][j, :m]
+                self.prev_valid[i], self.prev_R[i], self.prev_t[i] = (kept[1][j], kept[2][j],
+                                                                     kept[3][j])
         # the last fit belongs to the old definitions: its shapes no longer match
         self._last = (None, None, None)
         self._last_rows = None  # (tracks, their rows per marker slot) of the last update

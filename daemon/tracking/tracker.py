@@ -155,6 +155,14 @@ class Tracker:
         self.period_s: float | None = None  # the cameras' frame period, when known
         self.frames = 0
 
+    def carry_tracks(self, old: Tracker) -> None:
+        """Go on with another tracker's tracks, on the same rig (a reload that changed
+        only the gates): ids, places, velocities and the frame clock carry over, so the
+        bodies built on them stay identified through the swap."""
+        for name in ("ids", "xyz", "vel", "missing", "anchored", "size_m2", "merged_blobs",
+                     "next_id", "last_t_ns", "period_s", "frames"):
+            setattr(self, name, getattr(old, name))
+
     def set_tracks(self, ids: np.ndarray, xyz: np.ndarray) -> None:
         """Start from these tracks (ids ascending), at rest and just seen: for warming the
         compiled kernels up and for tests; every per-track array stays the same length."""

@@ -398,8 +398,11 @@ class LiveView:
                 message.content = "busy with the last request"
                 return
             try:
-                message.content = action() + "; the daemon is reloading"
-                request(self.desc["runtime_dir"], {"cmd": "reload"})
+                done = action()
+                message.content = done + "; the daemon is reloading"
+                answer = request(self.desc["runtime_dir"], {"cmd": "reload"})
+                if not answer.get("pending"):
+                    message.content = done + "; the daemon reloaded"
             except UserError as exc:
                 message.content = f"**not done**: {exc}"
             except Exception as exc:  # noqa: BLE001 - the page must say, not die
