@@ -30,6 +30,7 @@ FAIL lines (a minute that misses the rate is listed with its load); --json write
 
     python benchmarks/soak.py [--minutes 60] [--json soak.json] [--view 127.0.0.1:8090]
                               [--minute-s 60] [--warmup-s 30] [--keep] [--fps 120]
+                              [--realtime]
 """
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
+from daemon.publish.arrival_stamps import receive_stamped, stamp_arrivals
 from daemon.publish.natnet_wire import NAT_KEEPALIVE
 from daemon.publish.packet import BODY, HEADER, MAGIC
 from daemon.publish.vrpn import cookie
@@ -88,6 +90,8 @@ class UdpReader:
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
         self.sock.bind(("127.0.0.1", 0))
         self.sock.settimeout(0.2)
+        # the kernel's arrival stamp: the reader's own wait for a core is not the daemon's
+        stamp_arrivals(self.sock)
         self.port = self.sock.getsockname()[1]
         self.datagrams = self.poses = self.bad = 0
         self._stop = threading.Event()
@@ -97,10 +101,10 @@ class UdpReader:
     def _run(self) -> None:
         while not self._stop.is_set():
             try:
-                data = self.sock.recv(65536)
+                data, _addr, arrived_ns = receive_stamped(self.sock)
             except OSError:
                 continue
-            self.take(data, time.monotonic_ns())
+            self.take(data, time.monotonic_ns() if arrived_ns is None else arrived_ns)
 
     def take(self, data: bytes, arrival_ns: int) -> None:
         """One datagram: counted, or counted bad (a subclass may keep more of it)."""
@@ -223,6 +227,8 @@ class Soak:
         argv = [*MOCAPD, "start", "--sim", "--config", str(self.cfg)]
         if self.args.view:
             argv += ["--view", self.args.view]
+        if self.args.realtime:
+            argv.append("--realtime")
         self.log = open(self.log_path, "w")  # noqa: SIM115 (the daemon's whole run)
         self.proc = subprocess.Popen(argv, stdout=self.log, stderr=subprocess.STDOUT,
                                      start_new_session=True)
@@ -601,6 +607,10 @@ def main(argv=None) -> int:
                          "cores, 8 cameras at 240 fps with the simulator and its scorer in the "
                          "daemon's process take all of a core's worth of the interpreter: "
                          "every fault's own work then shows as a lower rate")
+    ap.add_argument("--realtime", action="store_true",
+                    help="run the daemon as the installed systemd unit does (`mocapd start "
+                         "--realtime`): on a machine shared with other work, their load then "
+                         "stops showing in its rate")
     args = ap.parse_args(argv)
     if args.minutes < 1 or args.minute_s < 30:
         ap.error("--minutes must be at least 1 and --minute-s at least 30")
