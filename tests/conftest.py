@@ -339,14 +339,54 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: rank.get(Path(str(item.fspath)).stem, len(rank)))
 
 
-# The longest modules first (each tens of seconds on a quiet machine: namespaces, the robot
-# examples, the kernel cache, labelling, nodes, the browser pages), the rest in their
-# order: on two workers (-n 2 --dist loadfile) a long module handed out last would leave
-# one worker running alone at the end. Longest first keeps the two ending together.
-LONGEST_FIRST = ("test_nodes_link", "test_robot_example", "test_kernels_cache", "test_label",
-                 "test_nodes", "test_view_report", "test_view_coverage", "test_view_browser",
-                 "test_label_subjects", "test_wand_small", "test_demo", "test_natnet_protocol")
+# The longest modules first, the rest in their order: on two workers (-n 2 --dist loadfile)
+# a long module handed out last leaves one worker running it alone at the end; longest
+# first keeps the two ending together. xdist hands modules out in this order only with
+# --no-loadscope-reorder (pyproject.toml's addopts): by default it sorts them by their
+# number of tests, which handed the namespaces, the kernel cache and the browser last.
+# Ordered by each module's wall time in a whole run (docs/testing.md, 2026-11-27 19:26 at
+# load 5-16, seconds there): the robot's live drives 230, the labeller on other subjects
+# 175, namespaces and node clocks over links 130, ...; below about 15 s the order matters
+# little, the small modules fill the end.
+LONGEST_FIRST = (
+    "test_robot_example", "test_label_subjects", "test_nodes_link", "test_label",
+    "test_kernels_cache", "test_nodes", "test_live_label", "test_daemon_e2e",
+    "test_view_browser", "test_natnet_protocol", "test_demo", "test_wand_cli",
+    "test_view_coverage", "test_fuzz_files", "test_label_verify", "test_label_start",
+    "test_wand_pairing", "test_extrinsic", "test_view_report", "test_wand", "test_wand_small",
+    "test_layer_imports", "test_intrinsic", "test_extrinsic_cli", "test_fuzz_view",
+    "test_view_replay", "test_examples", "test_wand_dots", "test_boundary",
+    "test_view_detection", "test_wand_shape", "test_vrpn", "test_mavlink",
+    "test_view_contrast", "test_natnet", "test_fuzz_nodes", "test_multiplexer", "test_track",
+    "test_wand_views", "test_tracker")
 
+
+
+# Modules whose tests are handed out one at a time (every other module goes whole to one
+# worker, for its module fixtures: a daemon, a browser, namespaces): long, bound by the
+# CPU, with no live daemon, browser, port or shared file, and only cheap module fixtures
+# (a marker set, a take read from a file) that each worker then builds for itself. Whole,
+# the labeller on other subjects (9 tests, 3 minutes at load 10) kept one worker busy
+# while the other ran out of work; one test at a time, both share it.
+SHARED_BY_TESTS = {"test_label_subjects", "test_label", "test_label_start", "test_label_verify",
+                   "test_fuzz_files", "test_wand_cli", "test_extrinsic", "test_intrinsic"}
+
+
+@pytest.hookimpl(optionalhook=True)  # a hook of xdist's: `-p no:xdist` runs without it
+def pytest_xdist_make_scheduler(config, log):
+    """`--dist loadfile` as xdist does it, except for the SHARED_BY_TESTS modules, whose
+    tests are units of their own; any other --dist is left to xdist."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class ModulesWholeButShared(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            if Path(nodeid.split("::", 1)[0]).stem in SHARED_BY_TESTS:
+                return nodeid
+            return super()._split_scope(nodeid)
+
+    return ModulesWholeButShared(config, log)
 
 
 @pytest.fixture(scope="session", autouse=True)

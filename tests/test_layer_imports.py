@@ -9,6 +9,7 @@ docs/architecture.md draws it), and projector needs nothing of calibkit above it
 from __future__ import annotations
 
 import ast
+import functools
 import subprocess
 import sys
 from pathlib import Path
@@ -17,7 +18,8 @@ ROOT = Path(__file__).resolve().parents[1]
 DISPLAY = "projector.display"
 
 
-def _imports(path: Path) -> set[str]:
+@functools.cache  # each file parsed once a run, not once per test (the sets stay unchanged)
+def _imports(path: Path) -> frozenset[str]:
     found = set()
     for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
         if isinstance(node, ast.Import):
@@ -25,7 +27,7 @@ def _imports(path: Path) -> set[str]:
         elif isinstance(node, ast.ImportFrom) and node.module:
             found.add(node.module)
             found.update(f"{node.module}.{alias.name}" for alias in node.names)
-    return found
+    return frozenset(found)
 
 
 def _offenders(folders: list[str], prefix: str) -> dict[str, list[str]]:
@@ -108,7 +110,14 @@ def _runtime_imports_of(node: ast.AST):
 
 def import_graph() -> dict[str, set[str]]:
     """Module -> the modules of our packages it imports. `from a.b import c` names module
-    a.b.c when there is one, else a.b (an import of a name defined in it)."""
+    a.b.c when there is one, else a.b (an import of a name defined in it). Built once a run
+    (four tests read it; parsing every file took seconds each time); each caller gets its
+    own copy."""
+    return {name: set(deps) for name, deps in _import_graph().items()}
+
+
+@functools.cache
+def _import_graph() -> dict[str, frozenset[str]]:
     files = {_module_name(f): f for pkg in PACKAGES for f in (ROOT / pkg).rglob("*.py")}
 
     def ours(name: str) -> str | None:
@@ -129,7 +138,7 @@ def import_graph() -> dict[str, set[str]]:
                 anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
                 base = ".".join([*anchor, base] if base else anchor)
             found.update(ours(f"{base}.{a.name}") for a in node.names)
-        graph[name] = found - {None, name}
+        graph[name] = frozenset(found - {None, name})
     return graph
 
 
