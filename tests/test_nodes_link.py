@@ -44,6 +44,12 @@ ENV = dict(os.environ, PYTHONPATH=str(ROOT))
 # Daemons, nodes and links run until a test has what it needs and stops them; the waits
 # are generous (a machine at load 30 took over 90 s to bring a node's cameras up).
 LONG_S, WAIT_S = 600, 240
+# The two clock tests last as long as the estimate's window takes to fill (WINDOW exchanges
+# at 20 Hz), whatever the cameras' rate: at 120 fps instead of the sim's 240 the daemon and
+# node spend about half the CPU over the same 20-odd seconds. The clock exchanges, the
+# samples scored and the bounds are the same (the 1000 frames the namespace test waits for
+# still come well inside the window's fill).
+FPS = 120.0
 
 
 def start_link(listen, to, netns=None, seconds=LONG_S, delay_ms=1.0, jitter_ms=0.2):
@@ -62,10 +68,11 @@ def test_clock_offset_within_50_us_over_a_1_ms_jittery_link_and_50_ppm_followed(
     truth (the median of half-second samples, and the worst) and its drift within
     DRIFT_ERROR_PPM of 50 ppm."""
     port, link_port, rig = free_port(), free_port(), "link"
-    d = DaemonThread(tmp_path, port, rig, LONG_S, n_cameras=4).start()
+    d = DaemonThread(tmp_path, port, rig, LONG_S, n_cameras=4,
+                     extra={"sim": {"cameras": 4, "fps": FPS}}).start()
     link = start_link(f"127.0.0.1:{link_port}", f"127.0.0.1:{port}", seconds=LONG_S)
     node = start_node("far", rig, f"tcp/127.0.0.1:{link_port}", "0-3", OFFSET_MS, DRIFT_PPM,
-                      n_cameras=4, seconds=LONG_S)
+                      n_cameras=4, seconds=LONG_S, extra=("--sim-fps", str(FPS)))
     errors, drifts, rtts = [], [], []
     try:
         assert d.wait_for(lambda dm: cameras_live(dm, [f"cam{i}" for i in range(4)]), WAIT_S)
@@ -202,7 +209,7 @@ def test_node_in_a_network_namespace_over_a_delayed_link(namespaces, tmp_path):
                             "netem", "delay", "1ms", "0.2ms"], check=True)
     runtime = tmp_path / "run"
     conf = tmp_path / "mocapd.toml"
-    conf.write_text(f'runtime_dir = "{runtime}"\n[sim]\ncameras = 4\n'
+    conf.write_text(f'runtime_dir = "{runtime}"\n[sim]\ncameras = 4\nfps = {FPS}\n'
                     f'[zenoh]\nrig = "ns"\nlisten = ["tcp/10.213.77.1:{port}"]\n'
                     'cameras = "announced"\n')
     daemon = subprocess.Popen(["ip", "netns", "exec", a, sys.executable, "-m", "daemon.cli",
@@ -216,7 +223,8 @@ def test_node_in_a_network_namespace_over_a_delayed_link(namespaces, tmp_path):
         procs.append(start_link(f"127.0.0.1:{link_port}", f"10.213.77.1:{port}", netns=b))
         endpoint = f"tcp/127.0.0.1:{link_port}"
     node_cmd = ["ip", "netns", "exec", b, sys.executable, "-m", "daemon.cli", "node", "--sim",
-                "--sim-cameras", "4", "--name", "nsnode", "--rig", "ns", "--connect",
+                "--sim-cameras", "4", "--sim-fps", str(FPS), "--name", "nsnode", "--rig", "ns",
+                "--connect",
                 endpoint, "--clock-offset-ms", str(OFFSET_MS), "--clock-drift-ppm",
                 str(DRIFT_PPM), "--duration", str(LONG_S)]
     procs.append(subprocess.Popen(node_cmd, cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL,
