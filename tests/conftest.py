@@ -151,7 +151,13 @@ SLOW: dict[str, str | set[str]] = {
         "test_window_start_with_hidden_markers_and_ghosts"},
     "test_label_subjects": {
         "test_a_correct_start_never_ends_worse_on_another_body",
+        "test_a_leg_turned_along_its_chain_is_put_right",
+        "test_a_scrambled_start_is_put_right_from_the_frames_before_it",
         "test_another_body_from_the_set_alone"},
+    "test_supervise": {
+        "test_every_kind_of_thread_restarts_after_an_injected_exception"},
+    "test_supervise_more": {
+        "test_a_killed_view_process_is_restarted_and_status_says_so"},
     "test_label_verify": {
         "test_verification_brings_in_points_tracking_left_out"},
     "test_layer_imports": {
