@@ -351,7 +351,7 @@ def pytest_collection_modifyitems(config, items):
 # --no-loadscope-reorder (pyproject.toml's addopts): by default it sorts them by their
 # number of tests, which handed the namespaces, the kernel cache and the browser last.
 # Ordered by each module's wall time in a whole run (docs/testing.md, 2026-11-27 19:26 at
-# load 5-16, seconds there): the robot's live drives 230, the labeller on other subjects
+# load 0.4-19, mean 9; seconds there): the robot's live drives 230, the labeller on other subjects
 # 175, namespaces and node clocks over links 130, ...; below about 15 s the order matters
 # little, the small modules fill the end.
 LONGEST_FIRST = (
