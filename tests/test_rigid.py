@@ -250,6 +250,31 @@ def test_a_body_defined_as_before_keeps_its_markers_through_new_definitions():
     assert poses.valid[[0, 2]].all()
 
 
+def test_a_new_body_found_beside_the_stream_is_tracked_from_its_first_frame():
+    """A reload's new body is searched for among the last frame's tracks off the frame
+    loop (seed); the swap's frame then fits it at once, with no search of its own."""
+    rng = np.random.default_rng(7)
+    shapes = [rng.uniform(-0.1, 0.1, (4, 3)) for _ in range(2)]
+    bodies = [BodyDef(f"b{i}", i + 1, m, np.zeros(3), 3, 3) for i, m in enumerate(shapes)]
+    rt = RigidTracker(bodies[:1], RigidConfig(refine=False))
+    ids = np.arange(1, 9)
+    xyz = np.concatenate([m + [i, 0, 1] for i, m in enumerate(shapes)])
+    rt.update(_frame(ids, xyz))
+    seeds = rt.seed(bodies, _frame(ids, xyz))
+    assert list(seeds) == [1] and seeds[1].tolist() == [5, 6, 7, 8]
+    searched = []
+    rt._identify = lambda tracks, lost: searched.append(lost.copy())
+    rt.set_bodies(bodies, seeds)
+    poses = rt.update(_frame(ids, xyz))
+    assert poses.valid.all() and not searched
+    np.testing.assert_allclose(poses.position[1], [1, 0, 1], atol=1e-9)  # the pivot, placed
+    # a seed whose tracks another body holds is not taken
+    rt2 = RigidTracker(bodies[:1], RigidConfig(refine=False))
+    rt2.update(_frame(ids, xyz))
+    rt2.set_bodies(bodies, {1: np.array([1, 6, 7, 8])})
+    assert (rt2.assigned[1] == -1).all()
+
+
 def test_compiled_fit_matches_numpy_with_releases():
     """The compiled body fit (daemon.tracking.rigid_kernel) against the numpy path: weights from
     the tracks' sigma, a marker knocked 3 cm off (released), a body with nothing seen."""

@@ -268,11 +268,12 @@ class Pipeline:
         self.last_result: FrameResult | None = None
 
     def replace(self, bodies=None, publishers=None, labeller=..., tracker=None,
-                idle_call=None) -> None:
+                idle_call=None, seeds=None) -> None:
         """New rigid bodies, publishers, labelling stage (None: labelling off) and/or tracker
         (a new rig or gates) from a reload; applied between two frames by the frame loop, so
         the stream never stops. `idle_call()` runs on the idle path once every result
-        tracked before the swap has been there (a scorer switching to the new bodies)."""
+        tracked before the swap has been there (a scorer switching to the new bodies);
+        `seeds` are where new bodies were found among the tracks (RigidTracker.seed)."""
         with self._lock:
             if tracker is not None:
                 self._pending_tracker = tracker
@@ -280,7 +281,7 @@ class Pipeline:
                 self._supersede(self._pending_labeller, [labeller])
                 self._pending_labeller = (labeller,)
             if bodies is not None:
-                self._pending_bodies = list(bodies)
+                self._pending_bodies = (list(bodies), seeds)
             if publishers is not None:
                 self._supersede(self._pending_publishers, publishers)
                 self._pending_publishers = list(publishers)
@@ -322,7 +323,7 @@ class Pipeline:
                 retired.append(self.labeller)  # a start still searching on its thread stops
             self.labeller = labeller[0]
         if bodies is not None:
-            self.rigid.set_bodies(bodies)
+            self.rigid.set_bodies(*bodies)
         if pubs is not None:
             for p in pubs:
                 if not p.started:  # a server taking over its predecessor's sockets

@@ -124,6 +124,9 @@ def reload(daemon) -> bool:
     for p in publishers:  # a thread's start waits for it to run: not on the frame loop
         if not p.started and not p.takes_over:
             p.start()
+    last = daemon.pipeline.last_result  # new bodies found here, not in the swap's frame
+    if last is not None and "tracker" not in changes:
+        changes["seeds"] = daemon.pipeline.rigid.seed(bodies, last.tracks)
     daemon.pipeline.replace(bodies=bodies, publishers=publishers, **changes)
     for src, det in detectors:
         src.detector = det

@@ -125,7 +125,33 @@ class RigidTracker:
         self.frame = 0
         self.set_bodies(bodies)
 
-    def set_bodies(self, bodies: list[BodyDef]) -> None:
+    def seed(self, bodies: list[BodyDef], tracks: TrackFrame) -> dict[int, np.ndarray]:
+        """Where each of a reload's bodies not defined before is among `tracks` (the last
+        frame's): {index in bodies: track id per marker slot, -1 for none}. Run on the
+        reload's thread and read-only here, so that the frame the swap happens in does not
+        have to search for a new body (3-5 ms of the frame loop's time); set_bodies takes
+        these as the new bodies' first assignment."""
+        known = {_definition(b) for b in self.bodies}
+        assigned = self.assigned.copy()
+        taken = np.isin(tracks.ids, assigned[assigned >= 0])
+        free = np.flatnonzero(tracks.seen & ~taken) if len(tracks) else np.zeros(0, np.int64)
+        seeds: dict[int, np.ndarray] = {}
+        for i, body in enumerate(bodies):
+            if _definition(body) in known or len(free) < min(body.min_markers_start,
+                                                                len(body.markers)):
+                continue
+            match = find_body(body, tracks.xyz[free], self.config.distance_tol_m,
+                              self.config.max_error_m)
+            if match is None:
+                continue
+            ids = np.full(len(body.markers), -1, dtype=np.int64)
+            found = match >= 0
+            ids[found] = tracks.ids[free[match[found]]]
+            seeds[i] = ids
+            free = np.setdiff1d(free, free[match[found]])
+        return seeds
+
+    def set_bodies(self, bodies: list[BodyDef], seeds: dict | None = None) -> None:
         """New definitions (a reload). A body defined exactly as before keeps its markers'
         tracks and last pose, so it stays tracked through the swap (adding a body does not
         make the others search again); a new or changed one is identified afresh."""
@@ -155,6 +181,11 @@ class RigidTracker:
                 self.assigned[i, :m] = kept[0][j, :m]
                 self.prev_valid[i], self.prev_R[i], self.prev_t[i] = (kept[1][j], kept[2][j],
                                                                      kept[3][j])
+        held = self.assigned[self.assigned >= 0]
+        for i, ids in (seeds or {}).items():  # found by seed(): no track taken twice
+            if i < n and (self.assigned[i] < 0).all() and not np.isin(ids, held).any():
+                self.assigned[i, :len(ids)] = ids
+                held = np.concatenate([held, ids[ids >= 0]])
         # the last fit belongs to the old definitions: its shapes no longer match
         self._last = (None, None, None)
         self._last_rows = None  # (tracks, their rows per marker slot) of the last update
