@@ -28,10 +28,10 @@ def _frames_after(daemon, n: int, timeout_s: float = 60.0) -> None:
         time.sleep(0.02)
 
 
-@pytest.fixture
-def running(tmp_path):
+def _run_with(tmp_path, text: str):
+    """A daemon running the configuration `text`, tracking: (daemon, its file, thread)."""
     cfg_path = tmp_path / "mocapd.toml"
-    cfg_path.write_text(SIM)
+    cfg_path.write_text(text)
     rt = tmp_path / "rt"
     daemon = Daemon(replace(load_config(cfg_path), runtime_dir=rt),
                     extend=lambda c: replace(c, runtime_dir=rt))
@@ -41,6 +41,12 @@ def running(tmp_path):
     while getattr(daemon, "pipeline", None) is None or daemon.pipeline.stats.frames < 20:
         assert time.monotonic() < deadline and thread.is_alive(), "the daemon did not start"
         time.sleep(0.05)
+    return daemon, cfg_path, thread
+
+
+@pytest.fixture
+def running(tmp_path):
+    daemon, cfg_path, thread = _run_with(tmp_path, SIM)
     yield daemon, cfg_path
     daemon.handle({"cmd": "stop"})
     thread.join(30)
@@ -81,22 +87,6 @@ def test_every_reachable_reload_keeps_tracking(running, tmp_path, caplog):
     assert daemon.pipeline.tracker is not tracker
     assert daemon.pipeline.tracker.config.gate_px == 7.5
     assert daemon.status()["bodies_tracked"] >= 1
-
-
-def _run_with(tmp_path, text: str):
-    """A daemon running `text` (the fixture's, for a configuration of the test's own)."""
-    cfg_path = tmp_path / "mocapd.toml"
-    cfg_path.write_text(text)
-    rt = tmp_path / "rt"
-    daemon = Daemon(replace(load_config(cfg_path), runtime_dir=rt),
-                    extend=lambda c: replace(c, runtime_dir=rt))
-    thread = threading.Thread(target=daemon.run, kwargs={"duration_s": 120.0}, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 90
-    while getattr(daemon, "pipeline", None) is None or daemon.pipeline.stats.frames < 20:
-        assert time.monotonic() < deadline and thread.is_alive(), "the daemon did not start"
-        time.sleep(0.05)
-    return daemon, cfg_path, thread
 
 
 def test_the_stream_goes_on_while_a_reload_is_read_and_built(running, monkeypatch):

@@ -229,15 +229,20 @@ def test_new_definitions_between_frames_never_mix_with_the_old_fit(keep):
     assert set(hid.tolist()) <= {4, 8}
 
 
+def _bodies_side_by_side(n: int, seed: int):
+    """n random 4-marker bodies, body i at x = i m (unrotated): shapes, defs, track ids, xyz."""
+    rng = np.random.default_rng(seed)
+    shapes = [rng.uniform(-0.1, 0.1, (4, 3)) for _ in range(n)]
+    bodies = [BodyDef(f"b{i}", i + 1, m, np.zeros(3), 3, 3) for i, m in enumerate(shapes)]
+    xyz = np.concatenate([m + [i, 0, 1] for i, m in enumerate(shapes)])
+    return shapes, bodies, np.arange(1, 4 * n + 1), xyz
+
+
 def test_a_body_defined_as_before_keeps_its_markers_through_new_definitions():
     """A reload's new definitions: a body defined exactly as before keeps its markers'
     tracks and its last pose (no search, no gap); a changed one is identified afresh."""
-    rng = np.random.default_rng(5)
-    shapes = [rng.uniform(-0.1, 0.1, (4, 3)) for _ in range(3)]
-    bodies = [BodyDef(f"b{i}", i + 1, m, np.zeros(3), 3, 3) for i, m in enumerate(shapes)]
+    shapes, bodies, ids, xyz = _bodies_side_by_side(3, seed=5)
     rt = RigidTracker(bodies[:2], RigidConfig(refine=False))
-    ids = np.arange(1, 13)
-    xyz = np.concatenate([m + [i, 0, 1] for i, m in enumerate(shapes)])
     rt.update(_frame(ids, xyz))
     held = rt.assigned.copy()
     assert (held >= 0).all()
@@ -253,12 +258,8 @@ def test_a_body_defined_as_before_keeps_its_markers_through_new_definitions():
 def test_a_new_body_found_beside_the_stream_is_tracked_from_its_first_frame():
     """A reload's new body is searched for among the last frame's tracks off the frame
     loop (seed); the swap's frame then fits it at once, with no search of its own."""
-    rng = np.random.default_rng(7)
-    shapes = [rng.uniform(-0.1, 0.1, (4, 3)) for _ in range(2)]
-    bodies = [BodyDef(f"b{i}", i + 1, m, np.zeros(3), 3, 3) for i, m in enumerate(shapes)]
+    shapes, bodies, ids, xyz = _bodies_side_by_side(2, seed=7)
     rt = RigidTracker(bodies[:1], RigidConfig(refine=False))
-    ids = np.arange(1, 9)
-    xyz = np.concatenate([m + [i, 0, 1] for i, m in enumerate(shapes)])
     rt.update(_frame(ids, xyz))
     seeds = rt.seed(bodies, _frame(ids, xyz))
     assert list(seeds) == [1] and seeds[1].tolist() == [5, 6, 7, 8]
