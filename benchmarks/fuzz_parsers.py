@@ -12,11 +12,11 @@ Throughput, junk and the baseline: the same parser on good inputs in the same pr
 each the median of `--repeats` batches (inputs per second: what a flood costs the daemon).
 
 The view is a live server in its own process: `--connections` malformed HTTP and websocket
-connections (a connection is slower than a datagram), its stderr counted for lines and
-tracebacks, then asked for its page.
+connections, `--concurrency` of them at once (benchmarks/fuzz_view.py), its stderr counted
+for lines and tracebacks, then asked for its page and its scene.
 
     python benchmarks/fuzz_parsers.py [--inputs 100000] [--connections 600] [--repeats 5]
-        [--only natnet,mavlink,...] [--json out.json]
+        [--concurrency 128] [--only natnet,mavlink,...,view] [--json out.json]
 """
 
 from __future__ import annotations
@@ -25,7 +25,6 @@ import argparse
 import json
 import logging
 import os
-import socket
 import struct
 import sys
 import tempfile
@@ -38,6 +37,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from fuzz_view import run_view  # noqa: E402 - beside this script
+from fuzz_view_events import EDITS, page_events  # noqa: E402 - beside this script
 
 from calibkit.clitools import print_table, write_json  # noqa: E402
 from calibkit.core.errors import UserError  # noqa: E402
@@ -267,7 +269,8 @@ def config():
 
 
 PARSERS = {"natnet": natnet, "vrpn": vrpn, "mavlink": mavlink, "zenoh": zenoh,
-           "mcrec": mcrec, "csv": csv_obs, "c3d": c3d, "config": config}
+           "mcrec": mcrec, "csv": csv_obs, "c3d": c3d, "config": config,
+           "view_events": page_events}
 
 
 def run_parser(name: str, n: int, repeats: int, seed: int) -> dict:
@@ -314,78 +317,12 @@ def run_parser(name: str, n: int, repeats: int, seed: int) -> dict:
             "junk_per_s": float(np.median(rates)), "good_per_s": float(np.median(base))}
 
 
-def run_view(connections: int, seed: int) -> dict:
-    """A live view, `connections` malformed connections, its stderr counted."""
-    import viser
-
-    from daemon.view.link import ViewLink
-    from tests.test_fuzz_view import _frame, _handshake, _raw
-
-    def short(data: bytes) -> None:
-        """A junk connection not waited on for long: the server may wait for the rest of
-        a request line that never comes (its own timeout closes it)."""
-        s = socket.create_connection(("127.0.0.1", port), timeout=0.3)
-        try:
-            s.sendall(data)
-            s.recv(1)
-        except OSError:
-            pass
-        s.close()
-    from tests.test_natnet import free_ports
-
-    port = free_ports(1)[0]
-    err = tempfile.TemporaryFile()
-    saved = os.dup(2)
-    os.dup2(err.fileno(), 2)  # the view's process inherits this stderr
-    rng = np.random.default_rng(seed)
-    protocol = f"viser-v{viser.__version__}"
-    t0 = time.perf_counter()
-    try:
-        link = ViewLink("127.0.0.1", port)
-        try:
-            assert link._conn.poll(120) and "ready" in link._conn.recv()
-            t0 = time.perf_counter()
-            for k in range(connections):
-                kind = k % 4
-                if kind == 0:
-                    short(rng.integers(0, 256, int(rng.integers(1, 300)), np.uint8).tobytes())
-                elif kind == 1:
-                    short(b"GET /" + rng.integers(33, 127, 50, np.uint8).tobytes()
-                         + b" HTTP/1.1\r\nUpgrade: websocket\r\n\r\n")
-                else:
-                    s, reply = _handshake(port, protocol if kind == 2 else "viser-v0")
-                    s.settimeout(0.3)  # junk that happens to decode gets no answer
-                    try:
-                        s.sendall(_frame(rng.integers(0, 256, 40, np.uint8).tobytes()))
-                        s.recv(1)
-                    except OSError:
-                        pass
-                    s.close()
-            duration = time.perf_counter() - t0
-            page = _raw(port, b"GET / HTTP/1.1\r\nHost: x\r\n\r\n").split(b"\r\n")[0]
-            time.sleep(1.0)
-        finally:
-            link.close()
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
-    err.seek(0)
-    text = err.read().decode("utf-8", "replace")
-    lines = [ln for ln in text.splitlines() if ln.strip()]
-    kinds = Counter(ln.split(": ", 2)[1] if ln.count(": ") >= 2 else ln for ln in lines)
-    most = max(kinds.values(), default=0)
-    return {"parser": "view (live)", "inputs": connections,
-            "unhandled": 0 if b" 200 " in page else 1, "unhandled_kinds": {},
-            "kinds_logged": len(kinds), "max_lines_per_kind": most,
-            "max_lines_per_kind_per_s": most / max(duration, 1.0),
-            "tracebacks": text.count("Traceback"), "duration_s": duration,
-            "junk_per_s": connections / duration, "good_per_s": float("nan")}
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--inputs", type=int, default=100_000)
     ap.add_argument("--connections", type=int, default=600)
+    ap.add_argument("--concurrency", type=int, default=128,
+                    help="the view's malformed connections in flight at once")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--seed", type=int, default=30)
     ap.add_argument("--only", default="", help="comma-separated parsers (and 'view')")
@@ -395,7 +332,7 @@ def main() -> None:
     logging.getLogger("mocapd").propagate = False  # counted here, not printed
     results = []
     for name in only:
-        r = run_view(args.connections, args.seed) if name == "view" else \
+        r = run_view(args.connections, args.seed, args.concurrency) if name == "view" else \
             run_parser(name, args.inputs, args.repeats, args.seed)
         results.append(r)
         print(f"{name}: done in {r['duration_s']:.1f} s", file=sys.stderr, flush=True)
@@ -406,6 +343,15 @@ def main() -> None:
                   if np.isfinite(r["good_per_s"]) else "-"] for r in results],
                 ["parser", "inputs", "unhandled", "tracebacks", "kinds logged",
                  "max lines/kind", "lines/kind/s", "junk inputs/s", "good inputs/s"])
+    for r in results:
+        if "rss_mb" in r:  # the live view: a leak of sockets or memory would show here
+            print(f"view process: RSS {r['rss_mb'][0]:.1f} -> {r['rss_mb'][1]:.1f} MB (peak "
+                  f"{r['peak_rss_mb']:.1f}), open fds {r['fds'][0]} -> {r['fds'][1]} (peak "
+                  f"{r['peak_fds']}); page served: {r['page']}, scene given: {r['scene']}, "
+                  f"same process: {r['same_pid']}")
+        if r["parser"] == "view_events":
+            r["edits"] = dict(EDITS)
+            print("page edits: " + ", ".join(f"{k} {v}" for k, v in sorted(EDITS.items())))
     if args.json:
         write_json(args.json, {"results": results})
 

@@ -14,7 +14,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from calibkit.core.errors import UserError
@@ -244,9 +244,60 @@ def test_crafted_clicks_and_boxes_are_ignored_once_logged(caplog):
     with caplog.at_level(logging.INFO, "mocapd"):
         for origin, direction in ((None, None), ([0, 0, 0], [np.nan, 0, 1]),
                                   ("abc", [0, 0, 1]), ([0, 0], [0, 0, 1]),
-                                  ([0, 0, 0], [0, 0, 1])):
+                                  ([[0, 0, 0], [0, 0, 0]], [0, 0, 1]),  # one per marker
+                                  ([0, 0, 0], [[0, 0, 1]] * 3), ([0, 0, 0], [0, 0, 1])):
             LiveView._on_click(view, SimpleNamespace(ray_origin=origin,
                                                      ray_direction=direction))
     assert picked == [{4}]  # only the real click, straight up at marker 4
-    assert view.bad.counts == {"click that is no ray": 4}
+    assert view.bad.counts == {"click that is no ray": 6}
     assert len([r for r in caplog.records if "ignoring" in r.getMessage()]) == 1
+
+
+class _BrowserCamera:
+    """A browser camera as viser builds it from the page's camera message: its fields as
+    sent, the aspect (width / height) computed when read, as viser's CameraHandle does."""
+
+    def __init__(self, position, wxyz, fov, width, height) -> None:
+        self.position, self.wxyz, self.fov = np.array(position), np.array(wxyz), fov
+        self._size = (width, height)
+
+    @property
+    def aspect(self) -> float:
+        return float(self._size[0]) / self._size[1]
+
+
+NUM = st.one_of(st.floats(), st.integers(-(2 ** 63), 2 ** 63 - 1))
+NESTED = st.recursive(st.lists(NUM, max_size=3), lambda inner: st.lists(inner, max_size=3),
+                      max_leaves=12)
+
+
+@settings(max_examples=200, deadline=None)
+@given(position=st.lists(NUM, min_size=3, max_size=3), wxyz=st.lists(NUM, min_size=4,
+                                                                    max_size=4),
+       fov=st.one_of(NUM, ANY), width=st.one_of(st.integers(0, 4000), ANY),
+       height=st.one_of(st.integers(0, 4000), ANY),
+       lo=st.one_of(NESTED, ANY), hi=st.one_of(NESTED, ANY))
+@example(position=[0.0, 0.0, 3.0], wxyz=[1.0, 0.0, 0.0, 0.0], fov=0.9, width=800, height=0,
+         lo=[0.0, 0.0], hi=[1.0, 1.0])
+@example(position=[0.5, 0.0, 0.5], wxyz=[1.0, 0.0, 0.0, 0.0], fov=1.2, width=800, height=600,
+         lo=[0.0, 0.0], hi=[[[1.0, 1.0]], [[1.0, 1.0]]])
+def test_crafted_boxes_pick_known_markers_or_are_counted(position, wxyz, fov, width, height,
+                                                        lo, hi):
+    """A box selection seen through whatever camera a crafted message describes picks only
+    markers that are there, or is counted as no box; it never raises. Before, a window 0
+    pixels high made its aspect a ZeroDivisionError, and a corner of nested lists
+    broadcast into indices past the markers (IndexError), both escaping the handler."""
+    from daemon.publish.bad_input import BadInput
+
+    picked = []
+    view = SimpleNamespace(
+        picked=set(), bad=BadInput(logging.getLogger("mocapd.view"), "view"),
+        _free_seen=lambda: (np.array([4, 9]), np.array([[0.0, 0, 1], [1, 0, 1]])),
+        _set_picked=picked.append)
+    camera = _BrowserCamera(position, wxyz, fov, width, height)
+    LiveView._on_rect(view, SimpleNamespace(client=SimpleNamespace(camera=camera),
+                                            screen_min=lo, screen_max=hi))
+    if picked:
+        assert picked[0] <= {4, 9} and view.bad.counts == {}
+    else:
+        assert view.bad.counts == {"box selection that is no box": 1}

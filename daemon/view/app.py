@@ -65,9 +65,12 @@ def main(conn, host: str, port: int) -> None:
 
 
 
-def _finite(*values) -> list[np.ndarray]:
-    """Values of a page's event as float arrays; ValueError if one is not finite."""
+def _finite(*values, shapes: tuple) -> list[np.ndarray]:
+    """Values of a page's event as float arrays of the given shapes; ValueError if one is
+    not finite or of another shape (a nested list broadcasts into picks of no marker)."""
     out = [np.asarray(v, dtype=np.float64) for v in values]
+    if tuple(v.shape for v in out) != shapes:
+        raise ValueError("a value of the wrong shape")
     if not all(np.isfinite(v).all() for v in out):
         raise ValueError("a value that is not a finite number")
     return out
@@ -370,7 +373,8 @@ class LiveView:
     def _on_click(self, event) -> None:
         try:
             ids, xyz = self._free_seen()
-            k = draw.pick_by_ray(xyz, *_finite(event.ray_origin, event.ray_direction))
+            k = draw.pick_by_ray(xyz, *_finite(event.ray_origin, event.ray_direction,
+                                               shapes=((3,), (3,))))
         except (TypeError, ValueError) as exc:  # a crafted click: no ray, NaN, text...
             self.bad("click that is no ray", exc)
             return
@@ -383,8 +387,9 @@ class LiveView:
             cam = event.client.camera
             inside = draw.pick_in_rect(xyz, *_finite(cam.position, cam.wxyz, cam.fov,
                                                      cam.aspect, event.screen_min,
-                                                     event.screen_max))
-        except (TypeError, ValueError) as exc:
+                                                     event.screen_max,
+                                                     shapes=((3,), (4,), (), (), (2,), (2,))))
+        except (TypeError, ValueError, ArithmeticError) as exc:  # a window 0 px high too
             self.bad("box selection that is no box", exc)
             return
         self._set_picked(self.picked | {int(i) for i in ids[inside]})
