@@ -112,6 +112,25 @@ def test_the_stream_goes_on_while_a_reload_is_read_and_built(running, monkeypatc
     assert daemon.reloads.wait(ticket, 60) == (True, None)
 
 
+def test_a_reloads_steps_wait_for_the_gap_after_a_frame(running):
+    """after_frame returns once a frame has gone to the outputs after the call (a reload's
+    step then has the gap until the next frame to itself), or after its timeout when no
+    frame comes: a stopped stream does not hold a reload up for good."""
+    daemon, _cfg = running
+    pipeline = daemon.pipeline
+    for _ in range(5):
+        called = time.monotonic_ns()
+        pipeline.after_frame(60.0)
+        assert pipeline.last_result.published_ns >= called
+    pipeline.process, process = (lambda fs: None), pipeline.process  # no frame goes out
+    try:
+        waited = time.monotonic()
+        pipeline.after_frame(0.3)
+        assert time.monotonic() - waited >= 0.29
+    finally:
+        pipeline.process = process
+
+
 def test_a_failed_reload_is_said_to_whoever_asked(running):
     daemon, cfg_path = running
     cfg_path.write_text(SIM + "[tracker]\ngate_mm = 40\n")

@@ -264,6 +264,7 @@ class Pipeline:
         self._pending_idle_call = None
         self._retired: list = []  # outputs and labelling stages a swap replaced, to stop
         self.swapped = threading.Event()  # set once the frame loop has applied a replace()
+        self._published = threading.Event()  # set as each frame's outputs have it
         self._period_anchor: tuple[int, int] | None = None  # (index, t_ns) of a set
         self.last_result: FrameResult | None = None
 
@@ -340,6 +341,14 @@ class Pipeline:
             self._retired += retired
         self.swapped.set()
 
+    def after_frame(self, timeout_s: float) -> None:
+        """Return just after the next frame has gone to the outputs (or after `timeout_s`
+        with no frame): work beside the stream done then (a reload's steps) has the gap
+        until the next frame to itself instead of slowing the frame loop and the cameras'
+        threads, which share the interpreter with it."""
+        self._published.clear()
+        self._published.wait(timeout_s)
+
     def take_retired(self) -> list:
         """What swaps replaced and nobody has stopped yet (the reload that asked stops it)."""
         with self._lock:
@@ -390,6 +399,7 @@ class Pipeline:
         for p in self.publishers:
             p.submit(result)
         result.published_ns = time.monotonic_ns()
+        self._published.set()
         # for the next frame only (the result holds copies): after the outputs, off the
         # latency path
         self.tracker.place(*self.rigid.hidden_markers(tracks))

@@ -23,6 +23,7 @@ from daemon.tracking.tracker import Tracker
 
 log = logging.getLogger("mocapd")
 SWAP_WAIT_S = 2.0  # the longest a reload waits for the frame loop to swap
+GAP_WAIT_S = 0.05  # the longest a reload's step waits for a frame to have gone out
 RELOAD_SWITCH_S = 0.0005  # the interpreter's switch interval while a reload is built
 
 
@@ -90,8 +91,10 @@ def reload(daemon) -> bool:
     (daemon.service.daemon starts it on a thread of its own); the frame loop only swaps."""
     sd_notify("RELOADING=1")
     daemon.reload_error = None
+    gap = daemon.pipeline.after_frame  # each step in the gap after a frame (a few ms each)
     try:
         path = daemon.config.path
+        gap(GAP_WAIT_S)
         new = daemon.extend(load_config(path)) if path else daemon.config
         key = daemon._set_key(new)
         labelling = daemon._labeller(new) if key != daemon._markerset_key else daemon.labelling
@@ -100,6 +103,7 @@ def reload(daemon) -> bool:
         tracker_config = daemon._tracker_config(new, rig or daemon.rig)
     except UserError as exc:
         return _failed(daemon, exc)
+    gap(GAP_WAIT_S)
     bodies = daemon._bodies(new)
     daemon._warn_alike(bodies)
     try:
@@ -121,6 +125,7 @@ def reload(daemon) -> bool:
     if daemon.evaluator is not None:  # scored against the new bodies from the swap on
         evaluator = daemon.evaluator
         changes["idle_call"] = lambda: evaluator.set_bodies(bodies)
+    gap(GAP_WAIT_S)
     for p in publishers:  # a thread's start waits for it to run: not on the frame loop
         if not p.started and not p.takes_over:
             p.start()
@@ -134,6 +139,7 @@ def reload(daemon) -> bool:
     # done once the frame loop has swapped (within a frame; it swaps while idle too), so
     # that `mocapd reload` answers with the new configuration running
     daemon.pipeline.swapped.wait(SWAP_WAIT_S)
+    gap(GAP_WAIT_S)  # the swap's frame is still being tracked
     retire(daemon.pipeline.take_retired())  # the replaced outputs flush and close here
     log.info("configuration reloaded: %d rigid bodies, %d outputs%s", len(bodies),
              len(new.udp) + len(new.serial) + len(new.mavlink),
