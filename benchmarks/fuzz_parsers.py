@@ -38,6 +38,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from fuzz_control import control  # noqa: E402 - beside this script
 from fuzz_view import run_view  # noqa: E402 - beside this script
 from fuzz_view_events import EDITS, page_events  # noqa: E402 - beside this script
 
@@ -270,7 +271,7 @@ def config():
 
 PARSERS = {"natnet": natnet, "vrpn": vrpn, "mavlink": mavlink, "zenoh": zenoh,
            "mcrec": mcrec, "csv": csv_obs, "c3d": c3d, "config": config,
-           "view_events": page_events}
+           "view_events": page_events, "control": control}
 
 
 def run_parser(name: str, n: int, repeats: int, seed: int) -> dict:

@@ -92,6 +92,11 @@ def test_a_recording_is_never_written_over_an_existing_file(tmp_path):
         assert kept.read_text() == "an earlier take\n"
         with pytest.raises(UserError, match="does not exist"):
             d.handle({"cmd": "record", "path": str(tmp_path / "no" / "x.mcrec")})
+        for bad in (str(tmp_path / "x\0.mcrec"), ["x.mcrec"], 7,  # said now, not at a frame
+                    str(tmp_path / ("é" * 300 + ".mcrec"))):           # nor as a traceback
+            with pytest.raises(UserError, match="NUL|needs a PATH|too long"):
+                d.handle({"cmd": "record", "path": bad})
+            assert d.recorder is None
         assert d.handle({"cmd": "record", "path": str(kept), "overwrite": True})["ok"]
         assert d.status()["recording_status"]["failed"] is None
         stopped = d.handle({"cmd": "record_stop"})

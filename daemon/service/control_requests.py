@@ -48,11 +48,17 @@ def handle(daemon, req: dict) -> dict:
 
 def record(daemon, path, overwrite: bool = False) -> dict:
     """Start recording to `path` (.mcrec: the blobs, for replay; .mcap: poses and markers)."""
-    if not path:
+    if not path or not isinstance(path, str):
         raise UserError("record needs a PATH")
-    if Path(path).exists() and not overwrite:
+    if "\0" in path:  # no file has such a name: it would fail only at the first frame
+        raise UserError(f"{path!r}: a path cannot hold a NUL byte")
+    try:  # a name the file system refuses (too long, say) is said, not a traceback
+        exists, folder = Path(path).exists(), Path(path).parent.is_dir()
+    except OSError as exc:
+        raise UserError(f"cannot record to {path}: {exc.strerror}") from None
+    if exists and not overwrite:
         raise UserError(f"{path} exists; record to another name (or --overwrite)")
-    if not Path(path).parent.is_dir():
+    if not folder:
         raise UserError(f"{path}: the folder {Path(path).parent} does not exist")
     if daemon.recorder is not None:
         raise UserError(f"already recording to {daemon.recorder.path}; "
