@@ -164,9 +164,15 @@ def run(args) -> dict:
             reader = threading.Thread(target=lambda s=sample, o=out: o.extend(s.stdout),
                                       daemon=True)
             reader.start()
-            time.sleep(1.5)
             # the sample parses frames as version 0.0 until the server description comes;
-            # by multicast a frame can come first and kill its data thread (Motive's too)
+            # by multicast a frame can come first and kill its data thread (Motive's too):
+            # started again until it has said the server's version with no traceback
+            # before (on a loaded machine its start alone can take seconds)
+            deadline = time.monotonic() + 60
+            while (time.monotonic() < deadline and sample.poll() is None
+                   and not any("NatNetVersion" in line for line in out)):
+                time.sleep(0.1)
+            time.sleep(0.2)  # a frame parsed as 0.0 just before is said by now
             if not any("Traceback" in line for line in out) or attempts >= 10:
                 break
             sample.kill()

