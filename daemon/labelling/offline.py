@@ -11,6 +11,7 @@ import numpy as np
 from calibkit.core.blas import one_blas_thread
 from daemon.formats.c3dio import Points, Take
 from daemon.labelling.assign import pair_stats
+from daemon.labelling.extras import unlabelled_tracks, with_extras
 from daemon.labelling.labeller import Labeller
 from daemon.labelling.markerset import MarkerSet
 from daemon.labelling.markerset_fit import check_fit
@@ -27,6 +28,8 @@ from daemon.labelling.verify_take import Verification, carry_back, verify_labels
 
 KERNELS_FROM = 8000      # frames from which loading the compiled kernels pays off
 BETTER_PER_PAIR = 0.1    # a window explained this much better a pair is better evidence
+TRUSTED_PER_PAIR = 0.8   # a start window explained this well a pair (right: 0.88-0.95,
+#                          scrambled by the search: 0.52) may declare markers the set lacks
 
 
 def label_take(points: Points, ms: MarkerSet, rate_hz: float = 120.0,
@@ -63,12 +66,22 @@ def _label_take(points, ms, rate_hz, start_labels, start_frames, progress, optio
     labels_out = []
     start = 0
     own = None            # this body's distances from labelled start frames: they outrank the set
+    tracked = ms          # the set the tracker follows: with the start's markers the set lacks
     if start_labels is not None and start_frames > 0:
         s = start_labels.select(ms.labels)
         use = min(start_frames, s.n_frames)
         sx = s.xyz_m[:use]
+        # points the start leaves unlabelled that last through it: markers the set lacks,
+        # tracked as markers of their own so that no marker of the set takes them
+        extra = unlabelled_tracks(start_points(frames, per_frame, s.first_frame, sx,
+                                               lab.merge_m), sx, lab.merge_m)
+        if len(extra):
+            tracked = with_extras(ms, sx, extra)
+            sx = np.concatenate([sx, extra.transpose(1, 0, 2)], axis=1)
+            lab = Labeller(tracked, rate_hz, **options)
         lab.start_from_labelled_frames(sx)
-        own = start_distances(sx, ms, lab.noise_m)
+        own = start_distances(sx, tracked, lab.noise_m)
+        sx = sx[:, :ms.n]
         fidx = np.arange(use) + s.first_frame - first
         keep = (fidx >= 0) & (fidx < n_frames)
         xyz[fidx[keep]] = sx[keep]
@@ -82,10 +95,23 @@ def _label_take(points, ms, rate_hz, start_labels, start_frames, progress, optio
     if start == 0 and len(frames) and from_window:
         # from the marker set alone: one global assignment on a window of frames
         # (daemon/labelling/start.py), handed to the tracker as labelled start frames
-        window = window_start(per_frame, ms, noise_m=lab.noise_m, merge_m=lab.merge_m)
-        order = _from_window(lab, per_frame, out, window, lambda: Labeller(ms, rate_hz, **options))
-    check = _track(lab, per_frame, out, order, start, ms, own, verify, progress,
-                   lambda: Labeller(ms, rate_hz, **options))
+        unfit: list[np.ndarray] = []
+        window = window_start(per_frame, ms, noise_m=lab.noise_m, merge_m=lab.merge_m,
+                              unfit=unfit)
+        if unfit and _evidence(window[2], ms, lab.noise_m)[1] >= TRUSTED_PER_PAIR:
+            # tracks the assignment found to fit no marker of the set (markers the set
+            # lacks): tracked as markers of their own, as a labelled start's would be,
+            # where the window's labels are explained well (a start the search scrambled
+            # left a real marker out: the tracker then never named it, 99.96 -> 80.8 %)
+            extra = np.stack(unfit)
+            tracked = with_extras(ms, window[2], extra)
+            window = (window[0], window[1],
+                      np.concatenate([window[2], extra.transpose(1, 0, 2)], axis=1))
+            lab = Labeller(tracked, rate_hz, **options)
+        order = _from_window(lab, per_frame, out, window,
+                             lambda: Labeller(tracked, rate_hz, **options))
+    check = _track(lab, per_frame, out, order, start, tracked, own, verify, progress,
+                   lambda: Labeller(tracked, rate_hz, **options))
     if window is not None and check is not None and check.fixed:
         # verification had to relabel windows: the start's own window may have been
         # labelled wrong (a marker hidden in it, its place taken by a neighbour, which
@@ -93,18 +119,21 @@ def _label_take(points, ms, rate_hz, start_labels, start_frames, progress, optio
         # holding more of the set's markers than the start did, or explained clearly
         # better by the set, is better evidence:
         # the take is labelled again from it, forward and backward
-        again = _better_window(per_frame, out, range(start, len(frames)), window, ms,
+        again = _better_window(per_frame, out, range(start, len(frames)), window, tracked,
                                lab.noise_m)
         if again is not None:
             out = {}
-            lab = Labeller(ms, rate_hz, **options)
+            lab = Labeller(tracked, rate_hz, **options)
             order = _from_window(lab, per_frame, out, again,
-                                 lambda: Labeller(ms, rate_hz, **options))
-            _track(lab, per_frame, out, order, start, ms, own, verify, None,
-                   lambda: Labeller(ms, rate_hz, **options))
+                                 lambda: Labeller(tracked, rate_hz, **options))
+            _track(lab, per_frame, out, order, start, tracked, own, verify, None,
+                   lambda: Labeller(tracked, rate_hz, **options))
     for i in range(start, len(frames)):
         P = per_frame[i]
         m, c = out[i]
+        if tracked.n > ms.n:            # markers the set lacks: unlabelled in the output
+            m = np.where(m < ms.n, m, -1)
+            c = np.where(m >= 0, c, 0.0)
         fi = int(frames[i] - first)
         got = m >= 0
         xyz[fi, m[got][::-1]] = P[got][::-1]      # a duplicate: its first point
@@ -112,6 +141,27 @@ def _label_take(points, ms, rate_hz, start_labels, start_frames, progress, optio
         labels_out.append(m)
     take = Take(list(ms.labels), xyz, rate_hz, first)
     return take, conf, labels_out
+
+
+def start_points(frames: np.ndarray, per_frame: list[np.ndarray], first: int,
+                 xyz: np.ndarray, within_m: float) -> list[np.ndarray]:
+    """The points (k, 3) of each labelled start frame (xyz (W, n, 3), numbered from
+    `first`): those of the points' frame of that number, or of the one beside it, that
+    holds the labelled positions (two files may number a take's frames from 0 and 1);
+    none where no frame holds at least half of them (no evidence)."""
+    out = []
+    for f in range(len(xyz)):
+        L = xyz[f][np.isfinite(xyz[f]).all(1)]
+        best, pts = 0, np.zeros((0, 3))
+        for a in np.searchsorted(frames, first + f) + np.array([0, -1, 1]):
+            if not 0 <= a < len(frames) or not len(L) or not len(per_frame[a]):
+                continue
+            d = np.linalg.norm(per_frame[a][:, None] - L[None], axis=2)
+            held = int((d.min(0) <= within_m).sum())
+            if held > best:
+                best, pts = held, per_frame[a]
+        out.append(pts if best >= 0.5 * len(L) else np.zeros((0, 3)))
+    return out
 
 
 def _from_window(lab: Labeller, per_frame: list[np.ndarray], out: dict, window: tuple,

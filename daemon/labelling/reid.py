@@ -277,9 +277,18 @@ class ModuleReidentification:
             # 3 points, only offer the fit's cost against other lost markers' own costs
             strong = not template and total[b] >= 4
             fit_cost = r2[b].sum() / sigma ** 2
+            # the best fit leaving out the one marker lost (a finger bent against its
+            # hand's shape, the rest fitting it badly) does not veto it where the fit with
+            # it added on a point of its own gate places it within the fit's allowance:
+            # its own prediction and neighbours decide (with two lost, a foot's toe and
+            # 5th metatarsal, the fit must tell which is which)
             for j in range(len(lm)):
                 if not judged[j]:
                     continue
+                if best[j] < 0 and len(lm) == 1:
+                    fits = (r2[:, pos[j]] <= (3.5 * sigma) ** 2) & got[:, j]
+                    if (fits & own[j, np.maximum(hyps[:, j], 0)]).any():
+                        continue
                 cost[rows[j]] = BIG
                 if agree[j] and best[j] >= 0:
                     if strong:

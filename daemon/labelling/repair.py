@@ -158,6 +158,15 @@ class StructureRepair:
         if len(tot) > 2 and np.partition(tot, 1)[1] < tot[b] + 9.0 * sigma ** 2:
             return False
         new_member = maps[b]                                              # for each point
+        # three points of a module cannot tell it from its mirror image (a triangle fits
+        # either way round) and a shape learned in one posture may fit the mirror better:
+        # markers tracked without a break since long (their tracks' own evidence) keep
+        # their names unless four or more points speak (on one body the pelvis's three
+        # seen markers were mirrored so, through 47 frames, from a start of 10 frames)
+        moved = new_member != held
+        if len(held) < 4 and (self.since_reacquired[idx[held[moved]]]
+                              >= self.suspect_frames).any():
+            return False
         old_pos, old_vel = self.pos[idx].copy(), self.vel[idx].copy()
         point_of[idx] = -1
         cur[idx] = np.nan

@@ -20,6 +20,7 @@ from daemon.labelling.markerset import MarkerSet
 
 WINDOW = 120             # frames in the start window
 GATE_M = 0.05
+UNFIT_SEEN = 0.95        # a track fitting no marker, seen this much of the window: a marker
 
 
 def link_window(frames: list[np.ndarray], gate_m: float = GATE_M, min_seen: float = 0.3
@@ -119,19 +120,28 @@ def choose_window(counts: np.ndarray, n: int, width: int = WINDOW, search: int =
 
 
 def window_start(per_frame: list[np.ndarray], ms: MarkerSet, width: int = WINDOW,
-                 noise_m: float = 0.003, merge_m: float = 0.0
+                 noise_m: float = 0.003, merge_m: float = 0.0, unfit: list | None = None
                  ) -> tuple[int, list[np.ndarray], np.ndarray]:
     """Label a window of frames from the marker set alone. Returns its first frame index,
     each window frame's labels (a marker per point, -1 none; a point within `merge_m`
     of a labelled one is the same marker seen twice and takes its label) and the
-    window's labelled positions (W, n, 3), NaN where unlabelled."""
+    window's labelled positions (W, n, 3), NaN where unlabelled. `unfit`, if given,
+    gets the positions (W, 3) of the window's tracks that fit no marker of the set
+    (left out by the assignment, daemon/labelling/unfit.py) and are seen in UNFIT_SEEN
+    of it: markers the set lacks (a marker of the set left out, seen less, is left to
+    the tracker to find)."""
     counts = np.array([len(p) for p in per_frame])
     w0 = choose_window(counts, ms.n, width)
     frames = per_frame[w0:w0 + width]
     X, idx = join_fragments(*link_window(frames, min_seen=0.1))
     keep = (idx >= 0).sum(1) >= 0.3 * len(frames)     # ghosts (and scraps) fall out
     X, idx = X[keep], idx[keep]
-    lab, _ = assign(X, ms, noise_m=noise_m) if len(X) >= 3 else (np.full(len(X), -1), 0.0)
+    left: list[int] = []
+    lab, _ = assign(X, ms, noise_m=noise_m, left=left) if len(X) >= 3 else \
+        (np.full(len(X), -1), 0.0)
+    if unfit is not None:       # (a marker's track seen throughout: no scrap, no ghost)
+        unfit.extend(X[t] for t in left
+                     if lab[t] < 0 and (idx[t] >= 0).sum() >= UNFIT_SEEN * len(frames))
     W = len(frames)
     labels = [np.full(len(p), -1) for p in frames]
     xyz = np.full((W, ms.n, 3), np.nan)
