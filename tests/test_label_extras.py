@@ -63,7 +63,7 @@ def test_a_starts_unlabelled_steady_points_become_markers_of_their_own(cmu41):
     t, pts, truth, extra = _pattern(cmu41, 0)
     _, per = pts.split()
     sx = t.select(cmu41.labels).xyz_m[:10]
-    X = unlabelled_tracks(per[:10], sx, 0.006)
+    X = unlabelled_tracks(per[:10], sx, 0.006, cmu41)
     want = t.xyz_m[:10, cmu41.n:].transpose(1, 0, 2)                   # (3, 10, 3)
     assert len(X) == np.isfinite(want).all(2).any(1).sum() == 3
     for x in X:
@@ -118,3 +118,35 @@ def test_the_set_alone_leaves_markers_it_lacks_unlabelled(cmu41):
     assert named <= 0.01 * n_extra
     assert right >= 0.94 > 0.8515
     assert wrong < 0.04
+
+
+def test_a_marker_the_start_leaves_unlabelled_is_no_extra(cmu41):
+    """A start that leaves a marker of the set unlabelled although its point is there (a
+    person labelled all but one) says nothing about that point: for each marker of body
+    0 in turn, its track in the start frames sits where the set puts that marker and is
+    not taken for a marker the set lacks (with one SD allowed instead of two, LSHN and
+    RSHN were; an extra beside the marker left out may now be left to the tracker too);
+    the take then names it (RKNE here)."""
+    t, pts, truth, _ = _pattern(cmu41, 0)
+    _, per = pts.split()
+    full = t.select(cmu41.labels)
+    tried = 0
+    for j in range(cmu41.n):
+        sx = full.xyz_m[:10].copy()
+        if not np.isfinite(sx[:, j]).all():
+            continue
+        sx[:, j] = np.nan
+        tried += 1
+        X = unlabelled_tracks(per[:10], sx, 0.006, cmu41)
+        d = np.linalg.norm(X - full.xyz_m[:10, j][None], axis=2)
+        assert not (np.nanmin(d, axis=1) < 1e-9).any(), cmu41.labels[j]
+    assert tried >= 30
+    j = cmu41.labels.index("RKNE")
+    xyz = full.xyz_m.copy()
+    xyz[:10, j] = np.nan
+    start = type(full)(full.labels, xyz, full.rate_hz, full.first_frame)
+    _, _, labels = label_take(pts, cmu41, t.rate_hz, start, 10)
+    want = np.concatenate(_per_frame(pts, truth)[10:])
+    got = np.concatenate(labels[10:])
+    mine = want == j
+    assert (got[mine] == j).mean() >= 0.95

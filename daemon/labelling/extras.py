@@ -21,18 +21,21 @@ import warnings
 import numpy as np
 
 from daemon.labelling.markerset import MarkerSet
+from daemon.labelling.single import template_tolerance
 from daemon.labelling.start import link_window
 
 MIN_SEEN = 0.5        # a point in at least half the start frames is a marker, not a ghost
 STEADY_M = 0.01       # ... and it keeps its distance to its nearest marker within this (SD)
+ABSENT_SD = 2.0       # a track this close (SD) to where a marker the start lacks would be
 
 
-def unlabelled_tracks(per_frame: list[np.ndarray], xyz: np.ndarray, within_m: float
-                      ) -> np.ndarray:
+def unlabelled_tracks(per_frame: list[np.ndarray], xyz: np.ndarray, within_m: float,
+                      ms: MarkerSet) -> np.ndarray:
     """The points of labelled start frames (per_frame[f], positions xyz (W, n, 3) of the
     set's markers) that no label holds (none within `within_m` of them), linked over the
     frames: tracks (E, W, 3) seen in MIN_SEEN of the frames that keep their distance to
-    the nearest labelled marker steady (a marker riding a segment; ghosts do not last)."""
+    the nearest labelled marker steady (a marker riding a segment; ghosts do not last),
+    and that no marker of the set `ms` the start leaves unlabelled could be."""
     W = len(xyz)
     free = []
     for f in range(W):
@@ -54,8 +57,35 @@ def unlabelled_tracks(per_frame: list[np.ndarray], xyz: np.ndarray, within_m: fl
             near = np.nanargmin(np.where(np.isfinite(d), d, np.inf).mean(0))
         col = d[:, near]
         col = col[np.isfinite(col)]
-        keep.append(len(col) >= 2 and float(np.std(col)) < STEADY_M)
+        keep.append(len(col) >= 2 and float(np.std(col)) < STEADY_M
+                    and not fits_absent(X[e], xyz, ms))
     return X[np.array(keep, bool)]
+
+
+def fits_absent(track: np.ndarray, xyz: np.ndarray, ms: MarkerSet, within: float = ABSENT_SD,
+                k: int = 6) -> bool:
+    """Whether a track (W, 3) of the start frames could be a marker of the set that the
+    start leaves unlabelled throughout (xyz (W, n, 3)): its distances to that marker's
+    `k` steadiest labelled neighbours within `within` SD of the set's (scaled to this
+    body; one SD for another subject, `template_tolerance` / 3) at the median. A start
+    that did not label a marker whose point is there says nothing about that point."""
+    seen = np.isfinite(xyz).all(2).any(0)
+    absent = np.nonzero(~seen)[0]
+    if not len(absent) or seen.sum() < 3:
+        return False
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        d = np.nanmean(np.linalg.norm(xyz[:, :, None] - xyz[:, None], axis=3), axis=0)
+        scale = float(np.nanmedian(d[np.ix_(seen, seen)] / ms.mean_m[np.ix_(seen, seen)]))
+        to = np.nanmean(np.linalg.norm(track[:, None] - xyz, axis=2), axis=0)       # (n,)
+    sd = template_tolerance(ms) / 3.0
+    for j in absent:
+        nb = np.argsort(np.where(seen & np.isfinite(to), ms.sd_m[j], np.inf))[:k]
+        nb = nb[seen[nb] & np.isfinite(to[nb])]
+        if len(nb) >= 3 and np.median(np.abs(to[nb] - scale * ms.mean_m[j, nb])
+                                      / sd[j, nb]) <= within:
+            return True
+    return False
 
 
 def with_extras(ms: MarkerSet, xyz: np.ndarray, extra: np.ndarray) -> MarkerSet:

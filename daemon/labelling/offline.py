@@ -74,7 +74,7 @@ def _label_take(points, ms, rate_hz, start_labels, start_frames, progress, optio
         # points the start leaves unlabelled that last through it: markers the set lacks,
         # tracked as markers of their own so that no marker of the set takes them
         extra = unlabelled_tracks(start_points(frames, per_frame, s.first_frame, sx,
-                                               lab.merge_m), sx, lab.merge_m)
+                                               lab.merge_m), sx, lab.merge_m, ms)
         if len(extra):
             tracked = with_extras(ms, sx, extra)
             sx = np.concatenate([sx, extra.transpose(1, 0, 2)], axis=1)
