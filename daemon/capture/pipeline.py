@@ -264,7 +264,7 @@ class Pipeline:
         self._pending_idle_call = None
         self._retired: list = []  # outputs and labelling stages a swap replaced, to stop
         self.swapped = threading.Event()  # set once the frame loop has applied a replace()
-        self._published = threading.Event()  # set as each frame's outputs have it
+        self._published = threading.Event()  # set as each frame is done (outputs and all)
         self._period_anchor: tuple[int, int] | None = None  # (index, t_ns) of a set
         self.last_result: FrameResult | None = None
 
@@ -342,10 +342,10 @@ class Pipeline:
         self.swapped.set()
 
     def after_frame(self, timeout_s: float) -> None:
-        """Return just after the next frame has gone to the outputs (or after `timeout_s`
-        with no frame): work beside the stream done then (a reload's steps) has the gap
-        until the next frame to itself instead of slowing the frame loop and the cameras'
-        threads, which share the interpreter with it."""
+        """Return just after the frame loop is done with the next frame, its outputs sent
+        (or after `timeout_s` with no frame): work beside the stream done then (a reload's
+        steps) has the gap until the next frame to itself instead of slowing the frame
+        loop and the cameras' threads, which share the interpreter with it."""
         self._published.clear()
         self._published.wait(timeout_s)
 
@@ -399,7 +399,6 @@ class Pipeline:
         for p in self.publishers:
             p.submit(result)
         result.published_ns = time.monotonic_ns()
-        self._published.set()
         # for the next frame only (the result holds copies): after the outputs, off the
         # latency path
         self.tracker.place(*self.rigid.hidden_markers(tracks))
@@ -411,6 +410,7 @@ class Pipeline:
                 self.run_idle(len(self._idle) - IDLE_BACKLOG)
         self.stats.add(result)
         self.last_result = result
+        self._published.set()  # the frame loop is done with it: a reload's step may go
         return result
 
     @property
