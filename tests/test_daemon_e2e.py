@@ -256,9 +256,12 @@ def test_camera_dropout_and_a_consumer_that_stops_reading(tmp_path):
     assert cams["cam2"]["failures"] >= 1 and cams["cam2"]["connected"]
     # cam2 took no frame while it was away (0.3-0.7 s: 48 triggers at 120 fps); a frame
     # that a capture thread late on a loaded machine never read counts as taken (a gap in
-    # its camera's counter), so both cameras are compared on what they took
+    # its camera's counter), so the cameras are compared on what they took. A camera's
+    # count starts at the first frame its thread read, which on a loaded machine (two CPU
+    # hogs beside the suite) came up to 22 frames after another's: cam2 against the
+    # camera that took most, by at least 20 of the 48
     taken = {n: c["frames"] + c["frame_gaps"] for n, c in cams.items()}
-    assert taken["cam2"] < taken["cam1"] - 30, cams
+    assert taken["cam2"] < max(v for n, v in taken.items() if n != "cam2") - 20, cams
     assert "cam2: camera disconnected" in err.decode()
     serial_out = [o for o in fig["outputs"] if o["name"].startswith("serial")][0]
     assert serial_out["errors"] >= 1 and "send failed" in serial_out["last_error"]

@@ -389,13 +389,20 @@ def body_scale(D: np.ndarray, ms: MarkerSet) -> float:
 
 
 def assign(X: np.ndarray, ms: MarkerSet, restarts: int = 6, seed: int = 0,
-           scales=(0.92, 1.0, 1.08), noise_m: float = 0.003, keep: int = 2,
-           prune: bool = True, left: list | None = None) -> tuple[np.ndarray, float]:
+           scales=(0.92, 1.0, 1.08), noise_m: float = 0.003, keep: int = 2
+           ) -> tuple[np.ndarray, float]:
     """The marker of each track (T,) (-1: none) for tracks X (T, W, 3), and its score.
     Solutions are sought with the set scaled to this body's size and a little either
-    side of it, and all are scored (and polished) at this body's size. With `prune`,
-    tracks whose markers fit no marker of the set are left out (daemon/labelling/
-    unfit.py), and their indices added to `left` if given."""
+    side of it, and all are scored (and polished) at this body's size. (Tracks whose
+    names fit no marker of the set left out: daemon/labelling/unfit.py's assign_pruned.)"""
+    lab, score, _judge, _terms = assign_tables(X, ms, restarts, seed, scales, noise_m, keep)
+    return lab, score
+
+
+def assign_tables(X: np.ndarray, ms: MarkerSet, restarts: int = 6, seed: int = 0,
+                  scales=(0.92, 1.0, 1.08), noise_m: float = 0.003, keep: int = 2):
+    """`assign`'s labels and score, with the compatibility table and body terms it
+    scored them by (for a caller that goes on scoring relabellings the same way)."""
     T, n = X.shape[0], ms.n
     D, S = pair_stats(X)
     size = body_scale(D, ms)
@@ -431,13 +438,4 @@ def assign(X: np.ndarray, ms: MarkerSet, restarts: int = 6, seed: int = 0,
     lab = np.full(T, -1)
     r, c = np.nonzero(best[1])
     lab[r] = c
-    if prune:
-        from daemon.labelling.unfit import without_unfit  # (it calls assign: deferred)
-
-        lab, score, out = without_unfit(X, ms, lab, best[0], judge, terms,
-                                        dict(restarts=restarts, seed=seed, scales=scales,
-                                             noise_m=noise_m, keep=keep))
-        if left is not None:
-            left.extend(out.tolist())
-        return lab, score
-    return lab, best[0]
+    return lab, best[0], judge, terms

@@ -15,8 +15,9 @@ from __future__ import annotations
 import numpy as np
 
 from calibkit.core.assignment import linear_sum_assignment
-from daemon.labelling.assign import assign, pair_stats
+from daemon.labelling.assign import pair_stats
 from daemon.labelling.markerset import MarkerSet
+from daemon.labelling.unfit import assign_pruned
 
 WINDOW = 120             # frames in the start window
 GATE_M = 0.05
@@ -137,7 +138,7 @@ def window_start(per_frame: list[np.ndarray], ms: MarkerSet, width: int = WINDOW
     keep = (idx >= 0).sum(1) >= 0.3 * len(frames)     # ghosts (and scraps) fall out
     X, idx = X[keep], idx[keep]
     left: list[int] = []
-    lab, _ = assign(X, ms, noise_m=noise_m, left=left) if len(X) >= 3 else \
+    lab, _ = assign_pruned(X, ms, noise_m=noise_m, left=left) if len(X) >= 3 else \
         (np.full(len(X), -1), 0.0)
     if unfit is not None:       # (a marker's track seen throughout: no scrap, no ghost)
         unfit.extend(X[t] for t in left

@@ -14,7 +14,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from daemon.labelling.assign import RIGID_SD_M, Compat, assign, pair_stats, to_marker_track
+from daemon.labelling.assign import (
+    RIGID_SD_M,
+    Compat,
+    assign,
+    assign_tables,
+    pair_stats,
+    to_marker_track,
+)
 from daemon.labelling.markerset import MarkerSet
 
 UNFIT = 0.1            # a name its rigid neighbours vouch for less than this is unfit
@@ -38,6 +45,20 @@ def unfit_tracks(cp: Compat, lab: np.ndarray, ms: MarkerSet, D: np.ndarray) -> n
     count = rig.sum(1)
     support = np.where(rig, pair, 0.0).sum(1) / np.maximum(count, 1)
     return got[(count >= 1) & (support < UNFIT)]
+
+
+def assign_pruned(X: np.ndarray, ms: MarkerSet, restarts: int = 6, seed: int = 0,
+                  scales=(0.92, 1.0, 1.08), noise_m: float = 0.003, keep: int = 2,
+                  left: list | None = None) -> tuple[np.ndarray, float]:
+    """`assign`, then the tracks whose names their rigid neighbours do not vouch for
+    left out (`without_unfit`); their indices added to `left` if given."""
+    lab, score, judge, terms = assign_tables(X, ms, restarts, seed, scales, noise_m, keep)
+    lab, score, out = without_unfit(X, ms, lab, score, judge, terms,
+                                    dict(restarts=restarts, seed=seed, scales=scales,
+                                         noise_m=noise_m, keep=keep))
+    if left is not None:
+        left.extend(out.tolist())
+    return lab, score
 
 
 def without_unfit(X: np.ndarray, ms: MarkerSet, lab: np.ndarray, score: float,
@@ -67,7 +88,7 @@ def without_unfit(X: np.ndarray, ms: MarkerSet, lab: np.ndarray, score: float,
             break
         left[out] = True
         rest = np.nonzero(~left)[0]
-        sub, _ = assign(X[rest], ms, prune=False, **options)
+        sub, _ = assign(X[rest], ms, **options)
         new = np.full(len(X), -1)
         new[rest] = sub
         old = np.where(left, -1, lab)

@@ -97,7 +97,7 @@ def relabel_window(xyz: np.ndarray, ms: MarkerSet, noise_m: float = 0.003,
     if fit.misfit and (fit.misfit_worst > SUSPECT or fit.bent or _turned(moved[::4], ms)):
         # from the set alone the assignment is less sure than tracking on a window with
         # markers hidden: it must win by more
-        full, score = assign(X, ms, noise_m=noise_m, prune=False)
+        full, score = assign(X, ms, noise_m=noise_m)
         if keeps.labels(full) and score >= score_labels(X, ms, lab, noise_m) + MARGIN_FULL \
                 and not _misfits(check_fit(ms, _positions(X, full, ms.n)[::4],
                                            noise_m=noise_m), full, cur, ms, before):
