@@ -24,6 +24,8 @@ from collections import Counter
 
 import numpy as np
 
+from tests.test_fuzz_view import _frame as ws_frame  # the tests' frames (ROOT on the path)
+
 KINDS = ("random bytes", "broken request line", "oversized headers", "handshake + junk",
          "old protocol + junk", "handshake, no frame", "request cut, left open")
 HELD_EVERY = 50  # one connection in 50 is a cut request left open
@@ -36,22 +38,6 @@ def proc_usage(pid: int) -> tuple[float, int]:
     with open(f"/proc/{pid}/status") as f:
         rss_kb = next(int(ln.split()[1]) for ln in f if ln.startswith("VmRSS:"))
     return rss_kb / 1024.0, len(os.listdir(f"/proc/{pid}/fd"))
-
-
-def ws_frame(payload: bytes, opcode: int = 2, mask: bool = True, rsv: int = 0,
-             fin: bool = True) -> bytes:
-    """One websocket frame (RFC 6455), masked as a browser's are (or not, as none is)."""
-    n = len(payload)
-    bit = 0x80 if mask else 0
-    head = bytes([(0x80 if fin else 0) | (rsv & 7) << 4 | (opcode & 15)])
-    head += (bytes([bit | n]) if n < 126 else bytes([bit | 126]) + n.to_bytes(2, "big")
-             if n < 65536 else bytes([bit | 127]) + n.to_bytes(8, "big"))
-    if mask:
-        key = os.urandom(4)
-        payload = (np.frombuffer(payload, np.uint8)
-                   ^ np.resize(np.frombuffer(key, np.uint8), n)).tobytes()
-        head += key
-    return head + payload
 
 
 def handshake(protocol: str | None) -> bytes:

@@ -60,12 +60,15 @@ def _handshake(port: int, protocol: str) -> tuple[socket.socket, bytes]:
     return s, reply
 
 
-def _frame(payload: bytes, opcode: int = 2, mask: bool = True) -> bytes:
-    """One websocket frame (RFC 6455), masked as a browser's are (or not, as none is)."""
+def _frame(payload: bytes, opcode: int = 2, mask: bool = True, rsv: int = 0,
+           fin: bool = True) -> bytes:
+    """One websocket frame (RFC 6455), masked as a browser's are (or not, as none is);
+    benchmarks/fuzz_view.py sends its junk with it too."""
     n = len(payload)
     bit = 0x80 if mask else 0
-    head = bytes([0x80 | opcode]) + (bytes([bit | n]) if n < 126 else
-                                     bytes([bit | 126]) + n.to_bytes(2, "big"))
+    head = bytes([(0x80 if fin else 0) | (rsv & 7) << 4 | (opcode & 15)])
+    head += (bytes([bit | n]) if n < 126 else bytes([bit | 126]) + n.to_bytes(2, "big")
+             if n < 65536 else bytes([bit | 127]) + n.to_bytes(8, "big"))
     if mask:
         key = os.urandom(4)
         payload = (np.frombuffer(payload, np.uint8)
