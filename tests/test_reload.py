@@ -28,14 +28,14 @@ def _frames_after(daemon, n: int, timeout_s: float = 60.0) -> None:
         time.sleep(0.02)
 
 
-def _run_with(tmp_path, text: str):
+def _run_with(tmp_path, text: str, duration_s: float = 120.0):
     """A daemon running the configuration `text`, tracking: (daemon, its file, thread)."""
     cfg_path = tmp_path / "mocapd.toml"
     cfg_path.write_text(text)
     rt = tmp_path / "rt"
     daemon = Daemon(replace(load_config(cfg_path), runtime_dir=rt),
                     extend=lambda c: replace(c, runtime_dir=rt))
-    thread = threading.Thread(target=daemon.run, kwargs={"duration_s": 120.0}, daemon=True)
+    thread = threading.Thread(target=daemon.run, kwargs={"duration_s": duration_s}, daemon=True)
     thread.start()
     deadline = time.monotonic() + 90
     while getattr(daemon, "pipeline", None) is None or daemon.pipeline.stats.frames < 20:

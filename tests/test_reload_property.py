@@ -12,16 +12,11 @@ the stream goes on and `status` answers.
 from __future__ import annotations
 
 import socket
-import threading
-import time
-from dataclasses import replace
 
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-
-from daemon.config.mocapd import load_config
-from daemon.service.daemon import Daemon
+from test_reload import _frames_after, _run_with
 
 pytestmark = pytest.mark.slow
 SIM = "[sim]\ncameras = 4\nbodies = 2\nfps = 100.0\nseed = 7\ndefine_bodies = false\n"
@@ -29,29 +24,14 @@ FAULTS = {"broken TOML": "[[udp]\n", "an unknown key": "bogus = 1\n",
           "a missing rig": 'rig = "/nonexistent/rig.toml"\n'}
 
 
-def _frames_after(daemon, n: int, timeout_s: float = 120.0) -> None:
-    start = daemon.pipeline.stats.frames
-    deadline = time.monotonic() + timeout_s
-    while daemon.pipeline.stats.frames < start + n:
-        assert time.monotonic() < deadline, "the daemon stopped tracking"
-        time.sleep(0.01)
-
-
 @pytest.fixture(scope="module")
 def live(tmp_path_factory):
     """A daemon tracking two simulated bodies, the [[rigid_body]] tables it learned for
     them, and two loopback UDP readers."""
     folder = tmp_path_factory.mktemp("reload_property")
-    cfg_path, rt = folder / "mocapd.toml", folder / "rt"
-    cfg_path.write_text(SIM.replace("define_bodies = false\n", ""))
-    daemon = Daemon(replace(load_config(cfg_path), runtime_dir=rt),
-                    extend=lambda c: replace(c, runtime_dir=rt))
-    thread = threading.Thread(target=daemon.run, kwargs={"duration_s": 3600.0}, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 120
-    while getattr(daemon, "pipeline", None) is None or daemon.pipeline.stats.frames < 20:
-        assert time.monotonic() < deadline and thread.is_alive(), "the daemon did not start"
-        time.sleep(0.05)
+    daemon, cfg_path, thread = _run_with(folder, SIM.replace("define_bodies = false\n", ""),
+                                         duration_s=3600.0)
+    rt = folder / "rt"
     learned = (rt / "sim-bodies.toml").read_text()
     tables = ["[[rigid_body]]" + t for t in learned.split("[[rigid_body]]")[1:]]
     assert len(tables) == 2
