@@ -216,16 +216,26 @@ def main() -> None:
           f"{os.getloadavg()[0]:.1f}")
     print(f"RSS {rss_before:.1f} -> {rss_after:.1f} MB over {len(reloads)} reloads "
           f"({(rss_after - rss_before) / max(len(reloads), 1):.2f} MB a reload)")
-    ok = worst <= period_ms and missing == 0 and not refused
-    print(f"{'PASS' if ok else 'FAIL'}  a reload delays the stream by <= 1 frame "
-          f"(worst {worst:.2f} ms above the median, a frame is {period_ms:.2f} ms; "
-          f"{missing} frames missing; {len(refused)} reloads refused)")
     base_worst = float(np.nanmax([x[0] for x in base]))
-    print(f"the stream's own jitter: the worst baseline window (same length, no reload) "
-          f"{base_worst:.2f} ms above the median")
+    base_missing = sum(max(x[1], 0) for x in base)
+    ok = worst <= period_ms and missing == 0 and not refused
+    print(f"{'PASS' if ok else 'FAIL'}  absolute: every reload window within 1 frame of the "
+          f"median delay (worst {worst:.2f} ms above it, a frame is {period_ms:.2f} ms; "
+          f"{missing} frames missing; {len(refused)} reloads refused)")
+    # the stream on a shared machine, with the simulated cameras' threads in the daemon's
+    # process, is late by more than a frame now and then with no reload at all: what a
+    # reload adds is its windows against the same number of windows without one
+    added = worst - base_worst
+    ok_rel = added <= period_ms and missing <= base_missing and not refused
+    print(f"{'PASS' if ok_rel else 'FAIL'}  against the stream's own jitter: the worst reload "
+          f"window {added:+.2f} ms on the worst of {len(base)} windows with no reload "
+          f"({base_worst:.2f} ms above the median; a frame is {period_ms:.2f} ms); frames "
+          f"missing {missing} in reload windows, {base_missing} without")
     if args.json:
         write_json(args.json, {"reloads": len(reloads), "worst_extra_delay_ms": worst,
                                "baseline_worst_extra_delay_ms": base_worst,
+                               "baseline_frames_missing": base_missing,
+                               "pass_absolute": ok, "pass_against_jitter": ok_rel,
                                "frames_missing": missing, "refused": refused,
                                "period_ms": period_ms, "table": table})
 

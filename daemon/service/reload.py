@@ -124,7 +124,9 @@ def reload(daemon) -> bool:
         daemon.rig, daemon.tracker_config = rig or daemon.rig, tracker_config
     if daemon.evaluator is not None:  # scored against the new bodies from the swap on
         evaluator = daemon.evaluator
-        changes["idle_call"] = lambda: evaluator.set_bodies(bodies)
+        gap(GAP_WAIT_S)  # the simulator's scorer matches bodies by shape: fits, milliseconds
+        matched = evaluator.match(bodies)
+        changes["idle_call"] = lambda: evaluator.adopt(matched)
     gap(GAP_WAIT_S)
     for p in publishers:  # a thread's start waits for it to run: not on the frame loop
         if not p.started and not p.takes_over:

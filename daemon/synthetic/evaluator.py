@@ -70,33 +70,42 @@ class Evaluator:
         self.unknown_samples = 0  # samples the ledger no longer (or never) held
 
     def set_bodies(self, bodies) -> None:
-        """Match the daemon's bodies to the scene's (at the start and after a reload): per
-        scene body the daemon body's id (-1: none like it), the fixed transform from the
-        scene body's frame to the daemon body's, and the true marker each of the daemon
-        body's markers is (for the body-swap check)."""
+        """Match the daemon's bodies to the scene's (at the start and after a reload)."""
+        self.adopt(self.match(bodies))
+
+    def match(self, bodies) -> dict:
+        """Per scene body the daemon body's id (-1: none like it), the fixed transform from
+        the scene body's frame to the daemon body's, and the true marker each of the daemon
+        body's markers is (for the body-swap check). Reads only the scene's fixed truth, so
+        a reload computes it on its own thread (milliseconds of fits) and the frame loop
+        only `adopt`s it."""
         truth = self.scene.bodies_truth
         nb = len(truth)
-        self.ids = np.full(nb, -1, dtype=np.int64)
-        self.R_off = np.tile(np.eye(3), (nb, 1, 1))
-        self.t_off = np.zeros((nb, 3))
-        self.marker_ids = self.true_marker_ids.copy()
-        self.definition_mm = [None] * nb
-        self.defined_as = [None] * nb
+        m = {"ids": np.full(nb, -1, dtype=np.int64), "R_off": np.tile(np.eye(3), (nb, 1, 1)),
+             "t_off": np.zeros((nb, 3)), "marker_ids": self.true_marker_ids.copy(),
+             "definition_mm": [None] * nb, "defined_as": [None] * nb}
         if bodies is None:
-            self.ids[:] = [b.id for b in truth]
-            return
+            m["ids"][:] = [b.id for b in truth]
+            return m
+        width = m["marker_ids"].shape[1]
         for i, j, perm, R, t, rms in match_bodies([b.markers_body for b in truth],
                                                   [b.markers for b in bodies]):
-            self.ids[i] = bodies[j].id
-            self.R_off[i], self.t_off[i] = R, t
-            self.definition_mm[i] = rms * 1000
-            self.defined_as[i] = bodies[j].name
-            row = np.full(self.marker_ids.shape[1], -1, dtype=np.int64)
+            m["ids"][i] = bodies[j].id
+            m["R_off"][i], m["t_off"][i] = R, t
+            m["definition_mm"][i] = rms * 1000
+            m["defined_as"][i] = bodies[j].name
+            row = np.full(width, -1, dtype=np.int64)
             slot = np.empty(len(perm), dtype=np.int64)
             slot[perm] = np.arange(len(perm))  # daemon marker perm[m] is true marker m
-            k = min(len(slot), len(row))
+            k = min(len(slot), width)
             row[:k] = np.asarray(truth[i].marker_ids)[slot][:k]
-            self.marker_ids[i] = row
+            m["marker_ids"][i] = row
+        return m
+
+    def adopt(self, matched: dict) -> None:
+        """Score against a `match` from here on (quick: assignments only)."""
+        for name, value in matched.items():
+            setattr(self, name, value)
 
     def __call__(self, result) -> None:
         samples = result.samples
