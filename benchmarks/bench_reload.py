@@ -15,7 +15,13 @@ missing; the baseline is windows of the same length halfway between reloads. The
 Reloads rotate: a rigid body removed, added back, a second UDP output added, removed, a
 `[tracker]` gate changed (a new tracker that goes on with the old one's tracks).
 
+With `--node` the cameras are rendered by a `mocapd node --sim` process and reach the
+daemon over Zenoh on loopback, as real cameras reach it from outside its interpreter: in
+the daemon's own process the simulated cameras' threads compete with the frame loop (and a
+reload) for the interpreter, which is the simulator's cost, not a deployment's.
+
     python benchmarks/bench_reload.py [--reloads 20] [--every-s 3] [--window-s 0.5] [--fps 120]
+                                      [--realtime] [--node]
 """
 
 from __future__ import annotations
@@ -60,9 +66,17 @@ class Stamps(UdpReader):
 FPS = [240.0]  # the simulated cameras' rate (--fps)
 
 
+NODE = [None]  # the Zenoh port the daemon listens on for a node's cameras (--node)
+SIM_CAMERAS = 8  # the simulated rig's cameras (mocapd's default)
+
+
 def config(rt: Path, port: int, extra: int | None, bodies: str, gate_px: float | None) -> str:
-    lines = [f'runtime_dir = "{rt}"', "", "[sim]", f"fps = {FPS[0]}", "", "[[udp]]",
-             f'address = "127.0.0.1:{port}"']
+    lines = [f'runtime_dir = "{rt}"', "", "[sim]", f"fps = {FPS[0]}",
+             f"cameras = {SIM_CAMERAS}", ""]
+    if NODE[0] is not None:  # the same rig's cameras, served by a node process
+        lines += ["[zenoh]", 'rig = "bench-reload"', f'listen = ["tcp/127.0.0.1:{NODE[0]}"]',
+                  'cameras = "announced"', ""]
+    lines += ["[[udp]]", f'address = "127.0.0.1:{port}"']
     if extra is not None:
         lines += ["", "[[udp]]", f'address = "127.0.0.1:{extra}"']
     if gate_px is not None:
@@ -99,9 +113,14 @@ def main() -> None:
     ap.add_argument("--realtime", action="store_true",
                     help="run the daemon as the systemd unit does (`mocapd start --realtime`): "
                          "other processes' work then stops showing as its delay")
+    ap.add_argument("--node", action="store_true",
+                    help="the cameras in a `mocapd node --sim` process of their own, as real "
+                         "cameras are outside the daemon: the stream's jitter then is not the "
+                         "simulator's threads competing with the daemon for its interpreter")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     FPS[0] = args.fps
+    NODE[0] = free_port() if args.node else None
     from daemon.service.control import request
 
     stamps = Stamps()
@@ -115,6 +134,13 @@ def main() -> None:
         proc = subprocess.Popen([*MOCAPD, "start", "--sim", "--config", str(cfg), *realtime],
                                 stdout=log,
                                 stderr=subprocess.STDOUT, start_new_session=True)
+        procs = [proc]
+        if args.node:  # the daemon's clock and the node's are the same machine's here
+            procs.append(subprocess.Popen(
+                [*MOCAPD, "node", "--sim", "--sim-cameras", str(SIM_CAMERAS), "--sim-fps",
+                 str(args.fps), "--cameras", f"0-{SIM_CAMERAS - 1}", "--name", "n0", "--rig",
+                 "bench-reload", "--connect", f"tcp/127.0.0.1:{NODE[0]}", *realtime],
+                stdout=log, stderr=subprocess.STDOUT, start_new_session=True))
         reloads: list[tuple[str, int, int, bool]] = []
         try:
             deadline = time.monotonic() + 600
@@ -157,11 +183,13 @@ def main() -> None:
             time.sleep(args.every_s)
             rss_after = proc_figures(proc.pid)["rss_mb"]
         finally:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(60)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+            for p in procs:
+                p.send_signal(signal.SIGTERM)
+            for p in procs:
+                try:
+                    p.wait(60)
+                except subprocess.TimeoutExpired:
+                    p.kill()
             log.close()
             stamps.close()
     rows = np.array(stamps.rows, dtype=np.int64)
