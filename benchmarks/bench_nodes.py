@@ -1,6 +1,9 @@
 """Capture nodes over Zenoh: 32 simulated cameras on 4 nodes at 240 fps into one daemon.
 
-`--cameras N` spreads N cameras over the 4 nodes instead (the machine's limit shows).
+`--cameras N` and `--nodes N` (1-4) run another configuration (the cameras split as
+evenly as the nodes allow); `--sweep`, or lists (`--cameras 8,16,32 --nodes 2,4`), run
+every configuration, on loopback and in network namespaces, and print one table
+(benchmarks/nodes_sweep.py says what each column is).
 
 Runs, each a set of separate processes on this machine (loopback only):
 
@@ -27,8 +30,10 @@ drift; the killed node's cameras back in the frame sets after its restart, count
 its first message (and from the process start, which includes building the simulated
 scene).
 
-    python benchmarks/bench_nodes.py [--seconds 20] [--cameras 32] [--no-link]
+    python benchmarks/bench_nodes.py [--seconds 20] [--cameras 32] [--nodes 4] [--no-link]
                                      [--publish sets|cameras|both] [--json out.json]
+    python benchmarks/bench_nodes.py --sweep [--seconds 8] [--where processes|netns|both]
+    python benchmarks/bench_nodes.py --cameras 8,16,32 --nodes 2,4 [--seconds 8]
 """
 
 from __future__ import annotations
@@ -50,6 +55,35 @@ from calibkit.clitools import print_table, write_json
 ROOT = Path(__file__).resolve().parents[1]
 ENV = dict(os.environ, PYTHONPATH=str(ROOT))
 CLOCKS = [(1250.0, 50.0), (-830.0, -50.0), (40.0, 20.0), (3700.0, -10.0)]  # ms, ppm
+MAX_NODES = len(CLOCKS)  # each node has a clock of its own
+SIM_CAMERAS = (2, 32)  # what a [sim] rig takes (daemon.config.mocapd)
+
+
+def config_error(cameras: int, nodes: int) -> str | None:
+    """Why `cameras` on `nodes` cannot be run (one line), or None."""
+    if not SIM_CAMERAS[0] <= cameras <= SIM_CAMERAS[1]:
+        return (f"--cameras {cameras}: the simulated rig takes {SIM_CAMERAS[0]} to "
+                f"{SIM_CAMERAS[1]} cameras")
+    if not 1 <= nodes <= MAX_NODES:
+        return f"--nodes {nodes}: the benchmark runs 1 to {MAX_NODES} nodes"
+    if cameras < nodes:
+        return f"{cameras} cameras cannot go on {nodes} nodes: each node serves at least one"
+    return None
+
+
+def split_cameras(cameras: int, nodes: int) -> list[tuple[int, int]]:
+    """Each node's cameras as (first, last) rig indices: as even as can be, the first
+    `cameras % nodes` nodes one more; a combination config_error refuses is a bug here."""
+    err = config_error(cameras, nodes)
+    if err:
+        raise ValueError(err)
+    per, extra = divmod(cameras, nodes)
+    out, first = [], 0
+    for k in range(nodes):
+        n = per + (k < extra)
+        out.append((first, first + n - 1))
+        first += n
+    return out
 
 
 def free_port() -> int:
@@ -62,16 +96,19 @@ def true_offset_ms(offset_ms, drift_ppm, t_ns):
     return (round(t_ns * (1 + drift_ppm * 1e-6)) + round(offset_ms * 1e6) - t_ns) * 1e-6
 
 
-def daemon(conf: Path, seconds: float, out: Path, extra=()):
-    return subprocess.Popen([sys.executable, "-m", "daemon.cli", "start", "--config",
+def daemon(conf: Path, seconds: float, out: Path, extra=(), prefix=()):
+    """`mocapd start`; `prefix` runs it inside a network namespace (nodes_netns)."""
+    return subprocess.Popen([*prefix, sys.executable, "-m", "daemon.cli", "start", "--config",
                              str(conf), "--duration", str(seconds), "--json", str(out),
                              "--realtime", *extra], cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
 
 
-def node(name, rig, endpoint, cameras, clock, n_cameras=32, seconds=120, publish="cameras"):
+def node(name, rig, endpoint, cameras, clock, n_cameras=32, seconds=120, publish="cameras",
+         prefix=()):
     return subprocess.Popen(
-        [sys.executable, "-m", "daemon.cli", "node", "--sim", "--sim-cameras", str(n_cameras),
+        [*prefix, sys.executable, "-m", "daemon.cli", "node", "--sim", "--sim-cameras",
+         str(n_cameras),
          "--cameras", cameras, "--name", name, "--rig", rig, "--connect", endpoint,
          "--publish", publish,
          "--clock-offset-ms", str(clock[0]), "--clock-drift-ppm", str(clock[1]),
@@ -88,9 +125,11 @@ def status(runtime):
         return None
 
 
-def wait_status(runtime, ok, timeout_s):
+def wait_status(runtime, ok, timeout_s, proc=None):
+    """The first status that is `ok`, and when; (None, now) after `timeout_s`, or as soon
+    as `proc` (the daemon) has ended."""
     end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
+    while time.monotonic() < end and (proc is None or proc.poll() is None):
         st = status(runtime)
         if st is not None and ok(st):
             return st, time.monotonic()
@@ -107,13 +146,20 @@ def cpu_s(pid: int) -> float | None:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def steady_sets(runtime, seconds: float, pid: int | None = None) -> dict | None:
+def steady_sets(runtime, seconds: float, pid: int | None = None,
+                wait_s: float = 120, n_nodes: int = 0) -> dict | None:
     """Frame sets over `seconds` once every camera is in and settled: from when no sample
     has been left out for its camera's clock settling for a second (a camera that has
     just joined is left out of the sets for its first ~0.1 s, local or remote alike; how
-    long all that took is `settle_s`)."""
+    long all that took is `settle_s`). With the rate reached in that window and the
+    status at its end (`end`: its latency figures cover the last 2048 frame sets, its
+    nodes' hop the last 4096 messages of each). Before the daemon has opened its cameras
+    its status lists them all as connected and has no multiplexer yet: that is waited
+    out, and with `n_nodes` that many nodes."""
     t0 = time.monotonic()
-    st, _ = wait_status(runtime, lambda s: all(c["connected"] for c in s["cameras"]), 120)
+    st, _ = wait_status(runtime, lambda s: s.get("multiplexer") is not None
+                        and all(c["connected"] for c in s["cameras"])
+                        and len(s.get("nodes") or []) >= n_nodes, wait_s)
     if st is None or st.get("multiplexer") is None:
         return None
     last, since = st["multiplexer"]["settling_samples"], time.monotonic()
@@ -126,9 +172,9 @@ def steady_sets(runtime, seconds: float, pid: int | None = None) -> dict | None:
             last, since = st["multiplexer"]["settling_samples"], time.monotonic()
     settled = time.monotonic() - t0 - 1.0
     cpu0 = cpu_s(pid) if pid is not None else None
-    st = status(runtime) or st
+    st, w0 = status(runtime) or st, time.monotonic()
     time.sleep(seconds)
-    st1 = status(runtime)
+    st1, w1 = status(runtime), time.monotonic()
     cpu1 = cpu_s(pid) if pid is not None else None
     if st1 is None:
         return None
@@ -142,6 +188,8 @@ def steady_sets(runtime, seconds: float, pid: int | None = None) -> dict | None:
             "complete": 1 - (m1["incomplete_sets"] - m0["incomplete_sets"]) / max(made, 1),
             "late_samples": m1["late_samples"] - m0["late_samples"],
             "skipped_behind": m1["skipped_behind"] - m0["skipped_behind"],
+            "rate_hz": (st1["frames"] - st["frames"]) / (w1 - w0),
+            "end": {"latency": st1["latency"], "nodes": st1.get("nodes")},
             "cpu_us_per_camera_frame": (cpu1 - cpu0) * 1e6 / cam_frames
             if cpu0 is not None and cpu1 is not None and cam_frames > 0 else float("nan")}
 
@@ -172,12 +220,38 @@ def tracking(fig) -> dict:
             "latency_to_poses_ms_p99": fig["latency_to_poses"]["p99_ms"]}
 
 
-def sim_toml(path: Path, runtime: Path, rig: str | None, port: int | None, cameras: int):
+def sim_toml(path: Path, runtime: Path, rig: str | None, listen, cameras: int):
+    """The daemon's mocapd.toml: the [sim] rig, and with `rig` Zenoh on `listen` (a port
+    on loopback, or a list of endpoints)."""
     text = f'runtime_dir = "{runtime}"\n[sim]\ncameras = {cameras}\nbodies = 3\n'
     if rig:
-        text += (f'[zenoh]\nrig = "{rig}"\nlisten = ["tcp/127.0.0.1:{port}"]\n'
-                 'cameras = "announced"\n')
+        eps = [f"tcp/127.0.0.1:{listen}"] if isinstance(listen, int) else list(listen)
+        quoted = ", ".join(f'"{e}"' for e in eps)
+        text += f'[zenoh]\nrig = "{rig}"\nlisten = [{quoted}]\ncameras = "announced"\n'
     path.write_text(text)
+
+
+def hop_figures(nodes: list[dict]) -> dict:
+    """The hop (node -> daemon's multiplexer) from the daemon's per-node figures, as the
+    daemon measures it (through its clock estimate) and against the nodes' true clocks
+    (the estimate's error at `offset_at_ns` taken off: what a frame lived), with the
+    estimate's worst error (us) and a frame's time in its node."""
+    errs, true = [], []
+    hops = [n for n in nodes if n["hop_median_ms"] is not None]
+    for n in hops:
+        if n["offset_ms"] is not None and n["alive"]:
+            err = n["offset_ms"] - true_offset_ms(*CLOCKS[int(n["name"][1:])], n["offset_at_ns"])
+            errs.append(abs(err) * 1e3)
+            true.append((n["hop_median_ms"] - err, n["hop_p99_ms"] - err))
+    if not hops:
+        return {"clock_error_us_loopback_max": max(errs) if errs else None}
+    return {"clock_error_us_loopback_max": max(errs) if errs else None,
+            "hop_ms_median": float(np.median([n["hop_median_ms"] for n in hops])),
+            "hop_ms_p99": float(np.max([n["hop_p99_ms"] for n in hops])),
+            "hop_true_ms_median": float(np.median([t[0] for t in true])) if true else None,
+            "hop_true_ms_p99": float(np.max([t[1] for t in true])) if true else None,
+            "in_node_ms_median": float(np.median([n["in_node_median_ms"] for n in hops])),
+            "in_node_ms_p99": float(np.max([n["in_node_p99_ms"] for n in hops]))}
 
 
 def run_local(tmp: Path, seconds: float, cameras: int) -> dict:
@@ -196,7 +270,8 @@ def run_local(tmp: Path, seconds: float, cameras: int) -> dict:
     return res
 
 
-def run_nodes(tmp: Path, seconds: float, cameras: int, publish: str = "cameras") -> dict:
+def run_nodes(tmp: Path, seconds: float, cameras: int, publish: str = "cameras",
+              n_nodes: int = 4) -> dict:
     import json
 
     port, rig = free_port(), "bench"
@@ -204,31 +279,34 @@ def run_nodes(tmp: Path, seconds: float, cameras: int, publish: str = "cameras")
     conf, out, runtime = tmp / "nodes.toml", tmp / "nodes.json", tmp / "run-nodes"
     sim_toml(conf, runtime, rig, port, cameras)
     d = daemon(conf, seconds, out)
-    per = cameras // 4
-    nodes = [node(f"n{k}", rig, ep, f"{per * k}-{per * k + per - 1}", CLOCKS[k], cameras,
-                  publish=publish) for k in range(4)]
+    ranges = [f"{a}-{b}" for a, b in split_cameras(cameras, n_nodes)]
+    nodes = [node(f"n{k}", rig, ep, ranges[k], CLOCKS[k], cameras, publish=publish)
+             for k in range(n_nodes)]
     procs = [d, *nodes]
     rejoin, before = {}, None
     try:
         st, _ = wait_status(runtime, lambda s: all(c["connected"] for c in s["cameras"])
-                            and len(s.get("nodes") or []) == 4, 120)
+                            and len(s.get("nodes") or []) == n_nodes, 120)
         if st is None:
             raise SystemExit(f"the {cameras} cameras never all came in")
         before = steady_sets(runtime, seconds * 0.3, d.pid)
-        victim = nodes[3]
+        k = n_nodes - 1  # the last node is killed and started again
+        victim = nodes[k]
         victim.send_signal(signal.SIGKILL)
         victim.wait(10)
-        last = slice(3 * per, 4 * per)
+        a, b = split_cameras(cameras, n_nodes)[k]
+        last = slice(a, b + 1)
         st, _ = wait_status(runtime, lambda s: not any(c["connected"]
                                                        for c in s["cameras"][last]), 5)
-        old = {n["boot"] for n in st["nodes"] if n["name"] == "n3"} if st else set()
+        old = {n["boot"] for n in st["nodes"] if n["name"] == f"n{k}"} if st else set()
         started = time.monotonic()
-        procs.append(node("n3", rig, ep, f"{3 * per}-{4 * per - 1}", CLOCKS[3], cameras,
-                          publish=publish))
-        st, first = wait_status(runtime, lambda s: any(n["name"] == "n3" and n["boot"] not in old
-                                                       for n in s["nodes"]), 120)
+        procs.append(node(f"n{k}", rig, ep, ranges[k], CLOCKS[k], cameras, publish=publish))
+        # a daemon that has ended (a short --seconds) is not waited for
+        st, first = wait_status(runtime, lambda s: any(n["name"] == f"n{k}"
+                                                       and n["boot"] not in old
+                                                       for n in s["nodes"]), 120, d)
         st, back = wait_status(runtime, lambda s: all(c["connected"]
-                                                      for c in s["cameras"][last]), 30)
+                                                      for c in s["cameras"][last]), 30, d)
         rejoin = {"from_first_message_s": back - first if st else None,
                   "from_process_start_s": back - started if st else None}
         d.wait(seconds * 3 + 120)
@@ -239,26 +317,7 @@ def run_nodes(tmp: Path, seconds: float, cameras: int, publish: str = "cameras")
     res["rejoin"] = rejoin
     res["steady"] = before
     res["nodes"] = fig["nodes"]
-    errs = []
-    for n in fig["nodes"]:
-        k = int(n["name"][1:])
-        if n["offset_ms"] is not None and n["alive"]:
-            errs.append(abs(n["offset_ms"] - true_offset_ms(*CLOCKS[k], n["offset_at_ns"])) * 1e3)
-    res["clock_error_us_loopback_max"] = max(errs) if errs else None
-    hops = [n for n in fig["nodes"] if n["hop_median_ms"] is not None]
-    res["hop_ms_median"] = float(np.median([n["hop_median_ms"] for n in hops]))
-    res["hop_ms_p99"] = float(np.max([n["hop_p99_ms"] for n in hops]))
-    # the daemon measures the hop through its clock estimate; against the nodes' true
-    # clocks (the estimate's error at the run's end taken off) is what a frame lived
-    true = []
-    for n in hops:
-        if n["offset_ms"] is not None and n["alive"]:
-            err = n["offset_ms"] - true_offset_ms(*CLOCKS[int(n["name"][1:])], n["offset_at_ns"])
-            true.append((n["hop_median_ms"] - err, n["hop_p99_ms"] - err))
-    res["hop_true_ms_median"] = float(np.median([t[0] for t in true])) if true else None
-    res["hop_true_ms_p99"] = float(np.max([t[1] for t in true])) if true else None
-    res["in_node_ms_median"] = float(np.median([n["in_node_median_ms"] for n in hops]))
-    res["in_node_ms_p99"] = float(np.max([n["in_node_p99_ms"] for n in hops]))
+    res.update(hop_figures(fig["nodes"]))
     return res
 
 
@@ -300,25 +359,85 @@ def _cell(v) -> str:
     return f"{v:.3f}" if isinstance(v, float) else str(v)
 
 
-def main() -> None:
+def parse_counts(text: str, option: str) -> list[int]:
+    """`8` or `8,16,32` -> [8, 16, 32]; anything else is the user's error (one line)."""
+    try:
+        out = [int(x) for x in text.split(",")]
+    except ValueError:
+        out = []
+    if not out:
+        raise ValueError(f"{option} {text!r}: give a number or numbers joined by commas")
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seconds", type=float, default=20.0)
-    ap.add_argument("--cameras", type=int, default=32, help="in all, on 4 nodes (4-32)")
+    ap.add_argument("--seconds", type=float, default=None,
+                    help="one configuration: the run's length (20); a sweep: each "
+                         "configuration's steady window (8)")
+    ap.add_argument("--cameras", default=None,
+                    help="cameras in all (2-32; default 32), or a list for a sweep (8,16,32)")
+    ap.add_argument("--nodes", default=None,
+                    help="nodes the cameras are split over (1-4; default 4), or a list (2,4)")
+    ap.add_argument("--sweep", action="store_true",
+                    help="every configuration (--cameras 8,16,32 --nodes 2,4 unless given), "
+                         "one row each, in one table")
+    ap.add_argument("--where", choices=("processes", "netns", "both"), default=None,
+                    help="a sweep's nodes: on loopback (processes), each in a network "
+                         "namespace of its own (netns), or both (the default); implies a sweep")
     ap.add_argument("--no-link", action="store_true", help="skip the delayed-link run")
     ap.add_argument("--publish", choices=("cameras", "sets", "both"), default="cameras",
                     help="how the nodes publish: a message per camera frame (cameras, their "
                          "default), per trigger (sets), or both runs one after the other")
     ap.add_argument("--json", type=Path, default=None)
-    a = ap.parse_args()
+    a = ap.parse_args(argv)
     kinds = ("cameras", "sets") if a.publish == "both" else (a.publish,)
+    try:
+        cams = parse_counts(a.cameras or ("8,16,32" if a.sweep else "32"), "--cameras")
+        nodes = parse_counts(a.nodes or ("2,4" if a.sweep else "4"), "--nodes")
+        errs = [e for c in cams for n in nodes if (e := config_error(c, n))]
+        if errs:
+            raise ValueError(errs[0])
+        if a.seconds is not None and not a.seconds > 0:
+            raise ValueError(f"--seconds {a.seconds:g}: give a positive length")
+    except ValueError as exc:
+        print(f"bench_nodes.py: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+    previous = signal.signal(signal.SIGTERM, _interrupted)
+    try:
+        if a.sweep or a.where is not None or len(cams) > 1 or len(nodes) > 1:
+            from nodes_sweep import sweep  # a sibling script: this folder is on the path
+
+            sweep(cams, nodes, a.where or "both", kinds, a.seconds or 8.0, a.json)
+        else:
+            single(cams[0], nodes[0], kinds, a.seconds or 20.0, a.no_link, a.json)
+    except KeyboardInterrupt:
+        print("bench_nodes.py: interrupted; the processes and namespaces it started are "
+              "stopped and removed", file=sys.stderr)
+        raise SystemExit(130) from None
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _interrupted(signum, frame):
+    """SIGTERM leaves through the same clean-up as Ctrl-C (every `finally` stops what it
+    started); a second one while that runs is ignored, so the clean-up is not cut short."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    raise KeyboardInterrupt
+
+
+def single(cameras: int, n_nodes: int, kinds, seconds: float, no_link: bool,
+           json_path: Path | None) -> None:
+    """One configuration: local, then through the nodes (one killed and started again),
+    then the delayed link; the tables as docs/nodes.md quotes them."""
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        local = run_local(tmp, a.seconds, a.cameras)
+        local = run_local(tmp, seconds, cameras)
         runs = {}
         for k in kinds:
             (tmp / k).mkdir()
-            runs[k] = run_nodes(tmp / k, a.seconds, a.cameras, k)
-        link = None if a.no_link else run_link(tmp, a.seconds)
+            runs[k] = run_nodes(tmp / k, seconds, cameras, k, n_nodes)
+        link = None if no_link else run_link(tmp, seconds)
     names = [f"nodes ({k})" for k in kinds]
 
     def steady(r, key, fmt):
@@ -347,8 +466,8 @@ def main() -> None:
         rows.append([key + (" (whole run)" if key == "sets_complete" else ""), _cell(lv),
                      *cells, "-"])
     print(f"load {os.getloadavg()[0]:.1f} (1 min), {os.cpu_count()} cores")
-    print_table(rows, [f"{a.cameras} cameras, 240 fps", "local", *(f"{n} (/local)"
-                                                                   for n in names), "target"])
+    print_table(rows, [f"{cameras} cameras on {n_nodes} nodes, 240 fps", "local",
+                       *(f"{n} (/local)" for n in names), "target"])
 
     def each(fmt):
         return [fmt(r) for r in runs.values()]
@@ -381,8 +500,8 @@ def main() -> None:
             ["drift of a 50 ppm node, median / worst error (ppm)",
              f"{link['drift_ppm_median']:.1f} / {link['drift_error_ppm_max']:.1f}",
              "followed"]], ["figure (one node through a delaying relay)", "measured", "target"])
-    if a.json:
-        write_json(a.json, {"local": local, "nodes": runs, "link": link})
+    if json_path:
+        write_json(json_path, {"local": local, "nodes": runs, "link": link})
 
 
 if __name__ == "__main__":
