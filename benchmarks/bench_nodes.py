@@ -52,9 +52,18 @@ import numpy as np
 
 from calibkit.clitools import print_table, write_json
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # its sibling, when imported
+from nodes_figures import (  # noqa: E402
+    CLOCKS,
+    complete,
+    hop_figures,
+    never_taken,
+    tracking,
+    true_offset_ms,
+)
+
 ROOT = Path(__file__).resolve().parents[1]
 ENV = dict(os.environ, PYTHONPATH=str(ROOT))
-CLOCKS = [(1250.0, 50.0), (-830.0, -50.0), (40.0, 20.0), (3700.0, -10.0)]  # ms, ppm
 MAX_NODES = len(CLOCKS)  # each node has a clock of its own
 SIM_CAMERAS = (2, 32)  # what a [sim] rig takes (daemon.config.mocapd)
 
@@ -90,10 +99,6 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def true_offset_ms(offset_ms, drift_ppm, t_ns):
-    return (round(t_ns * (1 + drift_ppm * 1e-6)) + round(offset_ms * 1e6) - t_ns) * 1e-6
 
 
 def daemon(conf: Path, seconds: float, out: Path, extra=(), prefix=()):
@@ -183,11 +188,12 @@ def steady_sets(runtime, seconds: float, pid: int | None = None,
     cam_frames = sum(c["frames"] for c in st1["cameras"]) - sum(c["frames"]
                                                                 for c in st["cameras"])
     m0, m1 = st["multiplexer"], st1["multiplexer"]
-    made = (st1["frames"] - st["frames"]) + (m1["skipped_behind"] - m0["skipped_behind"])
+    behind = never_taken(m1) - never_taken(m0)
+    made = (st1["frames"] - st["frames"]) + behind
     return {"sets": made, "settle_s": settled,
-            "complete": 1 - (m1["incomplete_sets"] - m0["incomplete_sets"]) / max(made, 1),
+            "complete": complete(m1["incomplete_sets"] - m0["incomplete_sets"], made),
             "late_samples": m1["late_samples"] - m0["late_samples"],
-            "skipped_behind": m1["skipped_behind"] - m0["skipped_behind"],
+            "skipped_behind": behind,
             "rate_hz": (st1["frames"] - st["frames"]) / (w1 - w0),
             "end": {"latency": st1["latency"], "nodes": st1.get("nodes")},
             "cpu_us_per_camera_frame": (cpu1 - cpu0) * 1e6 / cam_frames
@@ -205,21 +211,6 @@ def stop(procs):
             p.kill()
 
 
-def tracking(fig) -> dict:
-    t = fig.get("truth", {})
-    bodies = t.get("bodies", {}).values()
-    mux = fig.get("multiplexer") or {}
-    n = max(fig["frames"] + (mux.get("skipped_behind") or 0), 1)  # sets made
-    return {"frames": fig["frames"], "rate_hz": fig["rate_hz"],
-            "sets_complete": 1 - mux.get("incomplete_sets", 0) / n,
-            "skipped_behind": mux.get("skipped_behind"),
-            "valid_fraction_min": min((b["valid_fraction"] for b in bodies), default=None),
-            "position_error_mm_rms": t.get("position_error_mm_rms"),
-            "gross_error_frames": t.get("gross_error_frames"),
-            "latency_to_poses_ms_median": fig["latency_to_poses"]["median_ms"],
-            "latency_to_poses_ms_p99": fig["latency_to_poses"]["p99_ms"]}
-
-
 def sim_toml(path: Path, runtime: Path, rig: str | None, listen, cameras: int):
     """The daemon's mocapd.toml: the [sim] rig, and with `rig` Zenoh on `listen` (a port
     on loopback, or a list of endpoints)."""
@@ -229,29 +220,6 @@ def sim_toml(path: Path, runtime: Path, rig: str | None, listen, cameras: int):
         quoted = ", ".join(f'"{e}"' for e in eps)
         text += f'[zenoh]\nrig = "{rig}"\nlisten = [{quoted}]\ncameras = "announced"\n'
     path.write_text(text)
-
-
-def hop_figures(nodes: list[dict]) -> dict:
-    """The hop (node -> daemon's multiplexer) from the daemon's per-node figures, as the
-    daemon measures it (through its clock estimate) and against the nodes' true clocks
-    (the estimate's error at `offset_at_ns` taken off: what a frame lived), with the
-    estimate's worst error (us) and a frame's time in its node."""
-    errs, true = [], []
-    hops = [n for n in nodes if n["hop_median_ms"] is not None]
-    for n in hops:
-        if n["offset_ms"] is not None and n["alive"]:
-            err = n["offset_ms"] - true_offset_ms(*CLOCKS[int(n["name"][1:])], n["offset_at_ns"])
-            errs.append(abs(err) * 1e3)
-            true.append((n["hop_median_ms"] - err, n["hop_p99_ms"] - err))
-    if not hops:
-        return {"clock_error_us_loopback_max": max(errs) if errs else None}
-    return {"clock_error_us_loopback_max": max(errs) if errs else None,
-            "hop_ms_median": float(np.median([n["hop_median_ms"] for n in hops])),
-            "hop_ms_p99": float(np.max([n["hop_p99_ms"] for n in hops])),
-            "hop_true_ms_median": float(np.median([t[0] for t in true])) if true else None,
-            "hop_true_ms_p99": float(np.max([t[1] for t in true])) if true else None,
-            "in_node_ms_median": float(np.median([n["in_node_median_ms"] for n in hops])),
-            "in_node_ms_p99": float(np.max([n["in_node_p99_ms"] for n in hops]))}
 
 
 def run_local(tmp: Path, seconds: float, cameras: int) -> dict:

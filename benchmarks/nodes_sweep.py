@@ -23,8 +23,11 @@ Columns:
 - latency median / p99: a set's newest frame's arrival -> its poses, the last 2048 sets;
 - CPU: the daemon process's CPU time over the camera-frames it took in the window, in us
   (the local run's includes its simulated cameras: docs/nodes.md);
-- position RMS: the poses against the simulator's truth over the whole run, and its ratio
-  to the local run of the same camera count.
+- sets skipped behind: also those that fell off the frame loop's full queue (`overflow`);
+- bodies valid (worst): the share of frames the least-seen body was posed in, whole run;
+- position RMS: the poses against the simulator's truth over the whole run, its ratio
+  to the local run of the same camera count, and the frames with a gross error (counted
+  in the RMS: a figure counts everything).
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ from pathlib import Path
 
 import bench_nodes as bench
 import nodes_netns
+from nodes_figures import CLOCKS, hop_figures, tracking
 
 from calibkit.clitools import print_table, write_json
 
@@ -75,7 +79,7 @@ def run_one(tmp: Path, cameras: int, nodes: int, where: str, publish: str,
                 for k, (a, b) in enumerate(ranges):
                     ep = ns.connect(k) if ns is not None else f"tcp/127.0.0.1:{port}"
                     procs.append(bench.node(
-                        f"n{k}", RIG, ep, f"{a}-{b}", bench.CLOCKS[k], cameras, seconds=cap_s,
+                        f"n{k}", RIG, ep, f"{a}-{b}", CLOCKS[k], cameras, seconds=cap_s,
                         publish=publish, prefix=ns.exec(ns.nodes[k]) if ns is not None else ()))
                 steady = bench.steady_sets(runtime, seconds, d.pid, WAIT_S, nodes)
                 if steady is None:
@@ -91,9 +95,9 @@ def run_one(tmp: Path, cameras: int, nodes: int, where: str, publish: str,
         raise RunFailed(str(exc)) from None
     if not out.exists():
         raise RunFailed("the daemon wrote no figures")
-    res = {"steady": steady, "tracking": bench.tracking(json.loads(out.read_text()))}
+    res = {"steady": steady, "tracking": tracking(json.loads(out.read_text()))}
     if nodes:
-        res["hop"] = bench.hop_figures(steady["end"]["nodes"] or [])
+        res["hop"] = hop_figures(steady["end"]["nodes"] or [])
     return res
 
 
@@ -101,24 +105,25 @@ def _row(cfg: dict, res: dict, local: dict | None) -> list:
     """A table row: the configuration, then its figures (or "not run", see the notes)."""
     head = [cfg["cameras"], cfg["nodes"] or "-", WHERE[cfg["where"]], cfg["publish"]]
     if "steady" not in res:
-        return head + [f"not run [{res['note']}]"] + ["-"] * 6
+        return head + [f"not run [{res['note']}]"] + ["-"] * 7
     st, tr, hop = res["steady"], res["tracking"], res.get("hop") or {}
     lat = st["end"]["latency"]
     rms = tr["position_error_mm_rms"]
     base = (local or {}).get("tracking", {}).get("position_error_mm_rms")
     ratio = f" ({rms / base:.2f})" if rms is not None and base else ""
+    valid = tr["valid_fraction_min"]
     return head + [
         f"{st['rate_hz']:.1f}", f"{st['complete']:.4f}", st["skipped_behind"],
         "-" if hop.get("hop_true_ms_median") is None
         else f"{hop['hop_true_ms_median']:.2f} / {hop['hop_true_ms_p99']:.2f}",
         "-" if lat["median_ms"] is None else f"{lat['median_ms']:.2f} / {lat['p99_ms']:.2f}",
-        f"{st['cpu_us_per_camera_frame']:.0f}",
-        "-" if rms is None else f"{rms:.3f}{ratio}"]
+        f"{st['cpu_us_per_camera_frame']:.0f}", "-" if valid is None else f"{valid:.3f}",
+        "-" if rms is None else f"{rms:.3f}{ratio}, {tr['gross_error_frames']}"]
 
 
 HEADER = ["cameras", "nodes", "where", "sent as", "fps", "sets complete", "skipped behind",
           "hop ms, median / p99", "latency ms, median / p99", "CPU us / camera-frame",
-          "position RMS mm (/ local)"]
+          "bodies valid (worst)", "position RMS mm (/ local), gross frames"]
 
 
 def sweep(cams: list[int], nodes: list[int], where: str, kinds, seconds: float,
