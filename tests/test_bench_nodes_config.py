@@ -158,3 +158,25 @@ def test_a_sweep_stopped_in_its_namespaces_run_removes_them_and_its_processes():
             p.wait()
         for ns in _our_namespaces(p.pid):
             subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+
+
+def test_a_row_that_cannot_run_says_why_and_the_sweep_goes_on(monkeypatch, capsys):
+    """Where namespaces cannot be made, their row says "not run" with the reason in a note
+    (no namespace is attempted); a configuration that fails is reported the same way and
+    the sweep goes on to the next."""
+    ran = []
+
+    def fails(tmp, cameras, nodes, where, publish, seconds):
+        ran.append((cameras, nodes, where))
+        raise nodes_sweep.RunFailed("the daemon ended early (exit code 1)")
+
+    monkeypatch.setattr(nodes_netns, "why_not", lambda: "network namespaces need root")
+    monkeypatch.setattr(nodes_sweep, "run_one", fails)
+    nodes_sweep.sweep([4, 6], [2], "both", ("cameras",), 1.0, None)
+    out = capsys.readouterr().out
+    assert ran == [(4, 0, "local"), (4, 2, "processes"), (6, 0, "local"), (6, 2, "processes")]
+    rows = [x for x in out.splitlines()
+            if any(label in x for label in nodes_sweep.WHERE.values()) and x[:1] == " "]
+    assert len(rows) == 6 and all("not run [" in x for x in rows), out
+    assert "network namespaces: network namespaces need root" in out
+    assert "4 cameras, 2 nodes, local processes: the daemon ended early (exit code 1)" in out
