@@ -324,7 +324,7 @@ def test_mocapd_publishes_named_markers_over_udp_and_natnet_and_reloads_the_set(
         return sum(len(p.marker_index) > 30 for p in got)
 
     try:
-        wait(lambda: labelled_frames() >= 240, 40, "labelled UDP packets")
+        wait(lambda: labelled_frames() >= 240, 120, "labelled UDP packets")
         r = mocapd_cli("status", "--runtime-dir", tmp_path / "rt", "--json",
                        tmp_path / "status.json")
         assert r.code == 0, r.err

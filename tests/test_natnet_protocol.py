@@ -240,9 +240,10 @@ def test_optitrack_sample_client_unicast_against_mocapd(tmp_path):
     assert fig["frames_parsed"] > 10 and fig["duplicates"] == 0, fig
     assert _accounted(fig), fig
     # echo clock sync on one machine: the offset is the method's error, 0.023 ms worst in
-    # 10 min at load 9 (docs); a millisecond here leaves room for a loaded machine's
-    # round trips and still catches a clock read wrong (the target: benchmarks/soak_natnet)
-    assert fig["offset_ms_max_abs"] < 1.0, fig
+    # 10 min at load 9 (docs), 1.66 ms once at load 20 with real-time processes beside it;
+    # 5 ms leaves room for such round trips and still catches a clock read wrong (which is
+    # off by the clocks' difference, seconds; the target: benchmarks/soak_natnet)
+    assert fig["offset_ms_max_abs"] < 5.0, fig
 
 
 @needs_netns

@@ -408,7 +408,9 @@ def test_two_nodes_feed_one_daemon_clocks_estimated_and_bodies_tracked(tmp_path)
     finally:
         stop(nodes)
     assert set(errors) == {"a", "b"}
-    assert all(abs(e) < 500_000 for e in errors.values()), errors
+    # 6 us median on a quiet machine (bench_nodes.py); 0.65 ms once at load 20, the round
+    # trips' asymmetry: 2 ms is still a ten-thousandth of the offsets a wrong read leaves
+    assert all(abs(e) < 2_000_000 for e in errors.values()), errors
     fig = d.figures
     truth_fig = fig["truth"]
     assert truth_fig["valid_poses"] > 0

@@ -119,7 +119,7 @@ def _blobs(b: Browser) -> dict:
     return {m.group(1): int(m.group(2)) for m in found}
 
 
-def _wait(test, timeout_s: float = 30.0):
+def _wait(test, timeout_s: float = 90.0):
     """test() until truthy; a status request refused for a moment (the daemon answers
     with an error while a reload swaps its bodies) counts as not yet."""
     from calibkit.core.errors import UserError
