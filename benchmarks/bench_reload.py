@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -38,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_nodes import stop  # noqa: E402
 from soak import MOCAPD, UdpReader, free_port, proc_figures  # noqa: E402
 
 from calibkit.clitools import print_table, write_json  # noqa: E402
@@ -183,13 +183,7 @@ def main() -> None:
             time.sleep(args.every_s)
             rss_after = proc_figures(proc.pid)["rss_mb"]
         finally:
-            for p in procs:
-                p.send_signal(signal.SIGTERM)
-            for p in procs:
-                try:
-                    p.wait(60)
-                except subprocess.TimeoutExpired:
-                    p.kill()
+            stop(procs)
             log.close()
             stamps.close()
     rows = np.array(stamps.rows, dtype=np.int64)
