@@ -81,6 +81,7 @@ class SimScene:
                                 np.concatenate([truth.marker, loose.marker + 1000]),
                                 np.concatenate([truth.xyz, loose.xyz]))
         self.t0_ns = 0  # daemon time of trigger 0 (live runs: SimCamera sets it)
+        self.first_trigger: dict[int, int] = {}  # camera -> trigger of its first frame
         self.person_labels: list[str] = []
         self.person_xyz = np.zeros((n, 0, 3))  # (frames, 41, 3) the person's markers
         if cfg.person:
@@ -292,11 +293,16 @@ class SimScene:
         return (1 - w) * self.person_xyz[fa] + w * self.person_xyz[fb]
 
     def dropped(self, camera: int, i: int) -> bool:
-        """True while the configured camera is disconnected (fault injection)."""
+        """True while the configured camera is disconnected (fault injection): from
+        drop_from_s after its first frame, so that a camera whose thread opened late (a
+        loaded machine) still goes away, for drop_for_s."""
         cfg = self.cfg
         if not cfg.drop_camera or self.rig.names[camera] != cfg.drop_camera:
             return False
-        t = i / self.fps
+        first = self.first_trigger.get(camera)
+        if first is None:  # not opened yet
+            return False
+        t = (i - first) / self.fps
         return cfg.drop_from_s <= t < cfg.drop_from_s + cfg.drop_for_s
 
 
@@ -343,6 +349,7 @@ class SimCamera:
         epoch = int(rng.integers(1, 2**42))  # its clock at its first frame: since power-up
         rate = 1.0 + sc.drift_ppm[c] * 1e-6
         first = self.t0_ns + round(g * period) + phase
+        sc.first_trigger.setdefault(c, g)
         k = 0
         # its own stream: a scene that loses no frames draws exactly what it always did
         losing = np.random.default_rng([sc.cfg.seed, 8, c, session]) \
