@@ -214,8 +214,13 @@ def test_every_kind_of_thread_restarts_after_an_injected_exception(daemon_with_e
             pub.send = once(pub.send, OSError("one send refused"))
         st = _restarted(d, f"pub-{pub.name}")
         assert st["last_error"] == f"Boom: {prefix} worker"
-        out = next(o for o in d.status()["outputs"] if o["name"] == pub.name)
-        assert out["restarts"] >= 1 and all(t["state"] == "running" for t in out["threads"])
+        def output(name=pub.name):
+            return next(o for o in d.status()["outputs"] if o["name"] == name)
+        # its other threads (NatNet's command port) may be between restarts of their own
+        # on a loaded machine: each is running again soon
+        wait_for(lambda: all(t["state"] == "running" for t in output()["threads"]),
+                 f"{prefix}'s threads running")
+        assert output()["restarts"] >= 1
     sent = {p.name: p.sent for p in d.pipeline.publishers}
     wait_for(lambda: all(p.sent > sent[p.name] + 5 for p in d.pipeline.publishers),
              "every output sending again")

@@ -107,3 +107,42 @@ def test_add_picked_refuses_what_cannot_make_a_body(tmp_path):
     with pytest.raises(UserError, match="3 to 8"):
         bodies.add_picked(path, "new", [1, 2], lambda: {"markers": []})
     assert path.read_text() == CONFIG
+
+
+def test_add_picked_follows_a_picked_marker_whose_track_was_found_again(tmp_path):
+    """Two picked tracks are lost and found again under new ids (a loaded machine skipping
+    frame sets), before the capture or during it: the markers where they were stand for
+    them, a free marker 5 cm away does not, and the body has its true shape."""
+    path = tmp_path / "m.toml"
+    rng = np.random.default_rng(3)
+    shape = np.array([[0, 0, 0], [0.08, 0, 0], [0, 0.06, 0], [0.03, 0.03, 0.05]]) + 1.0
+    calls = []
+
+    def asker(found_again_at: int):
+        def ask():
+            k = len(calls)
+            calls.append(k)
+            ids = [7, 8, 9, 10] if k < found_again_at else [7, 8, 31, 32]
+            xyz = shape + rng.normal(0, 0.0002, shape.shape)
+            out = [{"id": i, "xyz": x.tolist(), "body": None}
+                   for i, x in zip(ids, xyz, strict=True)]
+            return {"markers": out + [{"id": 40, "xyz": [1.05, 1.0, 1.0], "body": None}]}
+        return ask
+
+    picked_at = dict(zip([7, 8, 9, 10], shape, strict=True))
+    d_true = np.sort(np.linalg.norm(shape[:, None] - shape[None], axis=2).ravel())
+    for found_again_at, at in ((0, picked_at), (10, None)):  # where picked; where first seen
+        path.write_text(CONFIG)
+        calls.clear()
+        body_id, n = bodies.add_picked(path, "new", [7, 8, 9, 10], asker(found_again_at),
+                                       at=at)
+        assert n == 4 and len(calls) == 30
+        got = next(b for b in load_config(path).bodies if b.name == "new")
+        assert got.id == body_id
+        d_got = np.linalg.norm(got.markers[:, None] - got.markers[None], axis=2)
+        np.testing.assert_allclose(np.sort(d_got.ravel()), d_true, atol=5e-4)
+    # lost before the capture, and where they were picked not given: by ids alone, no body
+    path.write_text(CONFIG)
+    with pytest.raises(UserError, match="three markers"):  # 2 in each frame
+        bodies.add_picked(path, "new", [7, 8, 9, 10], asker(0))
+    assert path.read_text() == CONFIG

@@ -93,6 +93,7 @@ class LiveView:
         self.blobs: dict[int, tuple] = {}  # camera -> (uv, area) of its newest sample
         self.status: dict | None = None
         self.picked: set[int] = set()
+        self.picked_at: dict[int, np.ndarray] = {}  # where each picked marker was picked
         self.trails: dict[int, deque] = {}
         self.thumbs: list = []
         self.masks: dict = {}
@@ -364,8 +365,13 @@ class LiveView:
         sel = f["track_seen"] & ~f["track_held"]
         return f["track_ids"][sel], f["track_xyz"][sel]
 
-    def _set_picked(self, picked: set) -> None:
+    def _set_picked(self, picked: set, ids=(), xyz=()) -> None:
+        """The picked track ids; `ids`, `xyz`: where markers were when picked (a body is
+        then captured by position if its tracks were lost and found again meanwhile)."""
         self.picked = set(picked)
+        self.picked_at.update({int(i): np.asarray(x, float) for i, x in zip(ids, xyz,
+                                                                          strict=True)})
+        self.picked_at = {i: x for i, x in self.picked_at.items() if i in self.picked}
         self.dirty = True
         self.picked_md.content = ("picked: " + (", ".join(f"marker {i}" for i in
                                                           sorted(self.picked)) or "none"))
@@ -379,7 +385,7 @@ class LiveView:
             self.bad("click that is no ray", exc)
             return
         if k >= 0:
-            self._set_picked(self.picked ^ {int(ids[k])})
+            self._set_picked(self.picked ^ {int(ids[k])}, ids[k:k + 1], xyz[k:k + 1])
 
     def _on_rect(self, event) -> None:
         try:
@@ -392,7 +398,7 @@ class LiveView:
         except (TypeError, ValueError, ArithmeticError) as exc:  # a window 0 px high too
             self.bad("box selection that is no box", exc)
             return
-        self._set_picked(self.picked | {int(i) for i in ids[inside]})
+        self._set_picked(self.picked | {int(i) for i in ids[inside]}, ids[inside], xyz[inside])
 
     def run_edit(self, action, message) -> None:
         """Edits of the configuration run on a thread of their own (a body's creation
@@ -426,7 +432,7 @@ class LiveView:
         rt = self.desc["runtime_dir"]
         name = quiet.text(self.new_name.value, "name", 64)
         body_id, n = add_picked(self.desc["config"], name, self.picked,
-                                lambda: request(rt, {"cmd": "markers"}))
+                                lambda: request(rt, {"cmd": "markers"}), at=self.picked_at)
         self._set_picked(set())
         return f"added rigid body {name.strip()!r} (id {body_id}, {n} markers)"
 

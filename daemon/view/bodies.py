@@ -32,9 +32,15 @@ def _need_config(config: str | Path | None) -> Path:
     return Path(config)
 
 
-def add_picked(config, name: str, picked, ask, frames: int = 30) -> tuple[int, int]:
+def add_picked(config, name: str, picked, ask, frames: int = 30, at=None,
+               radius_m: float = 0.01) -> tuple[int, int]:
     """A body called `name` from the picked track ids (`ask()` is one `markers` answer of
-    the daemon); (its id, its markers). UserError for what the user can fix."""
+    the daemon); (its id, its markers). UserError for what the user can fix.
+
+    `at` (track id -> where it was picked): a track lost and found again between the pick
+    and the capture (a loaded machine skipping frame sets, a hand over a marker) comes
+    back under a new id; the free marker within `radius_m` of where a picked one was last
+    seen stands for it. The body is held still, so position is as good an identity."""
     path = _need_config(config)
     name = name.strip()
     if not name:
@@ -46,9 +52,22 @@ def add_picked(config, name: str, picked, ask, frames: int = 30) -> tuple[int, i
     if not 3 <= len(wanted) <= 8:
         raise UserError(f"{len(wanted)} markers picked; a new body needs 3 to 8")
 
+    last = {int(i): np.asarray(x, float) for i, x in (at or {}).items() if int(i) in wanted}
+
     def only_picked():
-        answer = ask()
-        return {"markers": [m for m in answer["markers"] if m["id"] in wanted]}
+        markers = ask()["markers"]
+        out = [m for m in markers if m["id"] in wanted]
+        for m in out:
+            last[m["id"]] = np.asarray(m["xyz"], float)
+        lost = [i for i in last if i not in {m["id"] for m in out}]
+        for m in markers:  # a lost one's new track: the free marker where it was
+            if not lost or m["body"] or m["id"] in wanted:
+                continue
+            d = [np.linalg.norm(np.asarray(m["xyz"], float) - last[i]) for i in lost]
+            k = int(np.argmin(d))
+            if d[k] <= radius_m:
+                out.append({**m, "id": lost.pop(k)})
+        return {"markers": out}
 
     free = body_from_snapshots(capture_snapshots(only_picked, frames, None, np.inf))
     if not 3 <= len(free) <= 8:
