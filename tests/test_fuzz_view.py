@@ -243,7 +243,7 @@ def test_crafted_clicks_and_boxes_are_ignored_once_logged(caplog):
     view = SimpleNamespace(
         picked=set(), bad=BadInput(logging.getLogger("mocapd.view"), "view"),
         _free_seen=lambda: (np.array([4, 9]), np.array([[0.0, 0, 1], [1, 0, 1]])),
-        _set_picked=picked.append)
+        _set_picked=lambda ids, *where: picked.append(ids))
     with caplog.at_level(logging.INFO, "mocapd"):
         for origin, direction in ((None, None), ([0, 0, 0], [np.nan, 0, 1]),
                                   ("abc", [0, 0, 1]), ([0, 0], [0, 0, 1]),
@@ -296,7 +296,7 @@ def test_crafted_boxes_pick_known_markers_or_are_counted(position, wxyz, fov, wi
     view = SimpleNamespace(
         picked=set(), bad=BadInput(logging.getLogger("mocapd.view"), "view"),
         _free_seen=lambda: (np.array([4, 9]), np.array([[0.0, 0, 1], [1, 0, 1]])),
-        _set_picked=picked.append)
+        _set_picked=lambda ids, *where: picked.append(ids))
     camera = _BrowserCamera(position, wxyz, fov, width, height)
     LiveView._on_rect(view, SimpleNamespace(client=SimpleNamespace(camera=camera),
                                             screen_min=lo, screen_max=hi))
