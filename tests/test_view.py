@@ -145,4 +145,6 @@ def test_add_picked_follows_a_picked_marker_whose_track_was_found_again(tmp_path
     path.write_text(CONFIG)
     with pytest.raises(UserError, match="three markers"):  # 2 in each frame
         bodies.add_picked(path, "new", [7, 8, 9, 10], asker(0))
+    with pytest.raises(UserError, match="none of the picked markers"):  # every one lost
+        bodies.add_picked(path, "new", [9, 10, 11], asker(0))
     assert path.read_text() == CONFIG

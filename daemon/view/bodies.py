@@ -69,7 +69,11 @@ def add_picked(config, name: str, picked, ask, frames: int = 30, at=None,
                 out.append({**m, "id": lost.pop(k)})
         return {"markers": out}
 
-    free = body_from_snapshots(capture_snapshots(only_picked, frames, None, np.inf))
+    snapshots = capture_snapshots(only_picked, frames, None, np.inf)
+    if not any(len(ids) for ids, _ in snapshots):
+        raise UserError("none of the picked markers was tracked during the capture (their "
+                        "tracks were lost since the pick): hold the body still, pick again")
+    free = body_from_snapshots(snapshots)
     if not 3 <= len(free) <= 8:
         raise UserError(f"{len(free)} of the picked markers were tracked steadily and on no "
                         "body; a new body needs 3 to 8 (hold it still, pick again)")
