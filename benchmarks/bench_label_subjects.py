@@ -107,9 +107,12 @@ def main() -> None:
                                                           args.extra))
                 for sf in starts:
                     res[sf].append(one(t, ms, args.hidden, args.ghosts, sf, s, max(starts)))
-                print(name, kind, s, *(f"{100 * res[sf][-1][0]:.2f}/{100 * res[sf][-1][1]:.2f}"
+                below = 0 in starts and any(res[sf][-1][0] < res[0][-1][0] - 1e-9
+                                            for sf in starts if sf)
+                print(name, kind, s, *(f"{100 * res[sf][-1][0]:.3f}/{100 * res[sf][-1][1]:.2f}"
                                        + (f"/{100 * res[sf][-1][2]:.2f}" if args.extra else "")
-                                       for sf in starts), flush=True, file=sys.stderr)
+                                       for sf in starts), "(start below set alone)" * below,
+                      flush=True, file=sys.stderr)
             alone = np.array([r[0] for r in res[0]]) if 0 in starts else None
             for sf in starts:
                 r = np.array(res[sf])

@@ -61,7 +61,7 @@ class Labeller(NeighbourEvidence, ModuleReidentification, StructureRepair):
                  suspect_frames: int = 30, module_reid: bool = True,
                  chi2_cost: bool = False, module_check: bool = True,
                  renew_sigma: float = 2.0, compiled: bool = True,
-                 merge_m: float | None = None) -> None:
+                 merge_m: float | None = None, own_spread: bool = False) -> None:
         self.ms = markerset
         n = markerset.n
         self.n = n
@@ -93,6 +93,11 @@ class Labeller(NeighbourEvidence, ModuleReidentification, StructureRepair):
         self.nb_sd = markerset.sd_m[rows, self.nb]
         self.nb_subject = np.maximum(markerset.subject_sd_m, SUBJECT_REL * markerset.mean_m
                                      )[rows, self.nb]
+        # this body's own spread of each distance (n, n), from this take (learn_spread)
+        self.own_sd = np.zeros((n, n))
+        self.nb_own_sd = np.zeros(self.nb.shape)
+        self._own_wider = False
+        self.own_spread = own_spread    # learn it: only from labels a start vouched for
         # prediction weights: how steadily each marker keeps its distance to each other
         w = 1.0 / (markerset.sd_m ** 2 + 0.005 ** 2)
         np.fill_diagonal(w, 0.0)
@@ -184,6 +189,10 @@ class Labeller(NeighbourEvidence, ModuleReidentification, StructureRepair):
         self._tol_known = known
         self._tol_cache = 3.0 * np.sqrt(self.nb_sd ** 2 + subject ** 2
                                         + 2 * self.noise_m ** 2) + 0.004
+        self._own_wider = bool((self.nb_own_sd > self.nb_sd).any())
+        sd = np.maximum(self.nb_sd, self.nb_own_sd)
+        self._cand_tol_cache = 3.0 * np.sqrt(sd ** 2 + subject ** 2
+                                             + 2 * self.noise_m ** 2) + 0.004
         return self._tol_cache
 
     def start_from_labelled(self, xyz: np.ndarray) -> None:
@@ -216,6 +225,7 @@ class Labeller(NeighbourEvidence, ModuleReidentification, StructureRepair):
             template_tolerance(self.ms, self.noise_m))
         self.nb_mean = self.mean_all[np.arange(self.n)[:, None], self.nb]
         self.adapted = True
+        self.learn_spread(xyz)        # (a window's worth: a few start frames show none)
         for k, (idx, _, perms) in enumerate(self.seg_checks):
             full = np.isfinite(xyz[:, idx]).all(axis=(1, 2))
             if full.any():
@@ -272,6 +282,8 @@ class Labeller(NeighbourEvidence, ModuleReidentification, StructureRepair):
                                   template_tolerance(self.ms, self.noise_m))
         self.known_frames = np.where(has, self.known_frames[s0], 0)
         self.nb_mean = self.mean_all[np.arange(n)[:, None], self.nb]
+        self.own_sd = np.where(pair, self.own_sd[s0][:, s0], 0.0)
+        self.nb_own_sd = self.own_sd[np.arange(n)[:, None], self.nb]
         if len(self.modules):
             hit = (changed[self.mod_idx] & self.mod_mask).any(1)
             self.mod_shape[hit] = np.nan
@@ -388,7 +400,8 @@ class Labeller(NeighbourEvidence, ModuleReidentification, StructureRepair):
                 cost = (dist / sigma[:, None]) ** 2 + self._cand_chi2
             else:
                 cost = (dist / sigma[:, None]) ** 2 + 4.0 * cerr ** 2
-            cost[(dist > gate[:, None]) | (cerr > self.candidate_limit)] = BIG
+            # (a candidate is possible within the body's own spread; the set's ranks them)
+            cost[(dist > gate[:, None]) | (self._cand_veto > self.candidate_limit)] = BIG
             # never seen since the start: found by distances alone, from >= 3 neighbours
             never = ~np.isfinite(self.snap[lost, lost]).all(1)
             fresh = never.copy()

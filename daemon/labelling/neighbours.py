@@ -10,13 +10,56 @@ these has a compiled kernel (kernels) and the numpy twin here.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 BIG = 1e6
+SPREAD_FRAMES = 30       # a pair seen together this many frames of a window: its spread
 
 
 class NeighbourEvidence:
     """Per-frame costs from the neighbours (a part of `Labeller`; it holds the state)."""
+
+    def learn_spread(self, xyz: np.ndarray, min_frames: int = SPREAD_FRAMES) -> None:
+        """Learn how much this body moves each distance from a labelled window (W, n, 3)
+        of this take (labelled start frames, then each window tracked on from them:
+        verify_take.Verification), where the take has a labelled start (`own_spread`;
+        from the set alone the labels are the set's guess): per pair seen together in
+        `min_frames` frames or more, the robust SD (1.4826 median absolute deviation: a few
+        mislabelled frames do not widen it) of its distance over the window; the largest
+        any window showed is kept. Ten labelled start frames (a twelfth of a second) show
+        next to none of a shoulder's spread; the windows tracked after them do. Where the
+        body's spread is wider than the set's it decides whether a lost marker's
+        candidate point is possible at all (`_cand_tol`)."""
+        xyz = np.asarray(xyz, float)
+        if not self.own_spread or len(xyz) < min_frames or xyz.shape[1] != self.n:
+            return
+        d = np.linalg.norm(xyz[:, :, None] - xyz[:, None], axis=3)        # (W, n, n)
+        enough = np.isfinite(d).sum(0) >= min_frames
+        if not enough.any():
+            return
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            med = np.nanmedian(d, axis=0)
+            mad = np.nanmedian(np.abs(d - med), axis=0)
+        sd = np.where(enough, 1.4826 * mad, 0.0)
+        np.fill_diagonal(sd, 0.0)
+        self.own_sd = np.maximum(self.own_sd, sd)
+        self.nb_own_sd = self.own_sd[np.arange(self.n)[:, None], self.nb]
+        self._tol_frames = -1
+        self._tol_known = None
+
+    def _cand_tol(self) -> np.ndarray:
+        """The allowance that vetoes a lost marker's candidate points: as `_tol`, with
+        this body's own spread of each distance where it is wider than the set's
+        (`learn_spread`). A tracked marker's distances are followed frame by frame
+        (`_learn_distances`); a marker lost for a while comes back against distances
+        learned before it was lost, and how far the body may have moved them since is
+        its own spread. The set's allowance still ranks the candidates (and the lost
+        markers competing for a point): the wider one only lets more in."""
+        self._tol()
+        return self._cand_tol_cache
 
     def _structure_error(self, cur: np.ndarray) -> np.ndarray:
         """Per marker: mean over its labelled neighbours of |d - mean| / tolerance (each
@@ -61,20 +104,32 @@ class NeighbourEvidence:
 
     def _candidate_error(self, markers: np.ndarray, P: np.ndarray, cur: np.ndarray
                          ) -> np.ndarray:
-        """(len(markers), len(P)): neighbour-distance error if marker took that point."""
+        """(len(markers), len(P)): neighbour-distance error if marker took that point,
+        against the set's spread (which ranks the candidates); `self._cand_veto` gets the
+        same against the body's own spread where it is wider (`Labeller._cand_tol`),
+        which alone decides whether a candidate is possible at all."""
         if self.compiled:
             mean, num, self._cand_chi2 = self.kern.candidate_error(
                 markers, P, cur, self.nb, self.nb_mean, self._tol())
+            self._cand_veto = mean
+            if self._own_wider:
+                self._cand_veto = self.kern.candidate_error(
+                    markers, P, cur, self.nb, self.nb_mean, self._cand_tol())[0]
             return mean, num
         nbx = cur[self.nb[markers]]                                    # (L, K, 3)
         d = np.linalg.norm(P[None, :, None] - nbx[:, None], axis=3)    # (L, k, K)
-        e = np.abs(d - self.nb_mean[markers][:, None]) / self._tol()[markers][:, None]
+        dev = np.abs(d - self.nb_mean[markers][:, None])
+        e = dev / self._tol()[markers][:, None]
         ok = np.isfinite(e)
         num = ok.sum(2)
         mean = np.where(ok, np.minimum(e, 3.0), 0.0).sum(2) / np.maximum(num, 1)
         # the same as a sum of squares in units of the distances' SD (tolerance / 3), each
         # capped at 4 SD: a sum tells two candidates apart where a mean dilutes
         self._cand_chi2 = np.where(ok, np.minimum(9.0 * e * e, 16.0), 0.0).sum(2)
+        self._cand_veto = mean
+        if self._own_wider:
+            e = dev / self._cand_tol()[markers][:, None]
+            self._cand_veto = np.where(ok, np.minimum(e, 3.0), 0.0).sum(2) / np.maximum(num, 1)
         return mean, num
 
     def _predict_from_neighbours(self, lost: np.ndarray, cur: np.ndarray) -> np.ndarray:

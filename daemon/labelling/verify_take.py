@@ -147,6 +147,11 @@ class Verification:
         k = len(self.windows) - 1
         if k % self.stride == 0 or not self.right.get(k - 1, True):
             self._check(lab, k)
+        if lab.own_spread:
+            # the window's labels, checked or not, tell how much this body moves each
+            # distance: ten labelled start frames do not (NeighbourEvidence.learn_spread)
+            lab.learn_spread(window_labels(self.per_frame, self.labels, self.windows[k],
+                                           self.ms.n, extra=False)[0])
 
     def _check(self, lab, k: int) -> None:
         got = self._fix(k)
