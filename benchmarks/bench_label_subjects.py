@@ -60,16 +60,20 @@ def figures(points, truth, labels, from_frame, extra):
             float((got[ex] >= 0).mean()) if ex.any() else 0.0)
 
 
-def one(take, ms, hidden, ghosts, start_frames, seed, score_from):
+def one(take, ms, hidden, ghosts, start_frames, seed, score_from, own_spread=False):
     """Label one pattern; returns (right, wrong, extra points named, frames/s of CPU),
-    scored from frame `score_from` on."""
+    scored from frame `score_from` on. `own_spread`: a run with a labelled start learns
+    the body's own spread of its distances from the windows tracked after the start
+    (Labeller's option, off by default)."""
     t = hide_spans(take, hidden, seed=seed) if hidden else take
     pts, mk = points_with_ghosts(t, ghosts, seed=seed)
     to_set = markers_of(t, ms.labels)
     truth = np.where(mk >= 0, to_set[np.maximum(mk, 0)], -1)
     c0 = time.process_time()
     _, _, labels = label_take(pts, ms, take.rate_hz, t if start_frames else None,
-                              start_frames)
+                              start_frames,
+                              options={"own_spread": True} if own_spread and start_frames
+                              else None)
     cpu = time.process_time() - c0
     extra = (mk >= 0) & (to_set[np.maximum(mk, 0)] < 0)
     right, wrong, named = figures(pts, truth, labels, score_from, extra)
@@ -88,6 +92,8 @@ def main() -> None:
     ap.add_argument("--takes", default="85_02,01_01")
     ap.add_argument("--no-baseline", action="store_true")
     ap.add_argument("--starts", default="0,10", help="labelled start frames to run")
+    ap.add_argument("--own-spread", action="store_true",
+                    help="runs with a labelled start learn the body's own spread")
     args = ap.parse_args()
     warnings.simplefilter("ignore")
     ms = MarkerSet.load(ROOT / "daemon" / "labelling" / "sets" / "cmu41.toml")
@@ -106,7 +112,8 @@ def main() -> None:
                                                           args.marker_sd_mm / 1000,
                                                           args.extra))
                 for sf in starts:
-                    res[sf].append(one(t, ms, args.hidden, args.ghosts, sf, s, max(starts)))
+                    res[sf].append(one(t, ms, args.hidden, args.ghosts, sf, s, max(starts),
+                                       args.own_spread))
                 below = 0 in starts and any(res[sf][-1][0] < res[0][-1][0] - 1e-9
                                             for sf in starts if sf)
                 print(name, kind, s, *(f"{100 * res[sf][-1][0]:.3f}/{100 * res[sf][-1][1]:.2f}"

@@ -93,7 +93,8 @@ def test_a_labelled_start_keeps_a_sliding_marker_the_set_alone_keeps(cmu41):
     first 34 frames back (71.7 % of its points after the gap right), while the set alone,
     whose start window saw it slide, kept it (100 %): the start's run was below the set
     alone's. With the spread learned from the windows tracked after the start, it is
-    taken back when it reappears, and the start ends at least as right as the set alone."""
+    taken back when it reappears (the labeller's `own_spread` option), and the start
+    ends at least as right as the set alone."""
     take, i = _sliding_sleeve(cmu41)
     pts, mk = points_with_ghosts(take, 0, seed=0)
     order = np.argsort(pts.frame, kind="stable")
@@ -102,7 +103,8 @@ def test_a_labelled_start_keeps_a_sliding_marker_the_set_alone_keeps(cmu41):
     right = {}
     for start_frames in (10, 0):
         _, _, labels = label_take(pts, cmu41, take.rate_hz,
-                                  take if start_frames else None, start_frames)
+                                  take if start_frames else None, start_frames,
+                                  options={"own_spread": True} if start_frames else None)
         back = np.concatenate(want[HIDDEN[1]:]) == i
         got = np.concatenate(labels[HIDDEN[1]:])
         assert (got[back] == i).mean() >= 0.99, start_frames

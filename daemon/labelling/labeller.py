@@ -97,7 +97,11 @@ class Labeller(NeighbourEvidence, ModuleReidentification, StructureRepair):
         self.own_sd = np.zeros((n, n))
         self.nb_own_sd = np.zeros(self.nb.shape)
         self._own_wider = False
-        self.own_spread = own_spread    # learn it: only from labels a start vouched for
+        # learn it (options={"own_spread": True}, with a labelled start only: from the set
+        # alone the labels are the set's guess, and a spread learned from a window it got
+        # wrong loosens the checks that catch it). Off by default: over 42 bodies it
+        # gained three and cost three (docs/labelling_subjects.md, round 6)
+        self.own_spread = own_spread
         # prediction weights: how steadily each marker keeps its distance to each other
         w = 1.0 / (markerset.sd_m ** 2 + 0.005 ** 2)
         np.fill_diagonal(w, 0.0)

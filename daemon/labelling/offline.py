@@ -58,13 +58,6 @@ def _label_take(points, ms, rate_hz, start_labels, start_frames, progress, optio
     # shorter take their numpy twins are faster (unless the kernels are loaded already)
     options.setdefault("compiled", len(per_frame) >= KERNELS_FROM
                        or "daemon.labelling.kernels" in sys.modules)
-    if start_labels is not None and start_frames > 0:
-        # the windows tracked on from labelled start frames teach the tracker how much
-        # this body moves each distance (NeighbourEvidence.learn_spread). From the set
-        # alone the labels are the set's guess: spreads learned from a window it got
-        # wrong would loosen the checks that catch it (tried: a hand's markers named
-        # each other's for 267 frames on one body)
-        options.setdefault("own_spread", True)
     lab = Labeller(ms, rate_hz, **options)
     n_frames = int(frames[-1] - frames[0] + 1) if len(frames) else 0
     first = int(frames[0]) if len(frames) else 0
