@@ -193,8 +193,13 @@ def run(args) -> dict:
         running = len(out)
         sample.stdin.write("q\n")
         sample.stdin.flush()
+        # it says "shutdown called" as it quits: waited for (5 s at most), then a moment to end
+        quit_by = time.monotonic() + 5
+        while (sample.poll() is None and time.monotonic() < quit_by
+               and not any("shutdown called" in line for line in out)):
+            time.sleep(0.05)
         try:
-            sample.wait(timeout=5)
+            sample.wait(timeout=0.5)
         except subprocess.TimeoutExpired:
             # its unicast data socket never receives (frames come to the command socket),
             # and on Linux closing it does not wake its thread from recvfrom: it never ends
