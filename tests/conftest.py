@@ -357,7 +357,8 @@ def pytest_collection_modifyitems(config, items):
 LONGEST_FIRST = (
     "test_robot_example", "test_label_subjects", "test_nodes_link", "test_label",
     "test_kernels_cache", "test_nodes", "test_live_label", "test_daemon_e2e",
-    "test_view_browser", "test_natnet_protocol", "test_demo", "test_wand_cli",
+    "test_view_browser", "test_bench_nodes_config", "test_natnet_protocol", "test_demo",
+    "test_wand_cli",
     "test_view_coverage", "test_fuzz_files", "test_label_verify", "test_label_start",
     "test_wand_pairing", "test_extrinsic", "test_view_report", "test_wand", "test_wand_small",
     "test_layer_imports", "test_intrinsic", "test_extrinsic_cli", "test_fuzz_view",
