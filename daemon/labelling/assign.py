@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from calibkit.core.assignment import linear_sum_assignment
-from daemon.labelling.body import BodyTerms
+from daemon.labelling.body import HAND_WEIGHT, MODULE_WEIGHT, BodyTerms
 from daemon.labelling.markerset import MarkerSet
 from daemon.labelling.modules import rigid_modules
 from daemon.labelling.moves import (  # noqa: F401  (near_groups: the tests' name for it)
@@ -276,23 +276,20 @@ def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
         a, i = np.nonzero(P)
         if len(a) < 2:
             break
+        # each kind of move gives its candidates (the labelling, the compatibility's
+        # score, whole) in the order they are tried; `_best_move` scores them
+        cands = []
         d = (G[a[:, None], i[None]] + G[a[None], i[:, None]] - G[a, i][:, None]
              - G[a, i][None] + C4[a[:, None], i[None], a[None], i[:, None]]
              + C4[a[:, None], i[:, None], a[None], i[None]])
-        best, arg = cur, None
         xs, ys = np.nonzero(np.triu(d > -near, 1))
         top = np.argsort(-d[xs, ys])[:max_swaps]
         bound = changed_bounds(terms, i[xs[top]], i[ys[top]])   # (gain_bound, batched)
         for x, y, b in zip(xs[top], ys[top], bound, strict=True):
-            if cur + d[x, y] + b <= best + 1e-6 - SLACK:
-                continue
-            m2 = mt.copy()
-            m2[i[x]], m2[i[y]] = mt[i[y]], mt[i[x]]
-            if cur + d[x, y] + terms.gain_bound(m2) <= best + 1e-6 or not ok(m2):
-                continue
-            s = cur + d[x, y] + terms.change(m2)
-            if s > best + 1e-6:
-                best, arg = s, m2
+            if cur + d[x, y] + b > cur + 1e-6 - SLACK:
+                m2 = mt.copy()
+                m2[i[x]], m2[i[y]] = mt[i[y]], mt[i[x]]
+                cands.append((m2, cur + d[x, y]))
         # a track taking a marker no track has (its own marker left free)
         free = np.nonzero(mt < 0)[0]
         if len(free):
@@ -300,15 +297,10 @@ def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
             xs, ks = np.nonzero(np.isfinite(d1))
             bound = changed_bounds(terms, i[xs], free[ks])
             for x, k, b in zip(xs, ks, bound, strict=True):
-                if cur + d1[x, k] + b <= best + 1e-6 - SLACK:
-                    continue
-                m2 = mt.copy()
-                m2[i[x]], m2[free[k]] = -1, a[x]
-                if cur + d1[x, k] + terms.gain_bound(m2) <= best + 1e-6 or not ok(m2):
-                    continue
-                s = cur + d1[x, k] + terms.change(m2)
-                if s > best + 1e-6:
-                    best, arg = s, m2
+                if cur + d1[x, k] + b > cur + 1e-6 - SLACK:
+                    m2 = mt.copy()
+                    m2[i[x]], m2[free[k]] = -1, a[x]
+                    cands.append((m2, cur + d1[x, k]))
         # a track no marker has taking a free marker, or taking a marker whose track
         # moves to a free one (a tracker that gave a marker's label to its neighbour and
         # left the marker's own point unlabelled)
@@ -317,33 +309,25 @@ def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
             d2 = (G[un][:, i][:, :, None] + G[a][:, free][None] - G[a, i][None, :, None]
                   + C4[un[:, None, None], i[None, :, None], a[None, :, None],
                        free[None, None, :]])                                   # (U, A, F)
-            cands = [(G[un[u], free[f]], un[u], -1, free[f])
+            swaps = [(G[un[u], free[f]], un[u], -1, free[f])
                      for u, f in zip(*np.nonzero(G[un][:, free] > -near), strict=True)]
             us, xs, fs = np.nonzero(d2 > -near)
             top = np.argsort(-d2[us, xs, fs])[:max_swaps]
-            cands += [(d2[u, x, f], un[u], x, free[f])
+            swaps += [(d2[u, x, f], un[u], x, free[f])
                       for u, x, f in zip(us[top], xs[top], fs[top], strict=True)]
-            bound = changed_bounds(terms, np.array([c[3] for c in cands], int),
-                                   np.array([i[c[2]] if c[2] >= 0 else -1 for c in cands], int))
-            for (dv, u, x, f), b in zip(cands, bound, strict=True):
-                if cur + dv + b <= best + 1e-6 - SLACK:
-                    continue
-                m2 = mt.copy()
-                if x < 0:
-                    m2[f] = u
-                else:
-                    m2[i[x]], m2[f] = u, a[x]
-                if cur + dv + terms.gain_bound(m2) <= best + 1e-6 or not ok(m2):
-                    continue
-                s = cur + dv + terms.change(m2)
-                if s > best + 1e-6:
-                    best, arg = s, m2
-        for dv, m2 in group_moves(cp, G, mt, groups):
-            if cur + dv + terms.gain_bound(m2) <= best + 1e-6 or not ok(m2):
-                continue
-            s = cur + dv + terms.change(m2)
-            if s > best + 1e-6:
-                best, arg = s, m2
+            bound = changed_bounds(terms, np.array([c[3] for c in swaps], int),
+                                   np.array([i[c[2]] if c[2] >= 0 else -1 for c in swaps], int))
+            for (dv, u, x, f), b in zip(swaps, bound, strict=True):
+                if cur + dv + b > cur + 1e-6 - SLACK:
+                    m2 = mt.copy()
+                    if x < 0:
+                        m2[f] = u
+                    else:
+                        m2[i[x]], m2[f] = u, a[x]
+                    cands.append((m2, cur + dv))
+        cands += [(m2, cur + dv) for dv, m2 in group_moves(cp, G, mt, groups)]
+        arg, best = _best_move(cands, terms, ok, cur, None)
+        cands = []
         for j in table.candidates(cp.C, G, mt, terms, cur, best, every_order):
             perm, k = moves[j]      # (only those that can still win; each scored exactly)
             if k >= 0 and terms.cost[k] < len(terms.modules[k]) and not every_order:
@@ -354,12 +338,8 @@ def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
                 continue
             o = ch[mt[ch] >= 0]
             nw = ch[m2[ch] >= 0]
-            s = cur + _sparse_delta(cp, G, (mt[o], o), (m2[nw], nw))
-            if s + terms.gain_bound(m2) <= best + 1e-6 or not ok(m2):
-                continue
-            s += terms.change(m2)
-            if s > best + 1e-6:
-                best, arg = s, m2
+            cands.append((m2, cur + _sparse_delta(cp, G, (mt[o], o), (m2[nw], nw))))
+        arg, best = _best_move(cands, terms, ok, best, arg)
         if arg is None:
             break
         Q = np.zeros_like(P)
@@ -373,6 +353,24 @@ def polish(cp: Compat, P: np.ndarray, terms: BodyTerms, moves: list[tuple],
         base = cp.score(P)
         cur = base + terms(mt)
     return P, cur
+
+
+def _best_move(cands: list[tuple[np.ndarray, float]], terms: BodyTerms, allowed,
+               best: float, arg: np.ndarray | None) -> tuple[np.ndarray | None, float]:
+    """The first candidate labelling, in order, of the highest whole score above `best`
+    (each given with its compatibility score), else `arg`: the handedness part of every
+    candidate in one batch, a candidate's module shapes scored only where it can still
+    win."""
+    if not cands:
+        return arg, best
+    hand, mod_bound = terms.hand_changes(np.stack([m2 for m2, _ in cands]))
+    for (m2, s0), dv, mb in zip(cands, hand, mod_bound, strict=True):
+        if s0 + HAND_WEIGHT * dv + mb <= best + 1e-6 or not allowed(m2):
+            continue
+        s = s0 + (HAND_WEIGHT * dv - MODULE_WEIGHT * terms.module_change(m2))
+        if s > best + 1e-6:
+            best, arg = s, m2
+    return arg, best
 
 
 def body_scale(D: np.ndarray, ms: MarkerSet) -> float:

@@ -38,23 +38,34 @@ class BodyTerms:
         self.shapes = [module_template(ms, m) for m in self.modules]
         self.sigma = np.array([template_sigma(ms, m, noise_m) for m in self.modules])
 
-        self.quads_of = [np.nonzero((self.quads == i).any(1))[0] for i in range(ms.n)]
-        self.mods_of = [[k for k, m in enumerate(self.modules) if i in m] for i in range(ms.n)]
+        # which quads and modules each marker is in ((n, quads), (n, modules)), so that the
+        # terms a change touches are one `any` over the changed markers' rows
+        self.in_quad = (self.quads[None] == np.arange(ms.n)[:, None, None]).any(2)
+        self.in_module = np.zeros((ms.n, len(self.modules)), bool)
+        for k, m in enumerate(self.modules):
+            self.in_module[m, k] = True
+        self._last_affected: tuple[bytes, tuple] = (b"", ())
         self.mt = None
         self._memo: dict[tuple, float] = {}
         self._incidence: tuple[np.ndarray, np.ndarray] | None = None
 
     def _votes(self, mt: np.ndarray, q: np.ndarray) -> np.ndarray:
         """Each quad's vote (+1 agrees with the set, -1 not, 0 unknown) among quads q."""
+        return self._votes_of(mt[self.quads[q]], q)
+
+    def _votes_of(self, tracks: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """The votes of quads q whose markers have the tracks (len(q), 4), -1: none."""
         out = np.zeros(len(q))
         if not len(q):
             return out
-        ok = (mt[self.quads[q]] >= 0).all(1)
+        ok = (tracks >= 0).all(1)
         if not ok.any():
             return out
-        x = self.X[mt[self.quads[q[ok]]]]                           # (q, 4, f, 3)
+        x = self.X[tracks[ok]]                                      # (q, 4, f, 3)
         a, b, c = (x[:, k] - x[:, 0] for k in (1, 2, 3))
-        v = np.einsum("qfi,qfi->qf", np.cross(a, b), c)
+        v = ((a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]) * c[..., 0]   # (a x b) . c,
+             + (a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]) * c[..., 1]  # written out:
+             + (a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]) * c[..., 2])  # np.cross is slow
         s = np.sign(np.sign(np.where(np.isfinite(v), v, 0.0)).sum(1))     # majority
         out[ok] = s * self.signs[q[ok]]
         return out
@@ -85,14 +96,20 @@ class BodyTerms:
         """The terms' value for the labelling mt (marker -> track); remembered, so that
         `change` can score a labelling that differs in a few markers."""
         self.mt = mt.copy()
+        self._last_affected = (b"", ())
         self.vote = self._votes(mt, np.arange(len(self.quads)))
         self.cost = np.array([self._module_cost(mt, k) for k in range(len(self.modules))])
         return HAND_WEIGHT * self.vote.sum() - MODULE_WEIGHT * self.cost.sum()
 
-    def _affected(self, m2: np.ndarray) -> tuple[np.ndarray, list[int]]:
-        ch = np.nonzero(m2 != self.mt)[0]
-        q = np.unique(np.concatenate([self.quads_of[i] for i in ch])) if len(ch) else []
-        return np.asarray(q, int), sorted({k for i in ch for k in self.mods_of[i]})
+    def _affected(self, m2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The quads and modules (ascending) whose markers m2 changes from the last
+        labelling scored; the last answer is kept (a bound and a change ask in turn)."""
+        key = m2.tobytes()
+        if key != self._last_affected[0]:
+            ch = m2 != self.mt
+            self._last_affected = (key, (np.nonzero(self.in_quad[ch].any(0))[0],
+                                         np.nonzero(self.in_module[ch].any(0))[0]))
+        return self._last_affected[1]
 
     def gain_bound(self, m2: np.ndarray) -> float:
         """At most how much the terms can rise from the last labelling to m2."""
@@ -105,22 +122,39 @@ class BodyTerms:
         from the last one scored ((m, n), 1 where changed): the local search's fixed
         moves are bounded in one product instead of one call each."""
         if self._incidence is None:
-            q = np.zeros((self.ms.n, len(self.quads)))
-            q[self.quads, np.arange(len(self.quads))[:, None]] = 1.0
-            k = np.zeros((self.ms.n, len(self.modules)))
-            for j, m in enumerate(self.modules):
-                k[m, j] = 1.0
-            self._incidence = (q, k)
+            self._incidence = (self.in_quad.astype(float), self.in_module.astype(float))
         q, k = self._incidence
         return (HAND_WEIGHT * ((changed @ q) > 0) @ (1.0 - self.vote)
                 + MODULE_WEIGHT * ((changed @ k) > 0) @ self.cost)
 
     def change(self, m2: np.ndarray) -> float:
         """The terms' change from the last labelling scored by __call__ to m2."""
-        q, ks = self._affected(m2)
+        q, _ = self._affected(m2)
         dv = (self._votes(m2, q) - self.vote[q]).sum()
-        dc = sum(self._module_cost(m2, k) - self.cost[k] for k in ks)
-        return HAND_WEIGHT * dv - MODULE_WEIGHT * dc
+        return HAND_WEIGHT * dv - MODULE_WEIGHT * self.module_change(m2)
+
+    def module_change(self, m2: np.ndarray) -> float:
+        """The modules' cost change from the last labelling scored to m2."""
+        _, ks = self._affected(m2)
+        return sum(self._module_cost(m2, k) - self.cost[k] for k in ks)
+
+    def hand_changes(self, M2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For many labellings (K, n) at once: the handedness votes' change from the
+        last labelling scored, exactly (every changed quad of every labelling in one
+        gather), and the bound of the modules' part (`gain_bound`'s). A local search
+        then scores a candidate's module shapes, the costly part, only where the two
+        together can still beat its best."""
+        K = len(M2)
+        if not K:
+            return np.zeros(0), np.zeros(0)
+        if self._incidence is None:
+            self._incidence = (self.in_quad.astype(float), self.in_module.astype(float))
+        q_inc, k_inc = self._incidence
+        ch = (M2 != self.mt).astype(float)
+        k, q = np.nonzero(ch @ q_inc > 0)
+        d = self._votes_of(M2[k[:, None], self.quads[q]], q) - self.vote[q]
+        dv = np.bincount(k, weights=d, minlength=K)
+        return dv, MODULE_WEIGHT * (((ch @ k_inc) > 0) @ self.cost)
 
 
 def _scaled_proper_residual(shape: np.ndarray, x: np.ndarray) -> np.ndarray:
