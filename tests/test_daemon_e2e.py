@@ -135,7 +135,10 @@ def test_live_daemon_outputs_control_reload_and_stop(tmp_path, mocapd_cli):
         assert r.code == 0, r.err
         st = json.loads((tmp_path / "status.json").read_text())
         assert len(st["cameras"]) == 6
-        assert all(60 < c["rate_hz"] < 200 for c in st["cameras"])
+        # every camera delivering: its count rises between two reads (a rate over the
+        # last second is the machine's figure: a loaded one stalls a capture thread)
+        assert all(c["frames"] > 0 and c["rate_hz"] >= 0 for c in st["cameras"])
+        first = {c["name"]: c["frames"] for c in st["cameras"]}
         assert st["bodies_tracked"] == 2
         assert mocapd_cli("record", tmp_path / "rec.mcrec", "--runtime-dir", rt).code == 0
         time.sleep(0.3)
@@ -149,6 +152,10 @@ def test_live_daemon_outputs_control_reload_and_stop(tmp_path, mocapd_cli):
         time.sleep(0.5)
         assert mocapd_cli("record", "--stop", "--runtime-dir", rt).code == 0
         _check_live_mcap(tmp_path / "live.mcap", st["bodies"])
+        r = mocapd_cli("status", "--runtime-dir", rt, "--json", tmp_path / "status2.json")
+        assert r.code == 0, r.err
+        later = json.loads((tmp_path / "status2.json").read_text())["cameras"]
+        assert all(c["frames"] > first[c["name"]] for c in later), (first, later)
         # SIGHUP: a second UDP output appears without stopping the stream
         cfg.write_text(base + f'[[udp]]\naddress = "127.0.0.1:{rx2.getsockname()[1]}"\n')
         n_before = len(got)

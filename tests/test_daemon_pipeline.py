@@ -5,11 +5,12 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from dataclasses import replace
 
 import numpy as np
 
-from daemon.capture.pipeline import Multiplexer
+from daemon.capture.pipeline import CaptureThread, Multiplexer
 from daemon.capture.sources import CameraSample
 from daemon.config.mocapd import load_config
 
@@ -36,6 +37,19 @@ def test_triggered_waits_for_all_then_times_out_without_a_camera():
     assert mux.incomplete == 1 and mux.missing.tolist() == [0, 1, 0]
     mux.push(_sample(1, 1, 10_000_000, [[1, 1]]))  # too late
     assert mux.late == 1 and mux.next(0.02) is None
+
+
+def test_a_cameras_rate_is_its_recent_frames_over_their_span_and_0_once_it_stops():
+    """The status's per-camera rate (the live test reads only that frames keep coming):
+    the frame times kept, over the time they span; 0 when the last is over a second old."""
+    cap = CaptureThread.__new__(CaptureThread)  # its times alone: no source, no thread
+    cap.times = deque(maxlen=256)
+    assert cap.rate_hz() == 0.0
+    now = time.monotonic_ns()
+    cap.times.extend(now - int(k * 1e9 / 120) for k in range(200, -1, -1))
+    assert abs(cap.rate_hz() - 120.0) < 1e-6
+    cap.times = deque(t - 2_000_000_000 for t in cap.times)  # the camera stopped 2 s ago
+    assert cap.rate_hz() == 0.0
 
 
 def test_triggered_does_not_wait_for_a_disconnected_camera():
