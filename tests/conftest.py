@@ -34,11 +34,6 @@ if os.environ.get("PYTHONDONTWRITEBYTECODE") and not os.environ.get("PYTHONPYCAC
 
 
 ROOT = Path(__file__).resolve().parents[1]
-# test modules that start mocapd and time what it does live
-LIVE_DAEMON_MODULES = {"test_daemon_e2e", "test_daemon_pipeline", "test_live_label",
-                       "test_mavlink", "test_natnet", "test_natnet_protocol", "test_vrpn",
-                       "test_logs", "test_daemon_config", "test_examples", "test_nodes",
-                       "test_nodes_link"}
 
 
 ALL = "every test of the module"
@@ -353,13 +348,16 @@ def pytest_collection_modifyitems(config, items):
 # Ordered by each module's wall time in a whole run (docs/testing.md, 2026-11-27 19:26 at
 # load 0.4-19, mean 9; seconds there): the robot's live drives 230, the labeller on other subjects
 # 175, namespaces and node clocks over links 130, ...; below about 15 s the order matters
-# little, the small modules fill the end.
+# little, the small modules fill the end. The labeller's modules come first whatever
+# their length: they run while the session's kernels build (RUN_WHILE_KERNELS_BUILD), and
+# their tests are shared a test at a time, so their place does not unbalance the end.
 LONGEST_FIRST = (
-    "test_robot_example", "test_label_subjects", "test_nodes_link", "test_label",
+    "test_label_subjects", "test_label", "test_label_verify", "test_label_start",
+    "test_robot_example", "test_nodes_link",
     "test_kernels_cache", "test_nodes", "test_live_label", "test_daemon_e2e",
     "test_view_browser", "test_bench_nodes_config", "test_natnet_protocol", "test_demo",
     "test_wand_cli",
-    "test_view_coverage", "test_fuzz_files", "test_label_verify", "test_label_start",
+    "test_view_coverage", "test_fuzz_files",
     "test_wand_pairing", "test_extrinsic", "test_view_report", "test_wand", "test_wand_small",
     "test_layer_imports", "test_intrinsic", "test_extrinsic_cli", "test_fuzz_view",
     "test_view_replay", "test_examples", "test_wand_dots", "test_boundary",
@@ -396,23 +394,84 @@ def pytest_xdist_make_scheduler(config, log):
     return ModulesWholeButShared(config, log)
 
 
+# Modules whose tests need no kernel compiled beforehand (the labeller's, offline, in the
+# test's own process): they run while the kernels build, first in LONGEST_FIRST. Every
+# other test waits for the build, as a daemon, a node or an example started by one would
+# otherwise compile for a minute inside its first seconds.
+RUN_WHILE_KERNELS_BUILD = {"test_label_subjects", "test_label", "test_label_start",
+                           "test_label_verify"}
+_KERNEL_BUILD: dict = {}  # this process's build: {"proc", "log", "done", "ready"}
+
+
+def _kernel_build_files() -> tuple[Path, Path]:
+    """The lock the build holds while it runs, and the file it leaves when it succeeded
+    (per run: xdist's workers share the run's id)."""
+    tmp = Path(tempfile.gettempdir())
+    run = os.environ.get("PYTEST_XDIST_TESTRUNUID", str(os.getpid()))
+    return (tmp / f"calibkit-tests-kernels-{os.getuid()}.lock",
+            tmp / f"calibkit-tests-kernels-{os.getuid()}-{run}.done")
+
+
 @pytest.fixture(scope="session", autouse=True)
-def _daemon_kernels_compiled(request):
-    """Compile mocapd's kernels into the on-disk cache once (`mocapd build-kernels`, as a
-    user does after installing), before tests that run the daemon live: on a fresh
-    checkout the first start would compile for tens of seconds, and a live test timing its
-    first packets would measure the compiler instead of the daemon."""
-    live = {Path(str(item.fspath)).stem for item in request.session.items
+def _daemon_kernels_building(request):
+    """Start compiling mocapd's kernels into the on-disk cache (`mocapd build-kernels`, as
+    a user does after installing) as the run starts, in the background: on a fresh
+    checkout it takes a minute, which the labeller's tests use instead of waiting. One
+    build for the whole run: the first worker to take the lock builds, and the build
+    process holds the lock until it ends (the other worker's tests wait on it)."""
+    slow = {Path(str(item.fspath)).stem for item in request.session.items
             if item.get_closest_marker("slow") is not None}  # the fast set runs none live
-    if live & LIVE_DAEMON_MODULES:
-        # one build at a time: with `-n 2` each worker runs this fixture, and two compiles of
-        # the same kernels at once would only double the CPU; the second finds them cached
-        lock = Path(tempfile.gettempdir()) / f"calibkit-tests-kernels-{os.getuid()}.lock"
+    if not slow - RUN_WHILE_KERNELS_BUILD:
+        _KERNEL_BUILD["ready"] = True
+        yield
+        return
+    lock, done = _kernel_build_files()
+    held = open(lock, "w")
+    try:
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:  # another worker builds: its lock tells when it is done
+        held.close()
+    else:
+        log = tempfile.TemporaryFile()
+        # the child inherits the locked file and keeps the lock until it exits
+        _KERNEL_BUILD.update(done=done, log=log, proc=subprocess.Popen(
+            ["sh", "-c", f'"{sys.executable}" -m daemon.cli build-kernels --quiet '
+                         f'&& echo ok > "{done}"'],
+            cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, pass_fds=(held.fileno(),),
+            env=dict(os.environ, PYTHONPATH=str(ROOT))))
+        held.close()
+    yield
+    proc = _KERNEL_BUILD.get("proc")
+    if proc is not None:
+        if proc.poll() is None:  # no test of this worker waited: the run ends anyway
+            proc.terminate()
+            proc.wait(timeout=60)
+        _KERNEL_BUILD["done"].unlink(missing_ok=True)
+
+
+@pytest.fixture(autouse=True)
+def _daemon_kernels_compiled(request, _daemon_kernels_building):
+    """Every test but the labeller's waits for the build (once per process): a live test
+    timing its first packets would measure the compiler instead of the daemon."""
+    if _KERNEL_BUILD.get("ready") or Path(str(request.node.fspath)).stem in \
+            RUN_WHILE_KERNELS_BUILD:
+        return
+    proc = _KERNEL_BUILD.get("proc")
+    if proc is not None:  # this process started it
+        code = proc.wait(timeout=900)
+        if code != 0:
+            _KERNEL_BUILD["log"].seek(0)
+            pytest.fail(f"mocapd build-kernels failed ({code}): "
+                        f"{_KERNEL_BUILD['log'].read()[-2000:].decode(errors='replace')}")
+    else:  # another worker builds, or built: wait for its lock, then see that it succeeded
+        lock, done = _kernel_build_files()
         with open(lock, "w") as held:
             fcntl.flock(held, fcntl.LOCK_EX)
-            subprocess.run([sys.executable, "-m", "daemon.cli", "build-kernels", "--quiet"],
-                           cwd=ROOT, capture_output=True, timeout=900, check=True,
-                           env=dict(os.environ, PYTHONPATH=str(ROOT)))
+            if not done.exists():  # it failed or never ran: build here (cached: seconds)
+                subprocess.run([sys.executable, "-m", "daemon.cli", "build-kernels",
+                                "--quiet"], cwd=ROOT, capture_output=True, timeout=900,
+                               check=True, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    _KERNEL_BUILD["ready"] = True
 
 
 @pytest.fixture(autouse=True)
