@@ -337,7 +337,14 @@ def pytest_collection_modifyitems(config, items):
         if getattr(item, "originalname", item.name) in names:
             item.add_marker(pytest.mark.slow)
     rank = {name: i for i, name in enumerate(LONGEST_FIRST)}  # stable: modules stay whole
-    items.sort(key=lambda item: rank.get(Path(str(item.fspath)).stem, len(rank)))
+
+    def order(item) -> int:
+        stem = Path(str(item.fspath)).stem
+        if stem in RUN_WHILE_KERNELS_BUILD and item.get_closest_marker("kernels"):
+            return rank["test_robot_example"]  # waits for the build: after those that do not
+        return rank.get(stem, len(rank))
+
+    items.sort(key=order)
 
 
 # The longest modules first, the rest in their order: on two workers (-n 2 --dist loadfile)
@@ -395,9 +402,10 @@ def pytest_xdist_make_scheduler(config, log):
 
 
 # Modules whose tests need no kernel compiled beforehand (the labeller's, offline, in the
-# test's own process): they run while the kernels build, first in LONGEST_FIRST. Every
-# other test waits for the build, as a daemon, a node or an example started by one would
-# otherwise compile for a minute inside its first seconds.
+# test's own process): they run while the kernels build, first in LONGEST_FIRST, but for
+# their tests marked `kernels` (a Labeller's compiled kernels, which would compile in the
+# test's process). Every other test waits for the build, as a daemon, a node or an example
+# started by one would otherwise compile for a minute inside its first seconds.
 RUN_WHILE_KERNELS_BUILD = {"test_label_subjects", "test_label", "test_label_start",
                            "test_label_verify"}
 _KERNEL_BUILD: dict = {}  # this process's build: {"proc", "log", "done", "ready"}
@@ -453,8 +461,9 @@ def _daemon_kernels_building(request):
 def _daemon_kernels_compiled(request, _daemon_kernels_building):
     """Every test but the labeller's waits for the build (once per process): a live test
     timing its first packets would measure the compiler instead of the daemon."""
-    if _KERNEL_BUILD.get("ready") or Path(str(request.node.fspath)).stem in \
-            RUN_WHILE_KERNELS_BUILD:
+    if _KERNEL_BUILD.get("ready") or (
+            Path(str(request.node.fspath)).stem in RUN_WHILE_KERNELS_BUILD
+            and request.node.get_closest_marker("kernels") is None):
         return
     proc = _KERNEL_BUILD.get("proc")
     if proc is not None:  # this process started it

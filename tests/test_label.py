@@ -116,6 +116,7 @@ def test_initial_labels_and_handedness_votes(walk, cmu41):
     assert chirality_votes(x[perm], cmu41, truth_point[swapped]) <= -0.5 * len(cmu41.chiral)
 
 
+@pytest.mark.kernels  # a Labeller's compiled kernels
 def test_per_frame_api(walk, cmu41):
     lab = Labeller(cmu41, rate_hz=walk.rate_hz)
     lab.start_from_labelled(walk.xyz_m[0])
@@ -308,6 +309,7 @@ def test_start_from_the_marker_set_alone_with_occlusions(cmu41):
     assert 1 - s["correct"] - s["unlabelled"] <= 0.005, s
 
 
+@pytest.mark.kernels  # a Labeller's compiled kernels
 def test_skipped_frames_are_predicted_over(cmu41, acro):
     """A live stage that fell behind labels every 2nd frame of the acrobatics: told how
     many frames passed (`steps`), the tracker widens its gate for the longer motion and
@@ -330,6 +332,7 @@ def test_skipped_frames_are_predicted_over(cmu41, acro):
     assert right[2] > right[1]
 
 
+@pytest.mark.kernels  # a Labeller's compiled kernels
 def test_kernels_match_their_numpy_twins(cmu41, acro):
     """Each compiled kernel (daemon/labelling/kernels.py) against the numpy code it replaces,
     on a labeller's state in the middle of an occluded take with ghosts."""
