@@ -140,6 +140,10 @@ SLOW: dict[str, str | set[str]] = {
         "test_start_from_the_marker_set_alone_with_occlusions",
         "test_verification_repairs_a_wrong_start",
         "test_wrist_markers_taken_for_each_other_are_set_right"},
+    "test_label_extras": {  # whole labellings of a subject carrying extra markers (2-6 s)
+        "test_the_set_alone_leaves_markers_it_lacks_unlabelled"},
+    "test_label_relearn": {
+        "test_a_labelled_start_keeps_a_sliding_marker_the_set_alone_keeps"},
     "test_label_start": {
         "test_cmu_set_starts_right_on_a_walker_of_another_size",
         "test_set_learned_on_another_subject_starts_right",
