@@ -424,15 +424,20 @@ def _kernel_build_files() -> tuple[Path, Path]:
             tmp / f"calibkit-tests-kernels-{os.getuid()}-{run}.done")
 
 
-def _end_with_parent() -> None:
-    """In a child, before it runs: SIGTERM when the worker that started it dies (a run
-    killed without its teardown leaves no build behind)."""
-    import ctypes
-
-    try:
-        ctypes.CDLL(None).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG (Linux)
-    except (OSError, AttributeError):
-        pass
+BUILD_IN_CHILD = """
+import ctypes, os, signal, sys
+from pathlib import Path
+signal.signal(signal.SIGINT, signal.default_int_handler)
+try:
+    ctypes.CDLL(None).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG: ends with the worker
+except (OSError, AttributeError):
+    pass
+if os.getppid() != int(sys.argv[2]):  # the worker died before that
+    sys.exit(1)
+from daemon.commands.kernels_cmd import build_kernels
+build_kernels(lambda _: None)
+Path(sys.argv[1]).write_text("ok")
+"""
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -457,14 +462,12 @@ def _daemon_kernels_building(request):
     else:
         log = tempfile.TemporaryFile()
         # the child inherits the locked file and keeps the lock until it exits; Ctrl-C
-        # stops it even where the run was started with SIGINT ignored (a background job)
-        build = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler)"
-                 "\nfrom pathlib import Path\nfrom daemon.commands.kernels_cmd import "
-                 "build_kernels\nbuild_kernels(lambda _: None)\nPath(sys.argv[1]).write_text('ok')")
+        # stops it even where the run was started with SIGINT ignored (a background job),
+        # and it ends when the worker dies (a run killed without its teardown)
         _KERNEL_BUILD.update(done=done, log=log, proc=subprocess.Popen(
-            [sys.executable, "-c", build, str(done)], cwd=ROOT, stdin=subprocess.DEVNULL,
-            stdout=log, stderr=subprocess.STDOUT, pass_fds=(held.fileno(),),
-            preexec_fn=_end_with_parent, env=dict(os.environ, PYTHONPATH=str(ROOT))))
+            [sys.executable, "-c", BUILD_IN_CHILD, str(done), str(os.getpid())], cwd=ROOT,
+            stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
+            pass_fds=(held.fileno(),), env=dict(os.environ, PYTHONPATH=str(ROOT))))
         held.close()
     yield
     proc = _KERNEL_BUILD.get("proc")
