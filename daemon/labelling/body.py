@@ -47,7 +47,7 @@ class BodyTerms:
         self._last_affected: tuple[bytes, tuple] = (b"", ())
         self.mt = None
         self._memo: dict[tuple, float] = {}
-        self._incidence: tuple[np.ndarray, np.ndarray] | None = None
+        self._incidence = (self.in_quad.astype(float), self.in_module.astype(float))
 
     def _votes(self, mt: np.ndarray, q: np.ndarray) -> np.ndarray:
         """Each quad's vote (+1 agrees with the set, -1 not, 0 unknown) among quads q."""
@@ -94,7 +94,8 @@ class BodyTerms:
 
     def __call__(self, mt: np.ndarray) -> float:
         """The terms' value for the labelling mt (marker -> track); remembered, so that
-        `change` can score a labelling that differs in a few markers."""
+        `hand_changes` and `module_change` can score labellings that differ from it in a
+        few markers."""
         self.mt = mt.copy()
         self._last_affected = (b"", ())
         self.vote = self._votes(mt, np.arange(len(self.quads)))
@@ -121,17 +122,9 @@ class BodyTerms:
         """`gain_bound` of many labellings at once, each given by the markers it changes
         from the last one scored ((m, n), 1 where changed): the local search's fixed
         moves are bounded in one product instead of one call each."""
-        if self._incidence is None:
-            self._incidence = (self.in_quad.astype(float), self.in_module.astype(float))
         q, k = self._incidence
         return (HAND_WEIGHT * ((changed @ q) > 0) @ (1.0 - self.vote)
                 + MODULE_WEIGHT * ((changed @ k) > 0) @ self.cost)
-
-    def change(self, m2: np.ndarray) -> float:
-        """The terms' change from the last labelling scored by __call__ to m2."""
-        q, _ = self._affected(m2)
-        dv = (self._votes(m2, q) - self.vote[q]).sum()
-        return HAND_WEIGHT * dv - MODULE_WEIGHT * self.module_change(m2)
 
     def module_change(self, m2: np.ndarray) -> float:
         """The modules' cost change from the last labelling scored to m2."""
@@ -147,8 +140,6 @@ class BodyTerms:
         K = len(M2)
         if not K:
             return np.zeros(0), np.zeros(0)
-        if self._incidence is None:
-            self._incidence = (self.in_quad.astype(float), self.in_module.astype(float))
         q_inc, k_inc = self._incidence
         ch = (M2 != self.mt).astype(float)
         k, q = np.nonzero(ch @ q_inc > 0)
