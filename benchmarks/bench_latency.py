@@ -19,6 +19,13 @@ it at normal priority, RTPRIO=N at SCHED_RR N. LOAD=N runs N CPU-bound processes
 the daemon for the run (a machine doing other work; the benchmark's receiver stands in for
 a robot on a machine of its own, so it runs at a real-time priority when it may).
 
+Beside the latencies, over the same steady part: the frame rate from the packets' own span
+(not the run's nominal length, which holds the daemon's start-up), the frames missing
+between the packets' frame numbers (worst run), and the daemon process's CPU time per frame
+(all its threads, read from /proc; with --sim that includes the simulated cameras'
+rendering) with the cores it keeps busy at that rate: the cost that predicts how a slower
+machine will do, where the latencies only say how this one did.
+
 The first second (tracks being found, late cameras opening) is left out. The machine may
 be shared: each configuration runs `--repeats` times, alternating, and the table gives
 the median of the runs' medians and p99s, and their worst. `--variant NAME=VAR=VALUE,...` adds
@@ -52,10 +59,22 @@ FPS, N_CAMERAS, N_BODIES, PER_BODY, NOISE_PX = 240.0, 8, 10, 5, 0.2
 RECEIVER_PRIORITY = 20  # above the daemon's: a robot's receiver is not sharing its cores
 
 
-def receive_latencies(proc, rx) -> tuple[list[int], list[int]]:
+def process_cpu_s(pid: int) -> float | None:
+    """User + system CPU time of process `pid` so far, all its threads (None once gone)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def receive_latencies(proc, rx, skip: int) -> dict:
     """Until the daemon `proc` ends: per packet on `rx`, capture to our receipt (ns; one
-    monotonic clock on this machine) and the daemon's own latency field."""
-    lat, daemon_lat = [], []
+    monotonic clock on this machine), the daemon's own latency field, the receipt time and
+    the frame number; and the daemon's CPU time over the packets after the first `skip`
+    (read from /proc every `skip` packets, the last reading before it ended)."""
+    lat, daemon_lat, arrival, frames = [], [], [], []
+    cpu = []  # (packets so far, the process's CPU s) from packet `skip` on
     while proc.poll() is None:
         try:
             data = rx.recv(65536)
@@ -65,7 +84,29 @@ def receive_latencies(proc, rx) -> tuple[list[int], list[int]]:
         p = decode(data)
         lat.append(now - p.t_ns)
         daemon_lat.append(p.latency_ns)
-    return lat, daemon_lat
+        arrival.append(now)
+        frames.append(p.frame)
+        if len(lat) >= skip and (len(lat) - skip) % skip == 0:
+            c = process_cpu_s(proc.pid)
+            if c is not None:
+                cpu.append((len(lat), c))
+    return {"lat": lat, "daemon_lat": daemon_lat, "arrival": arrival, "frames": frames,
+            "cpu": cpu}
+
+
+def steady_figures(got: dict, skip: int) -> dict:
+    """Frame rate, frames missing and the daemon's CPU per frame over the packets after the
+    first `skip` (start-up left out): the rate from the packets' own span, not the run's
+    nominal length, which holds the daemon's start."""
+    arr = np.array(got["arrival"][skip:], dtype=np.int64)
+    frames = np.sort(np.array(got["frames"][skip:], dtype=np.int64))
+    span_s = (arr[-1] - arr[0]) * 1e-9 if len(arr) > 1 else float("nan")
+    missing = int((np.diff(frames) - 1).clip(0).sum()) if len(frames) > 1 else 0
+    cpu = got["cpu"]
+    per_frame = ((cpu[-1][1] - cpu[0][1]) / (cpu[-1][0] - cpu[0][0]) * 1e3
+                 if len(cpu) >= 2 else float("nan"))
+    return {"rate_hz": (len(arr) - 1) / span_s, "frames_missing": missing,
+            "cpu_ms_per_frame": per_frame}
 
 
 def open_browser(url: str):
@@ -125,8 +166,9 @@ def one_run(seconds: float, env: dict, extra: list[str]) -> dict:
                             preexec_fn=restore_normal)
     if view == "browser":
         browser = open_browser(f"http://127.0.0.1:{view_port}")
+    skip = int(FPS)  # the first second: tracks being found, late cameras opening
     try:
-        lat, daemon_lat = receive_latencies(proc, rx)
+        got = receive_latencies(proc, rx, skip)
     finally:
         if browser is not None:
             os.killpg(browser.pid, 15)
@@ -142,13 +184,15 @@ def one_run(seconds: float, env: dict, extra: list[str]) -> dict:
     fig = json.loads(figures.read_text())
     figures.unlink()
     stages = fig["latency_stages"]
-    skip = int(FPS)
-    a = np.array(lat[skip:]) * 1e-6
-    d = np.array(daemon_lat[skip:]) * 1e-6
+    if len(got["lat"]) <= 2 * skip:
+        raise SystemExit(f"mocapd sent {len(got['lat'])} packets in {seconds:g} s: too few "
+                         "to measure (give --seconds 3 or more)")
+    a = np.array(got["lat"][skip:]) * 1e-6
+    d = np.array(got["daemon_lat"][skip:]) * 1e-6
     return {"packets": len(a), "udp_median_ms": float(np.median(a)),
             "udp_p99_ms": float(np.percentile(a, 99)),
             "daemon_median_ms": float(np.median(d)),
-            "daemon_p99_ms": float(np.percentile(d, 99)), "rate_hz": len(lat) / seconds,
+            "daemon_p99_ms": float(np.percentile(d, 99)), **steady_figures(got, skip),
             "sent_median_ms": stages["total"]["median_ms"],
             "sent_p99_ms": stages["total"]["p99_ms"],
             "pickup_p99_ms": stages["pickup"]["p99_ms"], "scheduling": fig["scheduling"]}
@@ -176,7 +220,8 @@ def main() -> None:
             res = one_run(args.seconds, env, [])
             runs[name].append(res)
             print(f"run {r + 1}/{args.repeats} {name}: udp median {res['udp_median_ms']:.3f} "
-                  f"p99 {res['udp_p99_ms']:.3f} ms, {res['packets']} packets",
+                  f"p99 {res['udp_p99_ms']:.3f} ms, {res['packets']} packets, "
+                  f"{res['rate_hz']:.1f} fps, {res['cpu_ms_per_frame']:.3f} ms CPU a frame",
                   file=sys.stderr, flush=True)
     rows, out = [], {"seconds": args.seconds, "repeats": args.repeats, "configs": {}}
     for name, rs in runs.items():
@@ -185,13 +230,17 @@ def main() -> None:
         worst = {k: float(np.max([x[k] for x in rs])) for k in numbers}
         out["configs"][name] = {"env": configs[name], "median": med, "worst": worst,
                                 "runs": rs}
-        rows.append([name, round(med["rate_hz"], 1), round(med["udp_median_ms"], 3),
+        rows.append([name, round(med["rate_hz"], 1), int(worst["frames_missing"]),
+                     round(med["cpu_ms_per_frame"], 3),
+                     round(med["cpu_ms_per_frame"] * med["rate_hz"] / 1e3, 2),
+                     round(med["udp_median_ms"], 3),
                      round(med["udp_p99_ms"], 3), round(worst["udp_p99_ms"], 3),
                      round(med["daemon_median_ms"], 3), round(med["daemon_p99_ms"], 3),
                      round(med["sent_median_ms"], 3), round(med["sent_p99_ms"], 3),
                      round(worst["sent_p99_ms"], 3), round(med["pickup_p99_ms"], 3),
                      rs[0]["scheduling"]])
-    print_table(rows, ["config", "rate_hz", "udp_median_ms", "udp_p99_ms",
+    print_table(rows, ["config", "rate_hz", "missing_worst", "cpu_ms_frame", "cores",
+                       "udp_median_ms", "udp_p99_ms",
                        "udp_p99_worst_ms", "daemon_median_ms", "daemon_p99_ms",
                        "sent_median_ms", "sent_p99_ms", "sent_p99_worst_ms", "pickup_p99_ms",
                        "scheduling"])
