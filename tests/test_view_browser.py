@@ -185,10 +185,16 @@ def test_body_from_markers_picked_in_the_page_then_renamed_and_removed(live):
             break
     assert "picked: none" in b.text()
     x, y, w, h = _canvas(b)
-    b.drag(x + 5, y + 5, x + w * 0.7, y + h - 5, modifiers=SHIFT)  # a box over the volume
-    picked = b.wait_for("(document.body.innerText.match(/picked: ([^\\n]*)/) || [])[1] "
-                        "!== 'none' && document.body.innerText.match(/picked: ([^\\n]*)/)[1]",
-                        5)
+    # the page answers a drag on its next drawn frame: seconds when the machine's cores are
+    # all busy (the box picked nothing within 5 s at load 10, run 22), so generous waits,
+    # and the drag made again if the page had not taken it
+    for _ in range(3):
+        b.drag(x + 5, y + 5, x + w * 0.7, y + h - 5, modifiers=SHIFT)  # a box over the volume
+        picked = b.wait_for("(document.body.innerText.match(/picked: ([^\\n]*)/) || [])[1] "
+                            "!== 'none' && "
+                            "document.body.innerText.match(/picked: ([^\\n]*)/)[1]", 20)
+        if picked:
+            break
     assert picked and picked.count("marker") == 4, picked
     b.type_into("Name", "probe")
     b.click_text("button", "Create body from picked markers")
@@ -198,7 +204,7 @@ def test_body_from_markers_picked_in_the_page_then_renamed_and_removed(live):
     assert st["bodies"][0]["valid"]
     text = live["config"].read_text()
     assert text.startswith("# my rig") and 'name = "probe"' in text
-    assert b.wait_for("document.body.innerText.includes('1 of 1 bodies tracked')", 10)
+    assert b.wait_for("document.body.innerText.includes('1 of 1 bodies tracked')", 30)
     # the body's axes are drawn: red, green and blue strokes in the 3D view
     for k, bgr in enumerate(((40, 40, 220), (40, 200, 40), (220, 40, 40))):
         n = _scene_pixels(b, bgr, 90, 5, path=IMAGES / "view-body.png" if k == 0 else None)
@@ -211,7 +217,7 @@ def test_body_from_markers_picked_in_the_page_then_renamed_and_removed(live):
     assert live["config"].read_text().startswith("# my rig")
 
     assert b.wait_for("document.body.innerText.includes('wand2 | ') || "
-                      "document.body.innerText.includes('wand2')", 10)
+                      "document.body.innerText.includes('wand2')", 30)
     b.click_text("button", "Remove")
     st = _wait_status(live, lambda s: s["bodies"] == [])
     assert st["bodies"] == []
