@@ -11,6 +11,7 @@ import numpy as np
 from calibkit.core.blas import one_blas_thread
 from daemon.formats.c3dio import Points, Take
 from daemon.labelling.assign import pair_stats
+from daemon.labelling.extend import extend_runs
 from daemon.labelling.extras import unlabelled_tracks, with_extras
 from daemon.labelling.labeller import Labeller
 from daemon.labelling.markerset import MarkerSet
@@ -128,6 +129,15 @@ def _label_take(points, ms, rate_hz, start_labels, start_frames, progress, optio
                                  lambda: Labeller(tracked, rate_hz, **options))
             _track(lab, per_frame, out, order, start, tracked, own, verify, None,
                    lambda: Labeller(tracked, rate_hz, **options))
+    # runs carried over the points that continue them (the tracker holds a marker back
+    # for a few frames after it comes back; those frames hold its point all the same)
+    marks = [out[i][0].copy() if i >= start else np.zeros(0, int) for i in range(len(frames))]
+    if extend_runs(frames, per_frame, marks, start):
+        for i in range(start, len(frames)):
+            m, c = out[i]
+            if not np.array_equal(marks[i], m):
+                new = (marks[i] >= 0) & (marks[i] != m)
+                out[i] = (marks[i], np.where(marks[i] < 0, 0.0, np.where(new, 0.5, c)))
     for i in range(start, len(frames)):
         P = per_frame[i]
         m, c = out[i]
