@@ -222,14 +222,14 @@ def sim_toml(path: Path, runtime: Path, rig: str | None, listen, cameras: int):
     path.write_text(text)
 
 
-def run_local(tmp: Path, seconds: float, cameras: int) -> dict:
+def run_local(tmp: Path, seconds: float, cameras: int, steady_s: float | None = None) -> dict:
     import json
 
     conf, out, runtime = tmp / "local.toml", tmp / "local.json", tmp / "run-local"
     sim_toml(conf, runtime, None, None, cameras)
     d = daemon(conf, seconds, out)
     try:
-        steady = steady_sets(runtime, seconds * 0.3, d.pid)
+        steady = steady_sets(runtime, steady_s or seconds * 0.3, d.pid)
         d.wait(seconds * 3 + 120)
     finally:
         stop([d])
@@ -239,7 +239,7 @@ def run_local(tmp: Path, seconds: float, cameras: int) -> dict:
 
 
 def run_nodes(tmp: Path, seconds: float, cameras: int, publish: str = "cameras",
-              n_nodes: int = 4) -> dict:
+              n_nodes: int = 4, steady_s: float | None = None) -> dict:
     import json
 
     port, rig = free_port(), "bench"
@@ -257,7 +257,7 @@ def run_nodes(tmp: Path, seconds: float, cameras: int, publish: str = "cameras",
                             and len(s.get("nodes") or []) == n_nodes, 120)
         if st is None:
             raise SystemExit(f"the {cameras} cameras never all came in")
-        before = steady_sets(runtime, seconds * 0.3, d.pid)
+        before = steady_sets(runtime, steady_s or seconds * 0.3, d.pid)
         k = n_nodes - 1  # the last node is killed and started again
         victim = nodes[k]
         victim.send_signal(signal.SIGKILL)
@@ -354,6 +354,12 @@ def main(argv: list[str] | None = None) -> None:
                     help="a sweep's nodes: on loopback (processes), each in a network "
                          "namespace of its own (netns), or both (the default); implies a sweep")
     ap.add_argument("--no-link", action="store_true", help="skip the delayed-link run")
+    ap.add_argument("--steady", type=float, default=None,
+                    help="one configuration: the steady window's length (0.3 x --seconds); "
+                         "its latency rows cover only the window from 8.6 s (the daemon's "
+                         "status keeps the last 2048 frame sets), its hop rows from 17 s "
+                         "with sets (a node's last 4096 messages); --seconds must leave "
+                         "time after it for the killed node's return")
     ap.add_argument("--publish", choices=("cameras", "sets", "both"), default="cameras",
                     help="how the nodes publish: a message per camera frame (cameras, their "
                          "default), per trigger (sets), or both runs one after the other")
@@ -368,6 +374,9 @@ def main(argv: list[str] | None = None) -> None:
             raise ValueError(errs[0])
         if a.seconds is not None and not a.seconds > 0:
             raise ValueError(f"--seconds {a.seconds:g}: give a positive length")
+        if a.steady is not None and not 0 < a.steady < (a.seconds or 20.0) * 0.8:
+            raise ValueError(f"--steady {a.steady:g}: give a positive length under 0.8 x "
+                             "--seconds (the rest is start-up and the killed node's return)")
     except ValueError as exc:
         print(f"bench_nodes.py: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
@@ -378,7 +387,7 @@ def main(argv: list[str] | None = None) -> None:
 
             sweep(cams, nodes, a.where or "both", kinds, a.seconds or 8.0, a.json)
         else:
-            single(cams[0], nodes[0], kinds, a.seconds or 20.0, a.no_link, a.json)
+            single(cams[0], nodes[0], kinds, a.seconds or 20.0, a.no_link, a.json, a.steady)
     except KeyboardInterrupt:
         print("bench_nodes.py: interrupted; the processes and namespaces it started are "
               "stopped and removed", file=sys.stderr)
@@ -394,17 +403,42 @@ def _interrupted(signum, frame):
     raise KeyboardInterrupt
 
 
+def steady_rate_skipped(r: dict) -> str:
+    """The steady window's frame rate and the sets the frame loop skipped in it."""
+    w = r["steady"]
+    return "-" if w is None else f"{w['rate_hz']:.1f}, {w['skipped_behind']}"
+
+
+def steady_latency(r: dict) -> str:
+    """Latency to poses from the daemon's status at the steady window's end (its last 2048
+    frame sets: inside the window once the window is 8.6 s or more at 240 fps)."""
+    lat = None if r["steady"] is None else r["steady"]["end"]["latency"]
+    if not lat or lat.get("median_ms") is None:
+        return "-"
+    return f"{lat['median_ms']:.3f} / {lat['p99_ms']:.3f}"
+
+
+def steady_hop(r: dict) -> str:
+    """The nodes' hop from the status at the steady window's end, against their true
+    clocks: median of nodes / worst node's p99 (ms)."""
+    nodes = None if r["steady"] is None else r["steady"]["end"].get("nodes")
+    h = hop_figures(nodes or [])
+    if h.get("hop_true_ms_median") is None:
+        return "-"
+    return f"{h['hop_true_ms_median']:.3f} / {h['hop_true_ms_p99']:.3f}"
+
+
 def single(cameras: int, n_nodes: int, kinds, seconds: float, no_link: bool,
-           json_path: Path | None) -> None:
+           json_path: Path | None, steady_s: float | None = None) -> None:
     """One configuration: local, then through the nodes (one killed and started again),
     then the delayed link; the tables as docs/nodes.md quotes them."""
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        local = run_local(tmp, seconds, cameras)
+        local = run_local(tmp, seconds, cameras, steady_s)
         runs = {}
         for k in kinds:
             (tmp / k).mkdir()
-            runs[k] = run_nodes(tmp / k, seconds, cameras, k, n_nodes)
+            runs[k] = run_nodes(tmp / k, seconds, cameras, k, n_nodes, steady_s)
         link = None if no_link else run_link(tmp, seconds)
     names = [f"nodes ({k})" for k in kinds]
 
@@ -420,6 +454,10 @@ def single(cameras: int, n_nodes: int, kinds, seconds: float, no_link: bool,
                for r in runs.values()), "-"],
             ["  from all cameras in to settled (s)", steady(local, "settle_s", ".2f"),
              *(steady(r, "settle_s", ".2f") for r in runs.values()), "-"],
+            ["  frame rate in that window (fps), sets skipped behind in it",
+             *(steady_rate_skipped(r) for r in (local, *runs.values())), "240, 0"],
+            ["  latency to poses at its end, median / p99 (ms; the last 2048 sets)",
+             *(steady_latency(r) for r in (local, *runs.values())), "p99 <= 3"],
             ["daemon CPU per camera-frame (us; local: with the simulated cameras)",
              steady(local, "cpu_us_per_camera_frame", ".1f"),
              *(steady(r, "cpu_us_per_camera_frame", ".1f") for r in runs.values()), "<= 50"]]
@@ -441,6 +479,8 @@ def single(cameras: int, n_nodes: int, kinds, seconds: float, no_link: bool,
         return [fmt(r) for r in runs.values()]
 
     print_table([
+        ["hop at the steady window's end, true clocks: median / worst p99 (ms)",
+         *each(steady_hop), "p99 <= 1"],
         ["hop node -> daemon, median of nodes (ms)",
          *each(lambda r: f"{r['hop_ms_median']:.3f}"), "<= 0.3"],
         ["hop node -> daemon, worst node's p99 (ms)",

@@ -51,6 +51,8 @@ def test_cameras_are_split_as_evenly_as_the_nodes_allow(cameras, nodes, want):
     (["--sweep", "--nodes", "2,4,6"], "--nodes 6"),
     (["--cameras", "8,x"], "'8,x'"),
     (["--cameras", "8", "--seconds", "0"], "--seconds 0"),
+    (["--seconds", "20", "--steady", "18"], "--steady 18"),
+    (["--steady", "-1"], "--steady -1"),
 ])
 def test_a_bad_configuration_is_refused_in_one_line_before_anything_runs(argv, says, capsys):
     with pytest.raises(SystemExit) as exc:
