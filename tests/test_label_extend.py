@@ -90,3 +90,14 @@ def test_a_one_frame_glitch_is_replaced_by_the_runs_point_and_a_run_is_not():
         marks[i][1], marks[i][2] = -1, 0
     extend_runs(frames, per_frame, marks)
     assert all(m[2] == 0 and m[1] == -1 for m in marks[3:5])
+
+
+def test_a_glitch_on_merged_points_gives_up_both():
+    # frame 4's marker 0 sits on an off-path point and on its duplicate 1 mm beside it (two
+    # points the labeller merged): the run's own point replaces both
+    frames, per_frame, marks, truth = _take(
+        ghost=lambda i, x0: [x0 + [0.0, 0.05, 0.0], x0 + [0.0, 0.051, 0.0]])
+    marks[4][1], marks[4][2], marks[4][3] = -1, 0, 0
+    extend_runs(frames, per_frame, marks)
+    for m, t in zip(marks, truth, strict=True):
+        np.testing.assert_array_equal(m, t)

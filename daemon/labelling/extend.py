@@ -59,28 +59,29 @@ def extend_runs(frames: np.ndarray, per_frame: list[np.ndarray], marker_of: list
             want |= glitch
             if not want.any():
                 continue
-            held = point[i, glitch]                  # released while the runs choose
-            marker_of[i][held] = -1
+            # a glitch's points (with any merged duplicate) are released while the runs
+            # choose, and given back where its run does not replace them
+            held = {int(m): np.nonzero(marker_of[i] == m)[0] for m in np.nonzero(glitch)[0]}
+            for idx in held.values():
+                marker_of[i][idx] = -1
             free = np.nonzero(marker_of[i] < 0)[0]
             runs = np.nonzero(want)[0]
             got = _continuations(per_frame[j][point[j, runs]], per_frame[k][point[k, runs]],
                                  per_frame[i][free], gate_m, clear)
-            taken = set()
             for r in np.nonzero(got >= 0)[0]:
                 p = free[got[r]]
-                marker_of[i][p] = runs[r]            # (a glitch's point: released above)
+                marker_of[i][p] = runs[r]
                 point[i, runs[r]] = p
-                taken.add(int(p))
                 added += 1
                 nxt = i - 1 if back else i + 1      # the run goes on from here
                 if first <= nxt < F:
                     todo[nxt] = True
-            for m in np.nonzero(glitch)[0]:          # not replaced: kept, unless its point
-                q = point[i, m]                      # went to the run it belongs to
-                if q >= 0 and marker_of[i][q] < 0 and int(q) not in taken:
-                    marker_of[i][q] = m
-                elif q >= 0 and marker_of[i][q] != m:
-                    point[i, m] = -1
+            for m, idx in held.items():
+                if got[np.searchsorted(runs, m)] >= 0:
+                    continue                         # replaced by its run's point
+                back_to = idx[marker_of[i][idx] < 0]  # what another run took stays taken
+                marker_of[i][back_to] = m
+                point[i, m] = back_to[0] if len(back_to) else -1
     return added
 
 
