@@ -53,6 +53,11 @@ def test_nothing_is_joined_across_a_gap_in_the_frame_numbers_or_beyond_the_gate(
     extend_runs(frames, per_frame, marks)
     assert all(m[1] == -1 for m in marks[:5])
     assert marks[5][1] == 0
+    # nor when the run, carried back from further on, reaches the gap
+    frames, per_frame, marks, _ = _take(seen_from=8)
+    frames[5:] += 1
+    extend_runs(frames, per_frame, marks)
+    assert all(m[1] == 0 for m in marks[5:]) and all(m[1] == -1 for m in marks[:5])
     # a marker that stopped (its point 30 mm off the extrapolation) is not followed
     frames, per_frame, marks, _ = _take()
     for i in range(5):

@@ -51,6 +51,8 @@ def extend_runs(frames: np.ndarray, per_frame: list[np.ndarray], marker_of: list
             if not todo[i]:
                 continue
             j, k = (i + 1, i + 2) if back else (i - 1, i - 2)
+            if not (step[min(i, j)] and step[min(j, k)]):
+                continue                             # (a run reached a gap in the frames)
             run = (point[j] >= 0) & (point[k] >= 0)
             want = run & (point[i] < 0)
             glitch = run & (point[i] >= 0)
