@@ -35,13 +35,10 @@ import numpy as np
 from calibkit.clitools import print_table, write_json
 from daemon.publish.packet import decode
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # its sibling, when imported
+from proc_cpu import process_cpu_s as cpu_s  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def cpu_s(pid: int) -> float:
-    """CPU time (user + system) a process has used so far (Linux /proc)."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def first_pose_s(cache: str, timeout_s: float = 600.0) -> tuple[float, float, float]:

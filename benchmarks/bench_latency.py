@@ -54,18 +54,12 @@ from calibkit.clitools import print_table, write_json
 from daemon.process.realtime import raise_priority, restore_normal
 from daemon.publish.packet import decode
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # its sibling, when imported
+from proc_cpu import process_cpu_s  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 FPS, N_CAMERAS, N_BODIES, PER_BODY, NOISE_PX = 240.0, 8, 10, 5, 0.2
 RECEIVER_PRIORITY = 20  # above the daemon's: a robot's receiver is not sharing its cores
-
-
-def process_cpu_s(pid: int) -> float | None:
-    """User + system CPU time of process `pid` so far, all its threads (None once gone)."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except (OSError, IndexError):
-        return None
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def receive_latencies(proc, rx, skip: int) -> dict:

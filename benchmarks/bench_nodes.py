@@ -61,6 +61,7 @@ from nodes_figures import (  # noqa: E402
     tracking,
     true_offset_ms,
 )
+from proc_cpu import process_cpu_s as cpu_s  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = dict(os.environ, PYTHONPATH=str(ROOT))
@@ -140,15 +141,6 @@ def wait_status(runtime, ok, timeout_s, proc=None):
             return st, time.monotonic()
         time.sleep(0.05)
     return None, time.monotonic()
-
-
-def cpu_s(pid: int) -> float | None:
-    """A process's CPU time so far (user + system, all its threads), from /proc."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
-    except OSError:
-        return None
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def steady_sets(runtime, seconds: float, pid: int | None = None,

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
-from bench_latency import process_cpu_s, steady_figures  # noqa: E402
+from bench_latency import steady_figures  # noqa: E402
+from proc_cpu import process_cpu_s  # noqa: E402
 
 
 def test_rate_missing_frames_and_cpu_per_frame_after_the_start():
