@@ -143,3 +143,92 @@ def test_a_live_run_keeps_its_start_up_out_of_the_collector_and_gives_it_back(tm
     assert len(frozen) > 5  # it tracked
     assert min(frozen) > 50_000, min(frozen)  # what starting up made: kept aside
     assert gc.get_freeze_count() == 0
+
+
+
+_NODE_PRIORITIES = """
+import json, os, sys, threading, time
+from daemon.nodes.node import Node, NodeTime
+from daemon.nodes.settings import NodeConfig
+from daemon.publish.zenoh_session import ZenohSettings
+
+endpoint = sys.argv[1]
+seen = {}
+
+
+class Runner:
+    def __init__(self):
+        self.stop_event = threading.Event()
+        self.thread = threading.Thread(target=self._run)
+
+    def _run(self):
+        seen["capture"] = os.sched_getparam(0).sched_priority
+        self.stop_event.wait(30)
+
+    def start(self):
+        self.thread.start()
+
+    def stop(self):
+        self.stop_event.set()
+
+    def join(self, timeout):
+        self.thread.join(timeout)
+
+
+class State:
+    connected, frames = True, 0
+
+
+def body():
+    cfg = NodeConfig(name="rt", session=ZenohSettings(rig="rt", listen=(endpoint,)),
+                     realtime_priority=5, publish="sets")
+    node = Node(cfg, [], NodeTime(), capture=lambda sources, pushes: ([Runner()], [State()]))
+    node.start()
+    peer = ZenohSettings(rig="rt", connect=(endpoint,)).open()  # a link: its rx/tx threads
+    deadline = time.monotonic() + 30
+    names = lambda: {open(f"/proc/self/task/{t}/comm").read().strip()
+                     for t in os.listdir("/proc/self/task")}
+    while time.monotonic() < deadline and not ("capture" in seen and "rx-0" in names()):
+        time.sleep(0.05)
+    threads = {}
+    for tid in os.listdir("/proc/self/task"):
+        name = open(f"/proc/self/task/{tid}/comm").read().strip()
+        threads.setdefault(name, []).append(os.sched_getparam(int(tid)).sched_priority)
+    seen.update(scheduling=node.scheduling, threads=threads)
+    peer.close()
+    node.close()
+
+
+t = threading.Thread(target=body)
+t.start()
+t.join()
+print(json.dumps(seen))
+"""
+
+
+@may_be_realtime
+def test_a_node_runs_its_network_a_step_above_its_capture_threads():
+    """A ready set must leave while other cameras' detection holds the cores: Zenoh's
+    threads, the clock's answers and the set timer at the node's priority + 1, its capture
+    threads at it. In a process of its own: Zenoh starts its threads once per process."""
+    import socket
+    import subprocess
+    import sys
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    out = subprocess.run([sys.executable, "-c", _NODE_PRIORITIES, f"tcp/127.0.0.1:{port}"],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    seen = json.loads(out.stdout.strip().splitlines()[-1])
+    assert seen["scheduling"] == "SCHED_RR 5 (network 6)"
+    assert seen["capture"] == 5
+    threads = seen["threads"]
+    network = [p for name, ps in threads.items() if name.startswith(("rx-", "tx-", "net-"))
+               for p in ps]
+    assert network and set(network) == {6}, threads
+    # Python's own threads carry no names here: the set timer and the clock's answers are
+    # the two at 6; the thread that started the node and its capture thread are at 5
+    python = sorted(p for p in threads["python"] if p > 0)
+    assert python.count(6) >= 2 and python.count(5) == 2 and set(python) == {5, 6}, threads

@@ -47,7 +47,8 @@ def register(app: typer.Typer) -> None:
         verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Debug log.")] = False,
         realtime: Annotated[bool, typer.Option(
             "--realtime", help="Capture and publish under real-time scheduling (SCHED_RR at "
-                               "node.toml's realtime_priority, else 10); off by default.")]
+                               "node.toml's realtime_priority, else 9; the node's network one "
+                               "step above); off by default.")]
         = False,
     ) -> None:
         """Open cameras, detect blobs and publish them over Zenoh to a mocapd elsewhere."""
@@ -61,7 +62,10 @@ def register(app: typer.Typer) -> None:
         if realtime and cfg.realtime_priority == 0:
             from daemon.commands.start_run import REALTIME_DEFAULT
 
-            cfg = replace(cfg, realtime_priority=REALTIME_DEFAULT)
+            # capture a step below the daemon's threads, the node's network level with them
+            # (daemon.nodes.node.Node.start): a node on the daemon's machine never runs its
+            # detection ahead of the daemon
+            cfg = replace(cfg, realtime_priority=REALTIME_DEFAULT - 1)
         try:
             if name is not None:
                 cfg = replace(cfg, name=check_name(name, "--name"))

@@ -38,7 +38,8 @@ class NodeConfig:
     sim_cameras: tuple[str, ...] = ()  # which of the simulated rig's cameras it serves
     clock_offset_ms: float = 0.0  # --sim: the node's own clock against the machine's
     clock_drift_ppm: float = 0.0
-    realtime_priority: int = 0  # SCHED_RR of the node's threads (0: normal; --realtime: 10)
+    # SCHED_RR of the capture threads, its network one step above (0: normal; --realtime: 9)
+    realtime_priority: int = 0
     # "cameras": one message per camera frame, on the camera's own key; "sets": one message
     # per trigger with every camera's frame (daemon.nodes.node.SetPublisher)
     publish: str = "cameras"
