@@ -290,7 +290,7 @@ def test_zenoh_settings_are_checked_with_one_line_errors(tmp_path):
         parse_node_config({"publish": "frames"})
     with pytest.raises(UserError, match="set_wait_ms: must be between 0.0 and 1000.0"):
         parse_node_config({"set_wait_ms": -1})
-    assert parse_node_config({}).publish == "cameras"
+    assert parse_node_config({}).publish == "sets"
     cfg = parse_config({"camera": [{"name": "cam0", "source": "zenoh:left"}]})
     assert cfg.zenoh is not None and cfg.zenoh.session.listen == ("tcp/0.0.0.0:7447",)
     assert parse_camera_list("0-2,cam5", [f"cam{i}" for i in range(8)]) == (
@@ -394,7 +394,8 @@ def test_two_nodes_feed_one_daemon_clocks_estimated_and_bodies_tracked(tmp_path)
     d = DaemonThread(tmp_path, port, rig, 120.0).start()  # stopped once checked
     nodes = [start_node("a", rig, ep, "0-3", 12.5, 50.0, seconds=120,
                         extra=("--publish", "sets")),  # a set per trigger
-             start_node("b", rig, ep, "4-7", -7.0, -30.0, seconds=120)]  # a frame a message
+             start_node("b", rig, ep, "4-7", -7.0, -30.0, seconds=120,
+                        extra=("--publish", "cameras"))]  # a frame a message
     truth = {"a": (12.5, 50.0), "b": (-7.0, -30.0)}
     try:
         names = [f"cam{i}" for i in range(8)]

@@ -40,8 +40,8 @@ def register(app: typer.Typer) -> None:
         clock_drift_ppm: Annotated[float | None, typer.Option(
             "--clock-drift-ppm", help="--sim: how fast the node's clock runs.")] = None,
         publish: Annotated[str | None, typer.Option(
-            "--publish", help="cameras: one message per camera frame (default); sets: one "
-                              "message per trigger with all the node's cameras.")] = None,
+            "--publish", help="sets: one message per trigger with all the node's cameras "
+                              "(default); cameras: one message per camera frame.")] = None,
         duration: Annotated[float | None, typer.Option(
             "--duration", help="Stop after this many seconds.")] = None,
         verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Debug log.")] = False,

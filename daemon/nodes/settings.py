@@ -42,7 +42,7 @@ class NodeConfig:
     realtime_priority: int = 0
     # "cameras": one message per camera frame, on the camera's own key; "sets": one message
     # per trigger with every camera's frame (daemon.nodes.node.SetPublisher)
-    publish: str = "cameras"
+    publish: str = "sets"
     set_wait_ms: float = 2.0  # how long a set waits for a camera whose frame has not come
 
 
@@ -53,7 +53,7 @@ def parse_node_config(data: dict, path: Path | None = None,
                           "camera", "sim", "node_sim"}, "")
     name = _string(w, data, "name", "", "node")
     priority = _number(w, data, "realtime_priority", "", 0, kind=int, lo=0, hi=99)
-    publish = _string(w, data, "publish", "", "cameras", choices=PUBLISH)
+    publish = _string(w, data, "publish", "", "sets", choices=PUBLISH)
     set_wait = _number(w, data, "set_wait_ms", "", 2.0, lo=0.0, hi=1000.0)
     try:
         check_name(name, "node name")

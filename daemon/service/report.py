@@ -55,6 +55,8 @@ def status(daemon) -> dict:
         "scheduling": daemon.scheduling,
         "frames": st.frames, "rate_hz": st.rate_hz(),
         "latency": latency_figures(st.latency),
+        # CPU the simulator's scorers took on the frame loop's thread (0 without --sim)
+        "scorers_cpu_s": daemon.pipeline.idle_cpu_ns * 1e-9,
         "cameras": cams,
         "bodies": [{"id": int(b.id), "name": b.name, "valid": bool(v)}
                    for b, v in zip(bodies, valid, strict=True)],
