@@ -215,6 +215,19 @@ class StructureRepair:
         for a, b in zip(i[better], j[better], strict=True):
             if point_of[a] < 0 or point_of[b] < 0:
                 continue
+            if self._new_now[a] != self._new_now[b] and (
+                    np.linalg.norm(cur[a] - cur[b]) > self.gate_m):
+                # one was found again in this frame, the other followed its own motion to a
+                # point farther than the tracking gate from the new one's: tracking cannot
+                # have mixed them up, so the new one's point (a ghost, or another marker)
+                # is what fits badly; it is let go, the tracked one keeps its point
+                new = a if self._new_now[a] else b
+                marker_of[point_of[new]] = -1
+                point_of[new] = -1
+                cur[new] = np.nan
+                self._new_now[new] = False
+                done = True
+                continue
             pa, pb = point_of[a], point_of[b]
             point_of[a], point_of[b] = pb, pa
             marker_of[pa], marker_of[pb] = b, a
