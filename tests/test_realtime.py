@@ -102,6 +102,39 @@ def test_a_live_run_tracks_real_time_reports_its_stages_and_returns_normal(tmp_p
     assert 0.1 <= st["delivery"]["median_ms"] <= 1000
 
 
+def test_a_live_run_keeps_blas_on_its_calling_thread_and_gives_the_limit_back(tmp_path,
+                                                                              mocapd_cli):
+    """OpenBLAS's worker threads start with numpy, at normal priority: a real-time thread
+    waiting for them would wait behind every other process. While the daemon runs, BLAS
+    uses one thread; afterwards the caller's limit is back."""
+    from threadpoolctl import threadpool_info
+
+    def blas_threads():
+        return {lib["internal_api"]: lib["num_threads"] for lib in threadpool_info()
+                if lib["user_api"] == "blas"}
+
+    before = blas_threads()
+    assert before, "numpy's BLAS is not seen by threadpoolctl"
+    seen, stop = [], threading.Event()
+
+    def watch():
+        while not stop.is_set():
+            seen.append(blas_threads())
+            stop.wait(0.05)
+
+    w = threading.Thread(target=watch)
+    w.start()
+    try:
+        r = mocapd_cli("start", "--sim", "--duration", 2.0, "--sim-fps", 60,
+                       "--runtime-dir", tmp_path / "rt", "--udp", "127.0.0.1:9", "--realtime")
+    finally:
+        stop.set()
+        w.join(10)
+    assert r.code == 0, r.err
+    assert any(set(s.values()) == {1} for s in seen)
+    assert blas_threads() == before
+
+
 def test_a_notify_socket_nobody_reads_never_blocks_the_frame_loop(tmp_path, monkeypatch):
     """sd_notify runs on the frame loop every second: when the manager stops reading and
     the socket's queue fills, the message is dropped, not waited for."""

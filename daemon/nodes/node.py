@@ -26,6 +26,7 @@ import threading
 import time
 
 from calibkit.cameras import missing_plugins
+from calibkit.core.blas import one_blas_thread
 from calibkit.core.errors import UserError
 from calibkit.vision.detect import DetectorConfig
 from daemon.capture.pipeline import CaptureThread
@@ -205,6 +206,7 @@ class Node:
         self.sets: SetPublisher | None = None
         self.session = None
         self.pings = 0
+        self._blas = None  # the BLAS thread limit while running (calibkit.core.blas)
 
     def _on_ping(self, sample) -> None:
         t2 = self.clock.now()
@@ -240,6 +242,7 @@ class Node:
         # zenoh_floor.py, see docs/nodes.md)
         priority = self.cfg.realtime_priority
         self.scheduling = raise_priority(min(priority + 1, 99) if priority > 0 else 0)
+        self._blas = one_blas_thread()  # as the daemon's (daemon.service.daemon.Daemon.run)
 
         rig = self.cfg.session.rig
         self.session = self.cfg.session.open()
@@ -290,6 +293,9 @@ class Node:
             self.session = None
         restore_normal()
         heap.release()
+        if self._blas is not None:
+            self._blas.restore_original_limits()
+            self._blas = None
 
 
 def _capture_threads(sources, pushes):

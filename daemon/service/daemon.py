@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from calibkit.cameras import missing_plugins
+from calibkit.core.blas import one_blas_thread
 from calibkit.core.camera import Rig
 from calibkit.core.errors import UserError
 from calibkit.vision.correspondence import match_frame
@@ -320,6 +321,10 @@ class Daemon:
         # before any thread starts, so that they all inherit it; a batch run stays normal
         self.scheduling = (raise_priority(cfg.realtime_priority) if realtime
                            else "normal (as fast as possible)")
+        # BLAS on the calling thread only: the daemon's matrices are small, and OpenBLAS's
+        # workers, started with numpy at normal priority, would make a real-time thread wait
+        # for them behind every other process on the machine (calibkit.core.blas)
+        blas = one_blas_thread()
         try:
             self.setup(n_scene)
             try:
@@ -333,6 +338,7 @@ class Daemon:
         finally:
             restore_normal()
             heap.release()
+            blas.restore_original_limits()
         return self.figures()
 
     def _run_fast(self, frames, duration_s, progress) -> None:
