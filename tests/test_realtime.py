@@ -227,7 +227,8 @@ def body():
     for tid in os.listdir("/proc/self/task"):
         name = open(f"/proc/self/task/{tid}/comm").read().strip()
         threads.setdefault(name, []).append(os.sched_getparam(int(tid)).sched_priority)
-    seen.update(scheduling=node.scheduling, threads=threads)
+    seen.update(scheduling=node.scheduling, threads=threads,
+                comm=open("/proc/self/comm").read().strip())  # python, python3, ...
     peer.close()
     node.close()
 
@@ -261,7 +262,8 @@ def test_a_node_runs_its_network_a_step_above_its_capture_threads():
     network = [p for name, ps in threads.items() if name.startswith(("rx-", "tx-", "net-"))
                for p in ps]
     assert network and set(network) == {6}, threads
-    # Python's own threads carry no names here: the set timer and the clock's answers are
-    # the two at 6; the thread that started the node and its capture thread are at 5
-    python = sorted(p for p in threads["python"] if p > 0)
+    # Python's own threads carry the interpreter's name here (python, python3): the set
+    # timer and the clock's answers are the two at 6; the thread that started the node and
+    # its capture thread are at 5
+    python = sorted(p for p in threads[seen["comm"]] if p > 0)
     assert python.count(6) >= 2 and python.count(5) == 2 and set(python) == {5, 6}, threads
