@@ -31,12 +31,6 @@ RATE_HZ = 240.0
 SIZE = 5000  # bytes: 8 cameras' blobs, about what a node's set carries
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _config(endpoint: str, listen: bool):
     import zenoh
 
@@ -111,7 +105,9 @@ def _unit_ms(x) -> float:
 
 def one(seconds: float, publishers: int, work_ms: float, rt: bool, step: int) -> dict:
     """One row's run: a subscriber (the daemon) and `publishers` nodes."""
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    from soak import free_port  # benchmarks/soak.py, beside this script
+
+    endpoint = f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}"
     me = [sys.executable, __file__]
     prio = 10 if rt else 0
     sub = subprocess.Popen([*me, "--role", "sub", "--endpoint", endpoint, "--seconds",
