@@ -33,7 +33,7 @@ from daemon.capture.pipeline import CaptureThread
 from daemon.capture.sources import DetectCamera
 from daemon.nodes.settings import NodeConfig
 from daemon.process import heap
-from daemon.process.realtime import raise_priority, restore_normal, set_thread_priority
+from daemon.process.realtime import raise_priority, restore_normal
 from daemon.publish import zenoh_wire as wire
 from daemon.publish.zenoh_session import announce_key, blobs_key, ping_key, pong_key, sets_key
 
@@ -238,7 +238,7 @@ class Node:
         # the clock's answers and the set timer one step above the capture threads: a set
         # that is ready leaves at once even while other cameras' detection holds every core
         # (under SCHED_RR a thread of equal priority waits for the running one to block:
-        # measured with 4 nodes on 2 cores, the hop's p99 0.86 -> 0.19 ms in benchmarks/
+        # 4 publishers with a node's work on 2 cores: p99 0.75 -> 0.19 ms in benchmarks/
         # zenoh_floor.py, see docs/nodes.md)
         priority = self.cfg.realtime_priority
         self.scheduling = raise_priority(min(priority + 1, 99) if priority > 0 else 0)
@@ -257,7 +257,8 @@ class Node:
                                      round(self.cfg.set_wait_ms * 1e6))
             self.sets.start()
         if self.scheduling.startswith("SCHED_RR") and priority < 99:
-            self.scheduling = set_thread_priority(priority) + f" (network {priority + 1})"
+            # a step down for this thread and the capture threads it starts next
+            self.scheduling = raise_priority(priority) + f" (network {priority + 1})"
         pushes = [self.sets.push_for(k) if self.sets is not None else
                   CapturePublisher(self.session, blobs_key(rig, src.name), self.boot,
                                    self.clock) for k, src in enumerate(self.sources)]

@@ -51,14 +51,6 @@ def raise_priority(priority: int) -> str:
     return f"SCHED_RR {priority}"
 
 
-def set_thread_priority(priority: int) -> str:
-    """The calling thread (and those it starts afterwards) to SCHED_RR `priority`, once
-    raise_priority has succeeded: a step below the threads started before, which then run
-    ahead of it. Returns the new scheduling, as raise_priority does."""
-    os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(priority))
-    return f"SCHED_RR {priority}"
-
-
 def restore_normal() -> None:
     """Back to normal scheduling for the calling thread (a daemon run in-process, as the
     tests do, must not leave its caller real-time)."""

@@ -318,13 +318,13 @@ class Daemon:
         fps = cfg.sim.fps if cfg.sim is not None else cfg.fps
         n_scene = frames or (int(duration_s * fps) + 10 if duration_s else None)
         realtime = _paced(cfg)
-        # before any thread starts, so that they all inherit it; a batch run stays normal
-        self.scheduling = (raise_priority(cfg.realtime_priority) if realtime
-                           else "normal (as fast as possible)")
         # BLAS on the calling thread only: the daemon's matrices are small, and OpenBLAS's
         # workers, started with numpy at normal priority, would make a real-time thread wait
         # for them behind every other process on the machine (calibkit.core.blas)
         blas = one_blas_thread()
+        # before any thread starts, so that they all inherit it; a batch run stays normal
+        self.scheduling = (raise_priority(cfg.realtime_priority) if realtime
+                           else "normal (as fast as possible)")
         try:
             self.setup(n_scene)
             try:
